@@ -1,0 +1,38 @@
+# SAIS Workbench — every target sets up .venv itself when it is missing or stale.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+PROFILE ?= quick
+export OPENBLAS_NUM_THREADS ?= 1
+export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
+
+.PHONY: venv test study study-tracking-demo bench lint clean-cache clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check workbench studies tests benchmarks
+
+study: study-tracking-demo
+
+study-tracking-demo: $(STAMP)
+	$(PY) -m studies.tracking_demo --profile $(PROFILE) --out reports/tracking_demo
+
+bench: $(STAMP)
+	$(PY) -m benchmarks --out reports/bench/bench.json
+
+clean-cache:
+	rm -rf .cache/codegen
+
+clean:
+	rm -rf $(VENV) .cache build *.egg-info

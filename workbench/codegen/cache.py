@@ -1,0 +1,164 @@
+"""Generate C from CasADi Functions, compile it once, cache it by content, verify it on load.
+
+Cache key: sha256 of the generated C text, the compiler path, version and flags, the CasADi
+version and the platform. A build writes the source, compiles to a temporary name in the cache
+directory, checks the exit status, and publishes the library with ``os.replace`` followed by a
+manifest holding the library's sha256. Loading checks that digest (a corrupted library is rebuilt)
+and compares every exported Function with its symbolic twin at seeded points.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from workbench.codegen.toolchain import Toolchain, find_toolchain
+
+VERIFY_RTOL = 1e-12
+VERIFY_POINTS = 3
+
+
+class CompileError(RuntimeError):
+    """The C compiler failed; the message carries its output."""
+
+
+@dataclass(frozen=True, eq=False)
+class Library:
+    """A loaded shared library and the Functions it exports (kept alive with it)."""
+
+    path: Path
+    key: str
+    cdll: ctypes.CDLL
+    functions: dict[str, ca.Function] = field(repr=False)
+    cache_hit: bool
+
+
+def cache_dir() -> Path:
+    """``$WORKBENCH_CACHE_DIR`` or ``~/.cache/sais-workbench/codegen``."""
+    env = os.environ.get("WORKBENCH_CACHE_DIR")
+    root = Path(env) if env else Path.home() / ".cache" / "sais-workbench" / "codegen"
+    return root.expanduser().resolve()
+
+
+def generate_source(functions: list[ca.Function], extra_source: str = "") -> str:
+    """C text of the Functions (one translation unit) followed by ``extra_source``."""
+    cg = ca.CodeGenerator("wb_gen.c", {"with_header": False})
+    for f in functions:
+        cg.add(f)
+    return cg.dump() + "\n" + extra_source
+
+
+def _sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def _run_compiler(tc: Toolchain, src: Path, out: Path, extra_flags: tuple[str, ...]) -> None:
+    cmd = [tc.cc, *tc.flags, *extra_flags, str(src), "-o", str(out), "-lm"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise CompileError(
+            f"C compiler failed (exit {proc.returncode}): {' '.join(cmd)}\n"
+            f"{proc.stderr.strip() or proc.stdout.strip()}"
+        )
+
+
+def _verify(lib_path: Path, functions: list[ca.Function]) -> dict[str, ca.Function]:
+    """Load each Function from the library and compare it with the symbolic one."""
+    loaded = {}
+    rng = np.random.default_rng(20261122)
+    for f in functions:
+        ext = ca.external(f.name(), str(lib_path))
+        for _ in range(VERIFY_POINTS):
+            args = [rng.uniform(-2.0, 2.0, f.size_in(i)) for i in range(f.n_in())]
+            ref, got = f.call(args), ext.call(args)
+            for r, g in zip(ref, got, strict=False):
+                r, g = np.asarray(r, dtype=float), np.asarray(g, dtype=float)
+                same_nonfinite = np.array_equal(np.isfinite(r), np.isfinite(g))
+                fin = np.isfinite(r)
+                close = np.all(np.abs(r[fin] - g[fin]) <= VERIFY_RTOL * np.abs(r[fin]) + 1e-300)
+                if not (same_nonfinite and close):
+                    raise RuntimeError(f"generated {f.name()} differs from the CasADi VM")
+        loaded[f.name()] = ext
+    return loaded
+
+
+def build_library(
+    stem: str,
+    functions: list[ca.Function],
+    extra_source: str = "",
+    *,
+    toolchain: Toolchain | None = None,
+    extra_flags: tuple[str, ...] = (),
+    root: Path | None = None,
+) -> Library | None:
+    """Build (or fetch from the cache) the shared library of ``functions`` + ``extra_source``.
+
+    Returns None, with a one-line warning, when no compiler is available: callers then use the
+    CasADi virtual machine. Raises :class:`CompileError` with the compiler's message on failure.
+    """
+    tc = toolchain or find_toolchain()
+    if tc is None:
+        warnings.warn("workbench: no C compiler found (or WORKBENCH_NO_CODEGEN set); "
+                      "using the CasADi virtual machine", RuntimeWarning, stacklevel=2)
+        return None
+    source = generate_source(functions, extra_source)
+    ident = "\n".join([source, tc.key(), *extra_flags, ca.__version__, platform.platform()])
+    key = hashlib.sha256(ident.encode()).hexdigest()[:20]
+    folder = (root or cache_dir()) / f"{stem}-{key}"
+    folder.mkdir(parents=True, exist_ok=True)
+    lib, manifest = folder / f"lib{stem}.so", folder / "manifest.json"
+    hit = _published(lib, manifest)
+    if not hit:
+        _compile_and_publish(tc, source, folder, stem, extra_flags)
+    try:
+        loaded = _verify(lib, functions)
+    except RuntimeError:
+        if not hit:
+            raise
+        _compile_and_publish(tc, source, folder, stem, extra_flags)  # stale or corrupted cache
+        hit = False
+        loaded = _verify(lib, functions)
+    return Library(lib, key, ctypes.CDLL(str(lib)), loaded, hit)
+
+
+def _published(lib: Path, manifest: Path) -> bool:
+    try:
+        meta = json.loads(manifest.read_text())
+        return lib.is_file() and meta.get("sha256") == _sha256_file(lib)
+    except (OSError, ValueError):
+        return False
+
+
+def _compile_and_publish(tc, source: str, folder: Path, stem: str, extra_flags) -> None:
+    src = folder / f"{stem}.c"
+    _atomic_write(src, source)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".lib{stem}.", suffix=".so")
+    os.close(fd)
+    try:
+        _run_compiler(tc, src, Path(tmp), tuple(extra_flags))
+        digest = _sha256_file(Path(tmp))
+        os.replace(tmp, folder / f"lib{stem}.so")
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    meta = {"sha256": digest, "cc": tc.cc, "cc_version": tc.version,
+            "flags": [*tc.flags, *extra_flags], "casadi": ca.__version__}
+    _atomic_write(folder / "manifest.json", json.dumps(meta, indent=1))

@@ -1,0 +1,197 @@
+"""The slow twin of the compiled iLQG passes: the same algorithm in plain NumPy.
+
+It also serves as the fallback backend when no C compiler is available. Derivatives come from
+the problem's CasADi Functions evaluated by the CasADi virtual machine, mapped over the horizon.
+Every branch mirrors workbench/ilqg/core.c; tests compare the two pass by pass.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from workbench.problem import Problem
+
+CRASH_PENALTY = 1e10
+CRASH_MARGIN = 1e-15
+
+
+def step_function(problem: Problem) -> ca.Function:
+    """One forward-pass step (x, u, p) -> (x_next, l + crash penalty), fused for speed.
+
+    The penalty (SPEC 4.6, line search) is 1e10 when any margin of x_next is below 1e-15 or NaN.
+    """
+    f = problem.functions
+    x, u, p = (ca.SX.sym(n, s) for n, s in (("x", problem.nx), ("u", problem.nu),
+                                              ("p", problem.n_p)))
+    x_next = f["dyn"](x, u)
+    cost = f["stage"](x, u, p)
+    if problem.nh:
+        h = f["margins"](x_next)
+        bad = sum((ca.logic_not(h[i] >= CRASH_MARGIN) for i in range(problem.nh)), ca.SX(0))
+        cost = cost + ca.if_else(bad > 0, CRASH_PENALTY, 0.0)
+    return ca.Function("step", [x, u, p], [x_next, cost], ["x", "u", "p"], ["x_next", "cost"],
+                       {"cse": True})
+
+
+def box_qp(H, g, lo, hi, x0, max_iter: int = 100):
+    """Projected-Newton box QP (Tassa et al. 2014): min ½x'Hx + g'x, lo <= x <= hi.
+
+    Returns (x, result, free mask, Cholesky factor of H[free, free]); result codes as in core.c.
+    """
+    n = g.size
+    min_grad, min_rel, step_dec, min_step, armijo = 1e-8, 1e-8, 0.6, 1e-22, 0.1
+    x = np.clip(np.where(np.isfinite(x0), x0, 0.0), lo, hi)
+    clamped = np.zeros(n, bool)
+    free = np.ones(n, bool)
+    L = np.zeros((0, 0))
+    value = x @ g + 0.5 * x @ H @ x
+    oldvalue = 0.0
+    result = 0
+    it = 0
+    for it in range(1, max_iter + 1):
+        if it > 1 and (oldvalue - value) < min_rel * abs(oldvalue):
+            result = 4
+            break
+        oldvalue = value
+        grad = g + H @ x
+        old = clamped
+        clamped = ((x == lo) & (grad > 0)) | ((x == hi) & (grad < 0))
+        if clamped.all():
+            result, free, L = 6, np.zeros(n, bool), np.zeros((0, 0))
+            break
+        if it == 1 or np.any(old != clamped):
+            free = ~clamped
+            try:
+                L = np.linalg.cholesky(H[np.ix_(free, free)])
+            except np.linalg.LinAlgError:
+                result = -1
+                break
+        if np.linalg.norm(grad[~clamped]) < min_grad:
+            result = 5
+            break
+        gc = g + H @ (x * clamped)
+        search = np.zeros(n)
+        search[free] = -_chol_solve(L, gc[free]) - x[free]
+        sdotg = float(search @ grad)
+        if sdotg >= 0:
+            break
+        step = 1.0
+        xc = np.clip(x + step * search, lo, hi)
+        vc = xc @ g + 0.5 * xc @ H @ xc
+        while (vc - oldvalue) / (step * sdotg) < armijo:
+            step *= step_dec
+            xc = np.clip(x + step * search, lo, hi)
+            vc = xc @ g + 0.5 * xc @ H @ xc
+            if step < min_step:
+                result = 2
+                break
+        x, value = xc, vc
+        if result:
+            break
+    else:
+        result = 1
+    return x, result, free, L
+
+
+def _chol_solve(L, b):
+    y = np.linalg.solve(L, b) if L.size else b
+    return np.linalg.solve(L.T, y) if L.size else b
+
+
+class NumpyPasses:
+    """Rollout, derivatives, backward and forward passes in NumPy (+ CasADi VM)."""
+
+    name = "numpy"
+
+    def __init__(self, problem: Problem, T: int):
+        f = problem.functions
+        self.problem, self.T = problem, T
+        self._jac = f["dyn_jac"].map(T)
+        self._quad = f["stage_quad"].map(T)
+        self._tquad = f["term_quad"]
+        self._step, self._term = step_function(problem), f["term"]
+
+    def derivatives(self, X, U, P):
+        """A (T,nx,nx), B (T,nx,nu), lx (T+1,nx), lu, lxx (T+1,nx,nx), luu, lux (T,nu,nx)."""
+        T, nx, nu = self.T, self.problem.nx, self.problem.nu
+        A, B = (np.asarray(m) for m in self._jac(X[:-1].T, U.T))
+        A = A.reshape(nx, T, nx).transpose(1, 0, 2)
+        B = B.reshape(nx, T, nu).transpose(1, 0, 2)
+        _, lx, lu, lxx, luu, lux = (np.asarray(m) for m in self._quad(X[:-1].T, U.T, P[:-1].T))
+        _, lxT, lxxT = (np.asarray(m) for m in self._tquad(X[-1], P[-1]))
+        return {
+            "A": A, "B": B,
+            "lx": np.vstack([lx.T, lxT.T]),
+            "lu": lu.T,
+            "lxx": np.concatenate([lxx.reshape(nx, T, nx).transpose(1, 0, 2), lxxT[None]]),
+            "luu": luu.reshape(nu, T, nu).transpose(1, 0, 2),
+            "lux": lux.reshape(nu, T, nx).transpose(1, 0, 2),
+        }
+
+    def backward(self, d, U, umin, umax, mu, reg, boxed):
+        """Returns (status, k, K, dV); status 0 ok or t+1 where Quu failed."""
+        T, nx, nu = self.T, self.problem.nx, self.problem.nu
+        k = np.zeros((T, nu))
+        K = np.zeros((T, nu, nx))
+        Vx, Vxx = d["lx"][T].copy(), d["lxx"][T].copy()
+        dV = np.zeros(2)
+        for t in range(T - 1, -1, -1):
+            A, B = d["A"][t], d["B"][t]
+            Qx = d["lx"][t] + A.T @ Vx
+            Qu = d["lu"][t] + B.T @ Vx
+            Qxx = d["lxx"][t] + A.T @ Vxx @ A
+            Qux = d["lux"][t] + B.T @ Vxx @ A
+            Quu = d["luu"][t] + B.T @ Vxx @ B
+            if reg == 0:
+                Quu_r, Qux_r = Quu + mu * np.eye(nu), Qux
+            else:
+                Quu_r, Qux_r = Quu + mu * B.T @ B, Qux + mu * B.T @ A
+            if boxed:
+                warm = np.zeros(nu) if t == T - 1 else k[t + 1]
+                kk, res, free, L = box_qp(Quu_r, Qu, umin - U[t], umax - U[t], warm)
+                if res < 1:
+                    return t + 1, k, K, dV
+            else:
+                try:
+                    L = np.linalg.cholesky(Quu_r)
+                except np.linalg.LinAlgError:
+                    return t + 1, k, K, dV
+                kk, free = -_chol_solve(L, Qu), np.ones(nu, bool)
+            k[t] = kk
+            if free.any():
+                K[t][free] = -_chol_solve(L, Qux_r[free])
+            Kt, kt = K[t], k[t]
+            dV += (kt @ Qu, 0.5 * kt @ Quu @ kt)
+            Vx = Qx + Kt.T @ Quu @ kt + Kt.T @ Qu + Qux.T @ kt
+            Vxx = Qxx + Kt.T @ Quu @ Kt + Kt.T @ Qux + Qux.T @ Kt
+            Vxx = 0.5 * (Vxx + Vxx.T)
+        return 0, k, K, dV
+
+    def forward(self, x0, X, U, k, K, P, alpha, umin, umax, use_policy=True):
+        """Closed-loop rollout u = clip(ubar + alpha k + K(x - xbar)); returns (Xn, Un, J)."""
+        T = self.T
+        Xn = np.zeros_like(X)
+        Un = np.zeros_like(U)
+        Xn[0] = x0
+        J = 0.0
+        for t in range(T):
+            v = U[t] + (alpha * k[t] + K[t] @ (Xn[t] - X[t]) if use_policy else 0.0)
+            Un[t] = np.clip(v, umin, umax)
+            xn, c = self._step(Xn[t], Un[t], P[t])
+            Xn[t + 1] = np.asarray(xn).ravel()
+            J += float(c)
+        return Xn, Un, J + float(self._term(Xn[T], P[T]))
+
+    def line_search(self, x0, X, U, k, K, P, J, dV, alphas, z_min, umin, umax):
+        """First step size whose actual/expected decrease ratio z exceeds z_min.
+
+        Returns (accepted, Xn, Un, Jn, alpha, expected).
+        """
+        for alpha in alphas:
+            Xn, Un, Jn = self.forward(x0, X, U, k, K, P, alpha, umin, umax)
+            expected = -alpha * (dV[0] + alpha * dV[1])
+            z = (J - Jn) / expected if expected > 0 else np.sign(J - Jn)
+            if np.isfinite(Jn) and z > z_min:
+                return True, Xn, Un, Jn, alpha, expected
+        return False, X, U, J, 0.0, 0.0

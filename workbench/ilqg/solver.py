@@ -1,0 +1,193 @@
+"""iLQG (SPEC 5): Gauss-Newton DDP with Tassa's regularisation schedule, an expected-decrease
+line search, control limits through a box QP in the backward pass, and termination rules.
+
+``ilqg(problem, x0, U0, P, options)`` runs the same outer loop over one of two pass backends:
+compiled C (default when a compiler exists) or the NumPy twin (``backend="numpy"``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from workbench.ilqg.compiled import CompiledPasses, problem_library
+from workbench.ilqg.reference import NumpyPasses
+from workbench.problem import Problem
+from workbench.validation import fail, one_of, positive
+
+Backend = Literal["auto", "compiled", "numpy"]
+
+
+@dataclass(frozen=True)
+class ILQGOptions:
+    """iLQG settings; defaults from SPEC 5 (DBaS-code / Tassa)."""
+
+    max_iter: int = 300
+    mu_init: float = 0.5
+    mu_factor: float = 1.6
+    mu_min: float = 1e-6
+    mu_max: float = 1e10
+    regularization: Literal["control", "state"] = "control"
+    alphas: tuple[float, ...] = tuple(10.0 ** np.linspace(0.0, -3.0, 11))
+    z_min: float = 0.0
+    tol_abs: float = 0.0
+    tol_rel: float = 1e-7
+    tol_grad: float = 1e-4
+    box_qp: bool = True
+    backend: Backend = "auto"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.max_iter, int) or self.max_iter < 1:
+            raise fail("ILQGOptions.max_iter", self.max_iter, "must be an integer >= 1")
+        positive("ILQGOptions.mu_init", self.mu_init, allow_zero=True)
+        if not self.mu_factor > 1:
+            raise fail("ILQGOptions.mu_factor", self.mu_factor, "must be > 1")
+        positive("ILQGOptions.mu_min", self.mu_min, allow_zero=True)
+        positive("ILQGOptions.mu_max", self.mu_max)
+        one_of("ILQGOptions.regularization", self.regularization, ("control", "state"))
+        if not self.alphas or any(not (0 < a <= 1) for a in self.alphas):
+            raise fail("ILQGOptions.alphas", self.alphas, "need step sizes in (0, 1]")
+        for name in ("tol_abs", "tol_rel", "tol_grad"):
+            positive(f"ILQGOptions.{name}", getattr(self, name), allow_zero=True)
+        one_of("ILQGOptions.backend", self.backend, ("auto", "compiled", "numpy"))
+
+
+@dataclass(frozen=True)
+class Iteration:
+    """One accepted or rejected iteration of the outer loop."""
+
+    iteration: int
+    cost: float
+    cost_change: float
+    expected_change: float
+    alpha: float
+    mu: float
+    grad_norm: float
+    accepted: bool
+    time_s: float
+
+
+@dataclass(frozen=True)
+class ILQGResult:
+    """Solution and diagnostics. Shapes: X (T+1,nx), U (T,nu), k (T,nu), K (T,nu,nx)."""
+
+    X: np.ndarray
+    U: np.ndarray
+    k: np.ndarray
+    K: np.ndarray
+    cost: float
+    converged: bool
+    stop_reason: str
+    iterations: int
+    history: tuple[Iteration, ...]
+    backend: str
+    solve_time_s: float
+    initial_guess_replaced: bool = False
+
+
+def make_passes(problem: Problem, T: int, backend: Backend = "auto"):
+    """The pass backend for a problem and horizon."""
+    if backend == "numpy":
+        return NumpyPasses(problem, T)
+    lib = problem_library(problem)
+    if lib is None:
+        if backend == "compiled":
+            raise fail("backend", backend, "no C compiler is available; use 'numpy' or 'auto'")
+        return NumpyPasses(problem, T)
+    return CompiledPasses(problem, T, lib)
+
+
+def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
+         passes=None) -> ILQGResult:
+    """Solve min_U sum_k l(x_k,u_k,p_k) + l_T(x_T,p_T) s.t. x_{k+1} = F(x_k,u_k), u in the box.
+
+    x0 may be a physical state (it is lifted for barrier-embedded models). U0 (T,nu) is the
+    initial guess; if its rollout crashes or is not finite, zeros are used (SPEC 6.1) and
+    ``initial_guess_replaced`` is set.
+    """
+    opts = options or ILQGOptions()
+    t_start = time.perf_counter()
+    x0 = problem.check_initial_state(x0)
+    U = problem.check_controls(U0)
+    T = U.shape[0]
+    if T < 1:
+        raise fail("U0", U.shape, "the horizon must have at least one step")
+    P = problem.check_params(P, T)
+    umin, umax = problem.model.u_min, problem.model.u_max
+    boxed = opts.box_qp and bool(np.any(np.isfinite(umin)) or np.any(np.isfinite(umax)))
+    reg = 0 if opts.regularization == "control" else 1
+    passes = passes or make_passes(problem, T, opts.backend)
+    zeros_k, zeros_K = np.zeros((T, problem.nu)), np.zeros((T, problem.nu, problem.nx))
+
+    def open_loop(Uc):
+        return passes.forward(x0, np.zeros((T + 1, problem.nx)), Uc, zeros_k, zeros_K, P, 0.0,
+                              umin, umax, use_policy=False)
+
+    X, U, J = open_loop(U)
+    replaced = False
+    if not np.isfinite(J) or J >= 1e10:
+        X, U, J = open_loop(np.zeros_like(U))
+        replaced = True
+        if not np.isfinite(J) or J >= 1e10:
+            raise fail("U0", U0, "neither the initial guess nor zero controls give a safe, "
+                       "finite rollout")
+    mu, delta = opts.mu_init, 1.0
+    k, K = zeros_k, zeros_K
+    history: list[Iteration] = []
+    stop, converged, d = "max_iter", False, None
+    for it in range(1, opts.max_iter + 1):
+        t_it = time.perf_counter()
+        if d is None:
+            d = passes.derivatives(X, U, P)
+        while True:
+            status, k, K, dV = passes.backward(d, U, umin, umax, mu, reg, boxed)
+            if status == 0:
+                break
+            delta = max(delta * opts.mu_factor, opts.mu_factor)
+            mu = max(mu * delta, opts.mu_min)
+            if mu > opts.mu_max:
+                break
+        if mu > opts.mu_max:
+            stop = "regularization_limit"
+            break
+        grad_norm = float(np.mean(np.max(np.abs(k) / (np.abs(U) + 1.0), axis=1)))
+        if grad_norm < opts.tol_grad and mu < 1e-5:
+            delta = min(delta / opts.mu_factor, 1.0 / opts.mu_factor)
+            mu = mu * delta * (mu > opts.mu_min)
+            stop, converged = "gradient", True
+            history.append(Iteration(it, J, 0.0, 0.0, 0.0, mu, grad_norm, False,
+                                     time.perf_counter() - t_it))
+            break
+        accepted, Xn, Un, Jn, alpha, expected = passes.line_search(
+            x0, X, U, k, K, P, J, dV, opts.alphas, opts.z_min, umin, umax)
+        dJ = J - Jn
+        if accepted:
+            delta = min(delta / opts.mu_factor, 1.0 / opts.mu_factor)
+            mu = mu * delta * (mu > opts.mu_min)
+            X, U, J, d = Xn, Un, Jn, None
+            history.append(Iteration(it, J, dJ, expected, alpha, mu, grad_norm, True,
+                                     time.perf_counter() - t_it))
+            if dJ <= max(opts.tol_abs, opts.tol_rel * abs(J)):
+                stop, converged = "cost_change", True
+                break
+        else:
+            delta = max(delta * opts.mu_factor, opts.mu_factor)
+            mu = max(mu * delta, opts.mu_min)
+            history.append(Iteration(it, J, 0.0, 0.0, 0.0, mu, grad_norm, False,
+                                     time.perf_counter() - t_it))
+            if mu > opts.mu_max:
+                stop = "line_search_failed"
+                break
+    if d is None:  # gains about the returned trajectory, for use as a feedback policy
+        d = passes.derivatives(X, U, P)
+        status, k2, K2, _ = passes.backward(d, U, umin, umax, mu, reg, boxed)
+        if status == 0:
+            k, K = k2, K2
+    return ILQGResult(
+        X=X, U=U, k=k, K=K, cost=float(J), converged=converged, stop_reason=stop,
+        iterations=len(history), history=tuple(history), backend=passes.name,
+        solve_time_s=time.perf_counter() - t_start, initial_guess_replaced=replaced,
+    )

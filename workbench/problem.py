@@ -1,0 +1,146 @@
+"""The optimal-control problem, built once and shared by every method (DESIGN principle 1).
+
+A :class:`Problem` turns a :class:`~workbench.models.Model` and a :class:`~workbench.costs.Cost`
+into CasADi Functions with named inputs and outputs and exact first and second derivatives:
+
+===========  =====================  =====================================
+name         inputs                 outputs
+===========  =====================  =====================================
+dyn          x, u                   x_next
+dyn_jac      x, u                   A (nx,nx), B (nx,nu)
+stage        x, u, p                l
+stage_quad   x, u, p                l, lx, lu, lxx, luu, lux (nu,nx)
+term         x, p                   l
+term_quad    x, p                   l, lx, lxx
+margins      x                      h (nh)
+===========  =====================  =====================================
+
+iLQG is Gauss-Newton in the dynamics (no second derivatives of F) and exact in the costs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from workbench.costs import Cost
+from workbench.models import Model
+from workbench.validation import as_array, fail
+
+FUNCTION_NAMES = ("dyn", "dyn_jac", "stage", "stage_quad", "term", "term_quad", "margins")
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Model + cost + their exact-derivative Functions, with a content fingerprint."""
+
+    model: Model
+    cost: Cost
+    functions: dict[str, ca.Function]
+    fingerprint: str
+
+    @classmethod
+    def build(cls, model: Model, cost: Cost) -> Problem:
+        x, u, p = model.x, model.u, cost.p
+        known = {s.name() for s in ca.symvar(ca.vertcat(x, u, p))}
+        for name, expr in (("cost.stage", cost.stage), ("cost.terminal", cost.terminal)):
+            if ca.SX(expr).shape != (1, 1):
+                raise fail(name, ca.SX(expr).shape, "must be a scalar expression")
+            extra = [s.name() for s in ca.symvar(ca.SX(expr)) if s.name() not in known]
+            if extra:
+                raise fail(name, extra, "may depend only on the model's x, u and the cost's p")
+        if ca.depends_on(cost.terminal, u):
+            raise fail("cost.terminal", "depends on u", "the terminal cost is a function of x, p")
+        opts = {"cse": True}
+        d = ca.densify
+        ls, lT = cost.stage, cost.terminal
+        lxx, lx = ca.hessian(ls, x)
+        luu, lu = ca.hessian(ls, u)
+        lux = ca.jacobian(lu, x)
+        lTxx, lTx = ca.hessian(lT, x)
+        fns = {
+            "dyn": ca.Function("dyn", [x, u], [d(model.x_next)], ["x", "u"], ["x_next"], opts),
+            "dyn_jac": ca.Function(
+                "dyn_jac", [x, u],
+                [d(ca.jacobian(model.x_next, x)), d(ca.jacobian(model.x_next, u))],
+                ["x", "u"], ["A", "B"], opts),
+            "stage": ca.Function("stage", [x, u, p], [d(ls)], ["x", "u", "p"], ["l"], opts),
+            "stage_quad": ca.Function(
+                "stage_quad", [x, u, p], [d(ls), d(lx), d(lu), d(lxx), d(luu), d(lux)],
+                ["x", "u", "p"], ["l", "lx", "lu", "lxx", "luu", "lux"], opts),
+            "term": ca.Function("term", [x, p], [d(lT)], ["x", "p"], ["l"], opts),
+            "term_quad": ca.Function(
+                "term_quad", [x, p], [d(lT), d(lTx), d(lTxx)], ["x", "p"],
+                ["l", "lx", "lxx"], opts),
+            "margins": ca.Function("margins", [x], [d(model.h)], ["x"], ["h"], opts),
+        }
+        digest = hashlib.sha256()
+        for name in FUNCTION_NAMES:
+            digest.update(name.encode())
+            digest.update(fns[name].serialize().encode())
+        for arr in (model.u_min, model.u_max, np.array([model.dt])):
+            digest.update(np.ascontiguousarray(arr, dtype=float).tobytes())
+        return cls(model=model, cost=cost, functions=fns, fingerprint=digest.hexdigest()[:16])
+
+    @property
+    def nx(self) -> int:
+        return self.model.nx
+
+    @property
+    def nu(self) -> int:
+        return self.model.nu
+
+    @property
+    def n_p(self) -> int:
+        return self.cost.n_p
+
+    @property
+    def nh(self) -> int:
+        return self.model.nh
+
+    def check_initial_state(self, x0) -> np.ndarray:
+        """Validate x0 (finite, right size, outside every obstacle) and lift it if physical."""
+        x0 = np.asarray(x0, dtype=float).ravel()
+        if x0.size == self.model.n_physical and x0.size != self.nx:
+            if not np.all(np.isfinite(x0)):
+                raise fail("x0", x0, "all entries must be finite")
+            self._check_safe(x0)
+            return self.model.lift(x0)
+        x0 = as_array("x0", x0, (self.nx,))
+        self._check_safe(x0)
+        return x0
+
+    def _check_safe(self, x0: np.ndarray) -> None:
+        if self.nh:
+            h = self.model.margins(x0)
+            if np.min(h) <= 0:
+                i = int(np.argmin(h))
+                raise fail("x0", x0, f"starts inside obstacle {i} (h[{i}] = {h[i]:.4g} <= 0); "
+                           "the start must be strictly safe")
+
+    def check_controls(self, U, T: int | None = None) -> np.ndarray:
+        """Validate a control sequence (T, nu)."""
+        return as_array("U0", U, (T, self.nu))
+
+    def check_params(self, P, T: int) -> np.ndarray:
+        """Validate a parameter array (T+1, n_p); an empty parameter vector needs no array."""
+        if P is None and self.n_p == 0:
+            return np.zeros((T + 1, 0))
+        return as_array("P", P, (T + 1, self.n_p))
+
+    def rollout(self, x0, U) -> np.ndarray:
+        """Open-loop state trajectory X (T+1, nx) under controls U (no clipping)."""
+        U = np.asarray(U, dtype=float)
+        sim = self.functions["dyn"].mapaccum(U.shape[0])
+        Xs = np.asarray(sim(np.asarray(x0, dtype=float), U.T))
+        return np.vstack([np.asarray(x0, dtype=float)[None], Xs.T])
+
+    def total_cost(self, X, U, P) -> float:
+        """J = sum_k l(x_k, u_k, p_k) + l_T(x_T, p_T)."""
+        T = U.shape[0]
+        stage = self.functions["stage"].map(T)
+        return float(np.sum(stage(X[:-1].T, U.T, P[:-1].T))) + float(
+            self.functions["term"](X[-1], P[-1]))

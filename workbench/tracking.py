@@ -1,0 +1,74 @@
+"""Tracking problems of SPEC 6 and BaS-iLQG (SPEC 6.1): iLQG on the barrier-embedded problem."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workbench.barrier import BarrierOptions, embed_barrier
+from workbench.costs import BetaCost, quadratic_tracking
+from workbench.ilqg import ILQGOptions, ILQGResult, ilqg
+from workbench.models import Model
+from workbench.problem import Problem
+from workbench.validation import as_array, fail
+
+
+@dataclass(frozen=True)
+class TrackingWeights:
+    """Tracking weights (diagonals). Defaults SPEC 6 [A]: Q=diag(10,10,1,1), R=1e-3 I,
+    S=diag(1e3,1e3,1e2,1e2); barrier weights q_beta=1e-2 (swept 1e-3..1) and s_beta=0.05."""
+
+    Q: tuple[float, ...] = (10.0, 10.0, 1.0, 1.0)
+    R: tuple[float, ...] = (1e-3, 1e-3)
+    S: tuple[float, ...] = (1e3, 1e3, 1e2, 1e2)
+    q_beta: float = 1e-2
+    s_beta: float = 0.05
+    beta_cost: BetaCost = "relative"
+
+    def __post_init__(self) -> None:
+        for name in ("Q", "R", "S"):
+            w = np.asarray(getattr(self, name), dtype=float)
+            if w.ndim != 1 or not np.all(np.isfinite(w)) or np.any(w < 0):
+                raise fail(f"TrackingWeights.{name}", w, "must be finite diagonal entries >= 0")
+            object.__setattr__(self, name, tuple(float(v) for v in w))
+        for name in ("q_beta", "s_beta"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise fail(f"TrackingWeights.{name}", v, "must be a finite number >= 0")
+
+
+def tracking_problem(model: Model, weights: TrackingWeights = TrackingWeights(), *,
+                     barrier: BarrierOptions | None = None) -> Problem:
+    """Plain tracking problem (barrier=None) or its barrier-embedded twin."""
+    m = embed_barrier(model, barrier) if barrier is not None else model
+    cost = quadratic_tracking(m, Q=weights.Q, R=weights.R, S=weights.S, q_beta=weights.q_beta,
+                              s_beta=weights.s_beta, beta_cost=weights.beta_cost)
+    return Problem.build(m, cost)
+
+
+def tracking_params(problem: Problem, x_ref, target) -> np.ndarray:
+    """Parameters (T+1, n_p): x_ref for stages, the target for the terminal row, and the
+    barrier value of the target as beta_ref (SPEC 4.5: beta_f = sum_i B(h_i(x_f)))."""
+    model = problem.model
+    x_ref = as_array("x_ref", x_ref, (None, model.n_physical))
+    target = as_array("target", target, (model.n_physical,))
+    T = x_ref.shape[0] - 1
+    rows = x_ref.copy()
+    rows[-1] = target
+    blocks = {"x_ref": rows}
+    if model.nx > model.n_physical:
+        blocks["beta_ref"] = model.lift(target)[model.n_physical:]
+    return problem.cost.params(T, **blocks)
+
+
+def bas_ilqg(model: Model, x0, x_ref, target, U0=None, *,
+             weights: TrackingWeights = TrackingWeights(),
+             barrier: BarrierOptions | None = None,
+             options: ILQGOptions | None = None) -> tuple[ILQGResult, Problem]:
+    """BaS-iLQG: iLQG on the safety-embedded tracking problem (x0 is the physical state)."""
+    problem = tracking_problem(model, weights, barrier=barrier or BarrierOptions())
+    P = tracking_params(problem, x_ref, target)
+    T = P.shape[0] - 1
+    U0 = np.zeros((T, model.nu)) if U0 is None else U0
+    return ilqg(problem, x0, U0, P, options), problem

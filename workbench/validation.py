@@ -1,0 +1,65 @@
+"""Input checks that fail fast with a message naming the field, the value and what is allowed."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def _show(value: object) -> str:
+    text = np.array2string(np.asarray(value), precision=6, threshold=12) if not isinstance(
+        value, str
+    ) else repr(value)
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def fail(field: str, value: object, allowed: str) -> ValueError:
+    """Build the one error shape used everywhere: field, value, what is allowed."""
+    return ValueError(f"{field} = {_show(value)} is invalid: {allowed}")
+
+
+def as_array(field: str, value: object, shape: Sequence[int | None], *, finite: bool = True):
+    """Return ``value`` as a float64 array of ``shape`` (None = any size) or raise ValueError."""
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise fail(field, value, "expected a numeric array") from exc
+    if arr.ndim == 0 and len(shape) == 1 and shape[0] == 1:
+        arr = arr.reshape(1)
+    ok = arr.ndim == len(shape) and all(
+        s is None or s == n for s, n in zip(shape, arr.shape, strict=True))
+    if not ok:
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise fail(field, value, f"expected shape {want}, got {arr.shape}")
+    if finite and not np.all(np.isfinite(arr)):
+        raise fail(field, value, "all entries must be finite")
+    return arr
+
+
+def positive(field: str, value: float, *, allow_zero: bool = False) -> float:
+    """Check a positive (or non-negative) finite scalar."""
+    ok = np.isfinite(value) and (value >= 0 if allow_zero else value > 0)
+    if not ok:
+        raise fail(field, value, "must be a finite number " + (">= 0" if allow_zero else "> 0"))
+    return float(value)
+
+
+def one_of(field: str, value: str, allowed: Sequence[str]) -> str:
+    """Check a choice among named options."""
+    if value not in allowed:
+        raise fail(field, value, f"allowed values are {', '.join(map(repr, allowed))}")
+    return value
+
+
+def bounds(field_lo: str, lo: np.ndarray, field_hi: str, hi: np.ndarray) -> None:
+    """Check lo <= hi elementwise (infinite bounds allowed, NaN never)."""
+    if np.any(np.isnan(lo)) or np.any(np.isnan(hi)):
+        raise fail(field_lo if np.any(np.isnan(lo)) else field_hi, lo, "bounds must not be NaN")
+    bad = np.flatnonzero(lo > hi)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"{field_lo}[{i}] = {lo[i]:g} is above {field_hi}[{i}] = {hi[i]:g}: "
+            f"each lower bound must be <= its upper bound"
+        )
