@@ -177,3 +177,23 @@ def test_fingerprint_is_stable_and_sensitive(scene):
     b, _ = bas_tracking_problem(scene)
     c, _ = bas_tracking_problem(scene, q_beta=0.5)
     assert a.fingerprint == b.fingerprint != c.fingerprint
+
+
+def test_hessian_override_replaces_exact_state_hessian():
+    """Gauss-Newton replacements (SPEC 6.2) enter lxx; gradients stay exact."""
+    import dataclasses
+
+    model = double_integrator(obstacles=OBST)
+    cost = quadratic_tracking(model, Q=[1, 1, 1, 1], R=[1, 1], S=[1, 1, 1, 1])
+    h0 = model.h[0]
+    stage = cost.stage - 0.5 * h0**2  # exact Hessian is indefinite in p
+    gn = ca.DM.eye(4) * 7.0
+    plain = Problem.build(model, dataclasses.replace(cost, stage=stage))
+    over = Problem.build(model, dataclasses.replace(cost, stage=stage, stage_hessian_x=gn))
+    x, u, p = np.array([1.0, 2.0, 0.1, 0.2]), np.zeros(2), np.zeros(6)
+    a, b = plain.functions["stage_quad"](x, u, p), over.functions["stage_quad"](x, u, p)
+    np.testing.assert_array_equal(np.asarray(a[1]), np.asarray(b[1]))
+    np.testing.assert_array_equal(np.asarray(b[3]), 7.0 * np.eye(4))
+    assert not np.allclose(np.asarray(a[3]), np.asarray(b[3]))
+    with pytest.raises(ValueError, match="stage_hessian_x"):
+        Problem.build(model, dataclasses.replace(cost, stage_hessian_x=ca.DM.eye(3)))

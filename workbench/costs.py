@@ -29,6 +29,10 @@ class Cost:
     p: ca.SX
     param_layout: tuple[tuple[str, int], ...] = field(default=())
     description: str = ""
+    # Optional replacements of the exact state Hessians (e.g. Gauss-Newton for AL penalties,
+    # SPEC 6.2); expressions in (x, u, p) and (x, p), shape (nx, nx). None = exact Hessian.
+    stage_hessian_x: ca.SX | None = None
+    terminal_hessian_x: ca.SX | None = None
 
     @property
     def n_p(self) -> int:

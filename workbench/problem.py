@@ -61,6 +61,15 @@ class Problem:
         luu, lu = ca.hessian(ls, u)
         lux = ca.jacobian(lu, x)
         lTxx, lTx = ca.hessian(lT, x)
+        nx = model.nx
+        for name, override in (("cost.stage_hessian_x", cost.stage_hessian_x),
+                               ("cost.terminal_hessian_x", cost.terminal_hessian_x)):
+            if override is not None and ca.SX(override).shape != (nx, nx):
+                raise fail(name, ca.SX(override).shape, f"must have shape ({nx}, {nx})")
+        if cost.stage_hessian_x is not None:
+            lxx = ca.SX(cost.stage_hessian_x)
+        if cost.terminal_hessian_x is not None:
+            lTxx = ca.SX(cost.terminal_hessian_x)
         fns = {
             "dyn": ca.Function("dyn", [x, u], [d(model.x_next)], ["x", "u"], ["x_next"], opts),
             "dyn_jac": ca.Function(
