@@ -59,6 +59,16 @@ def generate_source(functions: list[ca.Function], extra_source: str = "") -> str
     return cg.dump() + "\n" + extra_source
 
 
+def _cpu_signature() -> str:
+    """CPU model and feature flags: ``-march=native`` code is only valid on the same CPU kind."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return platform.processor()
+    keep = [ln for ln in lines if ln.startswith(("model name", "flags", "Features"))]
+    return hashlib.sha256("\n".join(sorted(set(keep))).encode()).hexdigest()
+
+
 def _sha256_file(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -120,7 +130,8 @@ def build_library(
                       "using the CasADi virtual machine", RuntimeWarning, stacklevel=2)
         return None
     source = generate_source(functions, extra_source)
-    ident = "\n".join([source, tc.key(), *extra_flags, ca.__version__, platform.platform()])
+    ident = "\n".join([source, tc.key(), *extra_flags, ca.__version__, platform.platform(),
+                       _cpu_signature() if any("native" in f for f in extra_flags) else ""])
     key = hashlib.sha256(ident.encode()).hexdigest()[:20]
     folder = (root or cache_dir()) / f"{stem}-{key}"
     folder.mkdir(parents=True, exist_ok=True)

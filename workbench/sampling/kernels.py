@@ -1,0 +1,249 @@
+"""Generated sampler kernels (issue: sampling core): MPPI rollouts, the SAIS dual rollout of
+Algorithm 1 and the RMPPI candidate evaluation, emitted by :mod:`workbench.sampling.emit`.
+
+Run-time constants (``const`` role, shared by all samples):
+  sigma (nu) sampling std, lr (1) = lambda (1 - nu_mix), u_min, u_max (nu), crash (2) =
+  (C_crash, eps_h), p (n_p) cost parameters, alpha (1) the RMPPI threshold (SAIS only).
+Per-time inputs: u (nu) the importance-sampling sequence; SAIS also K (nu*nx, row-major K_k).
+Carries and results are listed in :data:`MPPI_RESULTS` and :data:`SAIS_RESULTS`.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from workbench.codegen import build_library
+from workbench.sampling.emit import LANES, KernelSpec, emit_kernel, rng_source
+from workbench.sampling.problem import SamplingProblem
+
+MPPI_RESULTS = ("S", "crashed")
+SAIS_RESULTS = ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "crashed_real", "crashed_nom")
+_OPTS = {"cse": True}
+_CONSTS = ("sigma", "lr", "u_min", "u_max", "crash", "p")
+
+
+def _clip(v, lo, hi):
+    return ca.fmin(ca.fmax(v, lo), hi)
+
+
+def _symbols(sp: SamplingProblem):
+    nu = sp.nu
+    return {
+        "sigma": ca.SX.sym("sigma", nu), "lr": ca.SX.sym("lr"),
+        "u_min": ca.SX.sym("u_min", nu), "u_max": ca.SX.sym("u_max", nu),
+        "crash": ca.SX.sym("crash", 2), "p": ca.SX.sym("p", sp.n_p),
+    }
+
+
+def _model_parts(sp: SamplingProblem):
+    fns = sp.functions()
+    return fns["dyn"], fns["margins"], fns["q"], fns["phi"]
+
+
+def _crashed(margins, x, eps_h, nh: int):
+    if nh == 0:
+        return ca.SX(0)
+    h = margins(x)
+    return ca.logic_or(0, sum((h[i] <= eps_h for i in range(nh)), ca.SX(0)) > 0)
+
+
+def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi") -> KernelSpec:
+    """MPPI rollout (SPEC 8.1 with the crash rule of 4.6)."""
+    nx, nu, nh = sp.nx, sp.nu, sp.model.nh
+    dyn, margins, q, phi = _model_parts(sp)
+    c = _symbols(sp)
+    carry = ca.SX.sym("carry", nx + 2)
+    z, u = ca.SX.sym("z", nu), ca.SX.sym("u", nu)
+    x, S, cr = carry[:nx], carry[nx], carry[nx + 1]
+    v = _clip(u + c["sigma"] * z, c["u_min"], c["u_max"])
+    eps = v - u
+    xn = dyn(x, v)
+    crn = ca.fmax(cr, _crashed(margins, xn, c["crash"][1], nh))
+    inv = 1.0 / (c["sigma"] * c["sigma"])
+    lr = 0.5 * c["lr"] * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, eps))
+    Sn = S + (q(xn, c["p"]) + c["crash"][0] * crn) + lr
+    ins = {"carry": carry, "z": z, "u": u, **c}
+    step = ca.Function(name + "_step", list(ins.values()), [ca.vertcat(xn, Sn, crn), v],
+                       list(ins), ["carry_next", "v"], _OPTS)
+    final = ca.Function(name + "_final", [carry, c["p"]],
+                        [ca.vertcat(S + phi(x, c["p"]), cr)], ["carry", "p"], ["result"], _OPTS)
+    roles = {"carry": "carry", "z": "noise", "u": "time", **{k: "const" for k in _CONSTS}}
+    return KernelSpec(name, step, final, roles)
+
+
+def candidate_spec(sp: SamplingProblem) -> KernelSpec:
+    """RMPPI candidate evaluation (SPEC 9.3): MPPI rollouts whose controls and noise are per
+    sample (the stride shift and the zero noise for t < s are prepared by the caller)."""
+    base = mppi_spec(sp, "wb_candidates")
+    roles = {**base.roles, "u": "lane", "z": "lane"}
+    return KernelSpec("wb_candidates", base.step, base.final, roles)
+
+
+def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:
+    """The SAIS dual rollout of Algorithm 1 (SPEC 10.1), clip_in_cost = True."""
+    nx, nu, nh = sp.nx, sp.nu, sp.model.nh
+    dyn, margins, q, phi = _model_parts(sp)
+    c = _symbols(sp)
+    alpha = ca.SX.sym("alpha")
+    carry = ca.SX.sym("carry", 2 * nx + 6)
+    z, u, Kv = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("K", nu * nx)
+    x, xs = carry[:nx], carry[nx : 2 * nx]
+    Sn, Sh, Sr, LR, cr, cn = (carry[2 * nx + i] for i in range(6))
+    K = ca.reshape(Kv, nx, nu).T
+    eps = c["sigma"] * z
+    kfb = ca.mtimes(K, x - xs)
+    vr = _clip(u + eps + kfb, c["u_min"], c["u_max"])
+    vn = _clip(u + eps, c["u_min"], c["u_max"])
+    et = vn - u
+    kt = vr - u - et
+    xn, xsn = dyn(x, vr), dyn(xs, vn)
+    crn = ca.fmax(cr, _crashed(margins, xn, c["crash"][1], nh))
+    cnn = ca.fmax(cn, _crashed(margins, xsn, c["crash"][1], nh))
+    qr = q(xn, c["p"]) + c["crash"][0] * crn
+    qn = q(xsn, c["p"]) + c["crash"][0] * cnn
+    inv = 1.0 / (c["sigma"] * c["sigma"])
+    half = 0.5 * c["lr"]
+    Sh = Sh + (qr + half * ca.dot(kt * inv, kt))
+    Sn = Sn + qn
+    Sr = Sr + (qr + half * ca.dot((u + kt) * inv, u + 2.0 * et + kt))
+    LR = LR + half * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, et))
+    ins = {"carry": carry, "z": z, "u": u, "K": Kv, **c, "alpha": alpha}
+    step = ca.Function(name + "_step", list(ins.values()),
+                       [ca.vertcat(xn, xsn, Sn, Sh, Sr, LR, crn, cnn), vn, vr],
+                       list(ins), ["carry_next", "v_nom", "v_real"], _OPTS)
+    fx, fxs = phi(x, c["p"]), phi(xs, c["p"])
+    Shf, Snf, Srf = carry[2 * nx + 1] + fx, carry[2 * nx] + fxs, carry[2 * nx + 2] + fx
+    S_nom = 0.5 * Snf + 0.5 * ca.fmax(ca.fmin(Shf, alpha), Snf) + carry[2 * nx + 3]
+    final = ca.Function(name + "_final", [carry, c["p"], alpha],
+                        [ca.vertcat(S_nom, Srf, Snf, Shf, carry[2 * nx + 3], carry[2 * nx + 4],
+                                    carry[2 * nx + 5])],
+                        ["carry", "p", "alpha"], ["result"], _OPTS)
+    roles = {"carry": "carry", "z": "noise", "u": "time", "K": "time", "alpha": "const",
+             **{k: "const" for k in _CONSTS}}
+    return KernelSpec(name, step, final, roles)
+
+
+@dataclass(frozen=True, eq=False)
+class KernelOutput:
+    """Kernel outputs; lane outputs are (T, m, N) views, results (N, nr), noise (T, nz, N)."""
+
+    lane_out: list[np.ndarray]
+    result: np.ndarray
+    noise: np.ndarray | None
+
+
+def _addr(a: np.ndarray) -> int:
+    return a.__array_interface__["data"][0]
+
+
+class CompiledKernel:
+    """A loaded kernel: call with arrays, get :class:`KernelOutput`."""
+
+    def __init__(self, spec: KernelSpec, cdll: ctypes.CDLL):
+        self.spec = spec
+        self._fn = getattr(cdll, spec.name)
+        self._fn.restype = None
+        self._fn.argtypes = [ctypes.c_int, ctypes.c_int] + [ctypes.c_void_p] * 7 + [
+            ctypes.c_int, ctypes.c_ulonglong]
+        st = spec.step
+        self._sizes = {n: st.numel_in(i) for i, n in enumerate(st.name_in())}
+
+    def __call__(self, carry0, *, consts: dict[str, np.ndarray], time_in=None, lane_in=None,
+                 noise=None, seed: int | None = None, keep_noise: bool = False) -> KernelOutput:
+        """carry0 (N, nc); time_in {name: (T, m)}; lane_in {name: (T, m, N)};
+        noise (T, nz, N) standard normals, or seed (draws in the kernel; kept if keep_noise)."""
+        spec = self.spec
+        carry0 = np.ascontiguousarray(carry0, dtype=float)
+        N = carry0.shape[0]
+        Np = -(-N // LANES) * LANES
+        time_in, lane_in = time_in or {}, lane_in or {}
+        T = (next(iter(time_in.values())).shape[0] if time_in
+             else next(iter(lane_in.values())).shape[0])
+        if Np != N:
+            carry0 = np.vstack([carry0, np.repeat(carry0[-1:], Np - N, axis=0)])
+        keep = []
+
+        def prep(a, pad_last=False):
+            a = np.asarray(a, dtype=float)
+            if pad_last and Np != N:
+                a = np.concatenate([a, np.repeat(a[..., -1:], Np - N, axis=-1)], axis=-1)
+            a = np.ascontiguousarray(a)
+            keep.append(a)
+            return _addr(a)
+
+        ptrs = {
+            "lane": [prep(lane_in[n], True) for n in spec.inputs("lane")],
+            "time": [prep(time_in[n]) for n in spec.inputs("time")],
+            "const": [prep(consts[n]) for n in spec.inputs("const")],
+        }
+        outs = [np.empty((T, m, Np)) for m in spec.lane_out_sizes()]
+        result = np.empty((Np, spec.n_result))
+        nz = spec.n_noise
+        gen = seed is not None
+        if gen:
+            noise_buf = np.empty((T, nz, Np)) if keep_noise else None
+        else:
+            noise_buf = (np.ascontiguousarray(np.concatenate(
+                [noise, np.repeat(noise[..., -1:], Np - N, axis=-1)], axis=-1))
+                if noise is not None and Np != N else
+                (np.ascontiguousarray(noise, dtype=float) if noise is not None else None))
+            if nz and noise_buf is None:
+                raise ValueError("noise = None is invalid: give a noise buffer or a seed")
+
+        def arr(lst):
+            return (ctypes.c_void_p * max(1, len(lst)))(*lst) if lst else None
+
+        self._fn(Np, T, _addr(carry0), arr(ptrs["lane"]), arr(ptrs["time"]), arr(ptrs["const"]),
+                 arr([_addr(o) for o in outs]), _addr(result),
+                 _addr(noise_buf) if noise_buf is not None else None, int(gen),
+                 int(seed or 0) & (2**64 - 1))
+        return KernelOutput(
+            lane_out=[o[..., :N] for o in outs], result=result[:N],
+            noise=noise_buf[..., :N] if noise_buf is not None else None)
+
+
+@dataclass(frozen=True, eq=False)
+class SamplerLibrary:
+    """The three kernels of one sampling problem, in one cached shared library."""
+
+    mppi: CompiledKernel
+    sais: CompiledKernel
+    candidates: CompiledKernel
+    cdll: ctypes.CDLL
+
+    def normals(self, N: int, T: int, m: int, seed: int) -> np.ndarray:
+        """The standard normals (T, m, N) a kernel draws with the same seed."""
+        out = np.empty((T, m, N))
+        self.cdll.wb_normals(N, T, m, ctypes.c_ulonglong(int(seed) & (2**64 - 1)),
+                             ctypes.c_void_p(_addr(out)))
+        return out
+
+    def set_threads(self, n: int) -> None:
+        self.cdll.wb_set_threads(int(n))
+
+
+_LIBS: dict[str, SamplerLibrary | None] = {}
+
+
+def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
+    """Build (or load from the cache) the kernels of a sampling problem; None without compiler."""
+    key = sp.fingerprint()
+    if key not in _LIBS:
+        specs = [mppi_spec(sp), sais_spec(sp), candidate_spec(sp)]
+        source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
+        lib = build_library(f"sampler_{sp.model.name.replace('+', '_')}", [], source,
+                            extra_flags=("-fopenmp", "-march=native"))
+        if lib is None:
+            _LIBS[key] = None
+        else:
+            c = lib.cdll
+            c.wb_normals.restype = None
+            c.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
+            c.wb_set_threads.argtypes = [ctypes.c_int]
+            kernels = [CompiledKernel(s, c) for s in specs]
+            _LIBS[key] = SamplerLibrary(*kernels, cdll=c)
+    return _LIBS[key]

@@ -1,0 +1,127 @@
+"""The slow twin of the sampler kernels: MPPI rollouts, Algorithm 1 (SAIS) and the candidate
+evaluation in plain NumPy, vectorised over samples, fed the same standard-normal noise.
+
+The model (dynamics, margins) and the state costs are evaluated by the CasADi virtual machine;
+the algorithm — clipping, feedback, crash rule, likelihood-ratio terms, the three SAIS costs —
+is written here independently of the generated step functions. Noise is sample-major
+(N, T, nu); it is the kernels' (T, nu, N) buffer transposed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workbench.sampling.problem import SamplingProblem
+
+
+@dataclass(frozen=True)
+class SamplerConstants:
+    """Run-time constants shared by all samples (see kernels.py)."""
+
+    sigma: np.ndarray  # (nu,) sampling std
+    lam: float  # temperature lambda
+    nu_mix: float  # MPPI-G's alpha, the base-distribution mixing (SPEC nu), default 0
+    u_min: np.ndarray
+    u_max: np.ndarray
+    crash_cost: float
+    eps_h: float
+    p: np.ndarray  # cost parameters (the goal state)
+    alpha: float = np.inf  # RMPPI threshold (SAIS only)
+
+    def kernel_consts(self) -> dict[str, np.ndarray]:
+        return {"sigma": np.asarray(self.sigma, float),
+                "lr": np.array([self.lam * (1.0 - self.nu_mix)]),
+                "u_min": np.asarray(self.u_min, float), "u_max": np.asarray(self.u_max, float),
+                "crash": np.array([self.crash_cost, self.eps_h]),
+                "p": np.asarray(self.p, float), "alpha": np.array([self.alpha])}
+
+
+class _Model:
+    def __init__(self, sp: SamplingProblem, N: int):
+        f = sp.functions()
+        self.dyn = f["dyn"].map(N)
+        self.margins = f["margins"].map(N) if sp.model.nh else None
+        self.q, self.phi = f["q"].map(N), f["phi"].map(N)
+
+    def step(self, X, V):
+        return np.asarray(self.dyn(X.T, V.T)).T
+
+    def crashed(self, X, eps_h):
+        if self.margins is None:
+            return np.zeros(X.shape[0], bool)
+        return np.any(np.asarray(self.margins(X.T)).T <= eps_h, axis=1)
+
+    def cost(self, fn, X, p):
+        return np.asarray(fn(X.T, p)).ravel()
+
+
+def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants) -> dict[str, np.ndarray]:
+    """MPPI rollouts (SPEC 8.1 + 4.6). X0 (N,nx), U (T,nu) or (N,T,nu) per-sample controls,
+    Z (N,T,nu) standard normals. Returns S (N,), crashed (N,), v (N,T,nu), X (N,T+1,nx)."""
+    X0 = np.asarray(X0, float)
+    N, T = Z.shape[0], Z.shape[1]
+    Ub = np.broadcast_to(U, (N, T, sp.nu))
+    m = _Model(sp, N)
+    inv = 1.0 / (c.sigma**2)
+    half = 0.5 * c.lam * (1.0 - c.nu_mix)
+    X = np.empty((N, T + 1, sp.nx))
+    X[:, 0] = X0
+    S = np.zeros(N)
+    crashed = np.zeros(N, bool)
+    V = np.empty((N, T, sp.nu))
+    for t in range(T):
+        u = Ub[:, t]
+        v = np.clip(u + c.sigma * Z[:, t], c.u_min, c.u_max)
+        eps = v - u
+        X[:, t + 1] = m.step(X[:, t], v)
+        crashed |= m.crashed(X[:, t + 1], c.eps_h)
+        S += m.cost(m.q, X[:, t + 1], c.p) + c.crash_cost * crashed
+        S += half * (np.sum(u * inv * u, axis=1) + 2.0 * np.sum(u * inv * eps, axis=1))
+        V[:, t] = v
+    S += m.cost(m.phi, X[:, T], c.p)
+    return {"S": S, "crashed": crashed, "v": V, "X": X}
+
+
+def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants
+                   ) -> dict[str, np.ndarray]:
+    """Algorithm 1 (SPEC 10.1) with clip_in_cost: real samples with feedback K_k (x - x*), nominal
+    samples without, the same noise for both. X0, Xs0 (N,nx) real and nominal starts, U (T,nu),
+    K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces they are made of."""
+    N, T = Z.shape[0], Z.shape[1]
+    m = _Model(sp, N)
+    inv = 1.0 / (c.sigma**2)
+    half = 0.5 * c.lam * (1.0 - c.nu_mix)
+    X = np.empty((N, T + 1, sp.nx))
+    Xs = np.empty((N, T + 1, sp.nx))
+    X[:, 0], Xs[:, 0] = X0, Xs0
+    S_state_nom, S_hat, S_real, LR = (np.zeros(N) for _ in range(4))
+    cr, cn = np.zeros(N, bool), np.zeros(N, bool)
+    Vn, Vr = np.empty((N, T, sp.nu)), np.empty((N, T, sp.nu))
+    for t in range(T):
+        u = U[t]
+        eps = c.sigma * Z[:, t]
+        kfb = (X[:, t] - Xs[:, t]) @ K[t].T  # line 5: K_k (x - x*)
+        vr = np.clip(u + eps + kfb, c.u_min, c.u_max)  # line 6
+        vn = np.clip(u + eps, c.u_min, c.u_max)  # line 7
+        eps_eff = vn - u
+        kfb_eff = vr - u - eps_eff
+        X[:, t + 1], Xs[:, t + 1] = m.step(X[:, t], vr), m.step(Xs[:, t], vn)
+        cr |= m.crashed(X[:, t + 1], c.eps_h)
+        cn |= m.crashed(Xs[:, t + 1], c.eps_h)
+        qr = m.cost(m.q, X[:, t + 1], c.p) + c.crash_cost * cr
+        qn = m.cost(m.q, Xs[:, t + 1], c.p) + c.crash_cost * cn
+        S_hat += qr + half * np.sum(kfb_eff * inv * kfb_eff, axis=1)  # line 8
+        S_state_nom += qn
+        S_real += qr + half * np.sum((u + kfb_eff) * inv * (u + 2 * eps_eff + kfb_eff), axis=1)
+        LR += half * (u @ (inv * u) + 2.0 * (eps_eff @ (inv * u)))  # line 12, one sum
+        Vn[:, t], Vr[:, t] = vn, vr
+    phi_r, phi_n = m.cost(m.phi, X[:, T], c.p), m.cost(m.phi, Xs[:, T], c.p)
+    S_hat += phi_r
+    S_state_nom += phi_n
+    S_real += phi_r  # line 10
+    S_nom = 0.5 * S_state_nom + 0.5 * np.maximum(np.minimum(S_hat, c.alpha), S_state_nom) + LR
+    return {"S_nom": S_nom, "S_real": S_real, "S_state_nom": S_state_nom, "S_hat": S_hat,
+            "LR": LR, "crashed_real": cr, "crashed_nom": cn, "v_nom": Vn, "v_real": Vr,
+            "X": X, "X_nom": Xs}
