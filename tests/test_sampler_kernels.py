@@ -32,14 +32,15 @@ def _close(a, b, rtol=1e-9):
     np.testing.assert_allclose(a, b, rtol=rtol, atol=1e-9 * max(1.0, float(np.max(np.abs(b)))))
 
 
-def test_mppi_kernel_equals_reference_including_crashes(setup, rng):
+@pytest.mark.parametrize("model_backend", ["numpy", "casadi"])
+def test_mppi_kernel_equals_reference_including_crashes(setup, rng, model_backend):
     model, sp, lib, c = setup
     x0 = model.lift([0.5, 0.5, 1.5, 1.5])  # heading at the first obstacle: some samples crash
     U = rng.normal(0, 1.5, (T, 2))
     out = lib.mppi(np.tile(np.r_[x0, 0, 0], (N, 1)), consts=c.kernel_consts(),
                    time_in={"u": U}, seed=123, keep_noise=True)
     Z = np.transpose(out.noise, (2, 0, 1))
-    ref = mppi_reference(sp, np.tile(x0, (N, 1)), U, Z, c)
+    ref = mppi_reference(sp, np.tile(x0, (N, 1)), U, Z, c, model_backend)
     crashed = out.result[:, 1].astype(bool)
     np.testing.assert_array_equal(crashed, ref["crashed"])
     assert 0 < crashed.sum() < N
@@ -47,7 +48,8 @@ def test_mppi_kernel_equals_reference_including_crashes(setup, rng):
     _close(np.transpose(out.lane_out[0], (2, 0, 1)), ref["v"], rtol=1e-12)
 
 
-def test_sais_kernel_equals_reference(setup, rng):
+@pytest.mark.parametrize("model_backend", ["numpy", "casadi"])
+def test_sais_kernel_equals_reference(setup, rng, model_backend):
     model, sp, lib, c = setup
     x0 = model.lift([1.0, 1.0, 2.0, 2.0])
     xs0 = model.lift([0.9, 1.1, 1.8, 2.1])
@@ -58,7 +60,8 @@ def test_sais_kernel_equals_reference(setup, rng):
     out = lib.sais(carry, consts=c.kernel_consts(), time_in={"u": U, "K": K.reshape(T, 10)},
                    seed=9, keep_noise=True)
     Z = np.transpose(out.noise, (2, 0, 1))
-    ref = sais_reference(sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, c)
+    ref = sais_reference(sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, c,
+                         model_backend)
     names = ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "crashed_real", "crashed_nom")
     for j, name in enumerate(names):
         _close(out.result[:, j], ref[name].astype(float))
@@ -97,6 +100,14 @@ def test_zero_gains_reduce_sais_to_the_sampler_without_feedback(setup, rng):
     np.testing.assert_allclose(sais.result[:, 2] + sais.result[:, 4], S_mppi, rtol=1e-14)
     np.testing.assert_array_equal(sais.lane_out[0], sais.lane_out[1])
     np.testing.assert_array_equal(sais.lane_out[0], mppi.lane_out[0])
+
+
+def test_numpy_twin_is_used_for_the_navigation_problem(setup):
+    from workbench.sampling.reference import _Model, _NumpyModel
+
+    _, sp, _, _ = setup
+    assert isinstance(_Model(sp, 4), _NumpyModel)
+    assert not isinstance(_Model(sp, 4, "casadi"), _NumpyModel)
 
 
 def test_kernel_noise_is_standard_normal_and_deterministic(setup):

@@ -7,6 +7,7 @@ safety margins (h >= 0 is safe) and names. Users bring their own system with
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -110,21 +111,27 @@ class Model:
             obstacles=tuple(obstacles), n_physical=nx, lift_expr=x,
         )
 
+    @functools.cached_property
+    def _lift_fn(self) -> ca.Function:
+        return ca.Function("lift", [self.x[: self.n_physical]], [self.lift_expr])
+
+    @functools.cached_property
+    def _margins_fn(self) -> ca.Function:
+        return ca.Function("h", [self.x[: self.n_physical]], [self.h])
+
     def lift(self, x_phys) -> np.ndarray:
         """Full state (physical state plus barrier states, if any) from a physical state."""
         xp = as_array("x", x_phys, (self.n_physical,))
         if self.lift_expr is None or self.n_physical == self.nx:
             return xp.copy()
-        f = ca.Function("lift", [self.x[: self.n_physical]], [self.lift_expr])
-        return np.asarray(f(xp)).ravel()
+        return np.asarray(self._lift_fn(xp)).ravel()
 
     def margins(self, x) -> np.ndarray:
         """Safety margins h(x) at a full (or physical) state; NumPy in, NumPy out."""
         xa = np.asarray(x, dtype=float).ravel()
-        xs = self.x[: self.n_physical] if xa.size == self.n_physical else self.x
-        if xa.size != xs.numel():
+        if xa.size not in (self.n_physical, self.nx):
             raise fail("x", xa, f"expected {self.n_physical} or {self.nx} entries")
-        return np.asarray(ca.Function("h", [xs], [self.h])(xa)).ravel()
+        return np.asarray(self._margins_fn(xa[: self.n_physical])).ravel()
 
 
 def double_integrator(

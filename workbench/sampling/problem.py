@@ -27,6 +27,7 @@ class SamplingProblem:
     phi: ca.SX
     p: ca.SX
     description: str = ""
+    weights: dict[str, np.ndarray] | None = None  # set by navigation_costs (for the NumPy twin)
 
     def __post_init__(self) -> None:
         known = {s.name() for s in ca.symvar(ca.vertcat(self.model.x, self.p))}
@@ -89,4 +90,6 @@ def navigation_costs(model: Model, *, Qp=(1.0, 1.0), Qv=(0.1, 0.1), q_beta: floa
         eb = x[n:] - g[n:]
         q += q_beta * ca.dot(eb, eb)
     e = x - g
-    return SamplingProblem(model, q, ca.dot(S * e, e), g, description="navigation (SPEC 8.2)")
+    weights = {"Qp": Qp, "Qv": Qv, "q_beta": float(q_beta), "S": S}
+    return SamplingProblem(model, q, ca.dot(S * e, e), g, description="navigation (SPEC 8.2)",
+                           weights=weights)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from workbench.sampling.numpy_model import numpy_navigation_twin
 from workbench.sampling.problem import SamplingProblem
 
 
@@ -39,7 +40,17 @@ class SamplerConstants:
 
 
 class _Model:
-    def __init__(self, sp: SamplingProblem, N: int):
+    """Model evaluation for the twin: plain NumPy for the built-in navigation problem,
+    otherwise the CasADi virtual machine (mapped over samples)."""
+
+    def __new__(cls, sp: SamplingProblem, N: int, model_backend: str = "auto"):
+        if model_backend != "casadi" and sp.weights is not None:
+            twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
+            if twin is not None:
+                return _NumpyModel(twin)
+        return super().__new__(cls)
+
+    def __init__(self, sp: SamplingProblem, N: int, model_backend: str = "auto"):
         f = sp.functions()
         self.dyn = f["dyn"].map(N)
         self.margins = f["margins"].map(N) if sp.model.nh else None
@@ -57,13 +68,30 @@ class _Model:
         return np.asarray(fn(X.T, p)).ravel()
 
 
-def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants) -> dict[str, np.ndarray]:
+class _NumpyModel:
+    def __init__(self, twin):
+        self.twin = twin
+        self.q, self.phi = twin.q, twin.phi
+        self.name = "numpy"
+
+    def step(self, X, V):
+        return self.twin.step(X, V)
+
+    def crashed(self, X, eps_h):
+        return self.twin.crashed(X, eps_h)
+
+    def cost(self, fn, X, p):
+        return fn(X, np.asarray(p, float))
+
+
+def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
+                   model_backend: str = "auto") -> dict[str, np.ndarray]:
     """MPPI rollouts (SPEC 8.1 + 4.6). X0 (N,nx), U (T,nu) or (N,T,nu) per-sample controls,
     Z (N,T,nu) standard normals. Returns S (N,), crashed (N,), v (N,T,nu), X (N,T+1,nx)."""
     X0 = np.asarray(X0, float)
     N, T = Z.shape[0], Z.shape[1]
     Ub = np.broadcast_to(U, (N, T, sp.nu))
-    m = _Model(sp, N)
+    m = _Model(sp, N, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
@@ -84,13 +112,13 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants) -> dict[s
     return {"S": S, "crashed": crashed, "v": V, "X": X}
 
 
-def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants
-                   ) -> dict[str, np.ndarray]:
+def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
+                   model_backend: str = "auto") -> dict[str, np.ndarray]:
     """Algorithm 1 (SPEC 10.1) with clip_in_cost: real samples with feedback K_k (x - x*), nominal
     samples without, the same noise for both. X0, Xs0 (N,nx) real and nominal starts, U (T,nu),
     K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces they are made of."""
     N, T = Z.shape[0], Z.shape[1]
-    m = _Model(sp, N)
+    m = _Model(sp, N, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))

@@ -1,0 +1,326 @@
+"""Receding-horizon controllers with explicit state: ``state, u, info = ctrl.step(state, x, rng)``.
+
+* :class:`MPPI` — MPPI (SPEC 8.1); BaS-MPPI is MPPI on a barrier-embedded problem (SPEC 8.2).
+* :class:`RobustMPPI` — RMPPI (SPEC 9) with a plain iLQG tracking feedback, or SA-RMPPI
+  (SPEC 10.3) with K_safe from BaS-iLQG and the SAIS sampler of Algorithm 1.
+
+Controllers hold only immutable configuration and external workspaces (compiled kernels, iLQG
+passes); everything that changes between steps lives in the returned state.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+
+from workbench.costs import quadratic_tracking
+from workbench.ilqg import ILQGOptions, ilqg, make_passes
+from workbench.problem import Problem
+from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.reference import SamplerConstants
+from workbench.sampling.sampler import Backend, Sampler
+from workbench.sampling.weights import importance_weights, weighted_controls
+from workbench.validation import as_array, fail, one_of, positive
+
+
+@dataclass(frozen=True)
+class MPPIConfig:
+    """Sampling settings (SPEC 8.2, 15 defaults [A])."""
+
+    n_samples: int = 1024
+    horizon: int = 100
+    lam: float = 1.0
+    sigma: tuple[float, ...] = (2.0, 2.0)  # per-axis std; Sigma = diag(sigma^2)
+    nu_mix: float = 0.0
+    iterations: int = 1
+    crash_cost: float = 1e6
+    eps_h: float = 1e-6
+    tail: Literal["hold", "zero"] = "hold"
+    backend: Backend = "auto"
+
+    def __post_init__(self) -> None:
+        for name in ("n_samples", "horizon", "iterations"):
+            v = getattr(self, name)
+            if not isinstance(v, int | np.integer) or v < 1:
+                raise fail(f"MPPIConfig.{name}", v, "must be an integer >= 1")
+        if not (np.isfinite(self.lam) and self.lam > 0):
+            raise fail("MPPIConfig.lam", self.lam, "lambda must be a finite number > 0")
+        s = np.asarray(self.sigma, dtype=float)
+        if s.ndim != 1 or not np.all(np.isfinite(s)) or np.any(s <= 0):
+            raise fail("MPPIConfig.sigma", s, "Sigma = diag(sigma^2) must be positive definite: "
+                       "every sigma must be finite and > 0")
+        object.__setattr__(self, "sigma", tuple(float(v) for v in s))
+        if not (0.0 <= self.nu_mix < 1.0):
+            raise fail("MPPIConfig.nu_mix", self.nu_mix, "must lie in [0, 1)")
+        positive("MPPIConfig.crash_cost", self.crash_cost, allow_zero=True)
+        positive("MPPIConfig.eps_h", self.eps_h, allow_zero=True)
+        one_of("MPPIConfig.tail", self.tail, ("hold", "zero"))
+
+    @classmethod
+    def with_covariance(cls, Sigma, **kw) -> MPPIConfig:
+        """Build from a covariance matrix; it must be positive definite (and diagonal)."""
+        S = np.asarray(Sigma, dtype=float)
+        if S.ndim != 2 or S.shape[0] != S.shape[1] or not np.allclose(S, S.T):
+            raise fail("Sigma", S, "must be a symmetric square matrix")
+        if not np.all(np.isfinite(S)) or np.min(np.linalg.eigvalsh(S)) <= 0:
+            raise fail("Sigma", S, "must be positive definite")
+        if np.any(S[~np.eye(S.shape[0], dtype=bool)] != 0):
+            raise fail("Sigma", S, "only diagonal covariances are supported by the kernels")
+        return cls(sigma=tuple(np.sqrt(np.diag(S))), **kw)
+
+
+def _shift(U: np.ndarray, s: int, tail: str) -> np.ndarray:
+    if s == 0:
+        return U
+    out = np.empty_like(U)
+    out[:-s] = U[s:]
+    out[-s:] = U[-1] if tail == "hold" else 0.0
+    return out
+
+
+def _full_state(sp: SamplingProblem, x) -> np.ndarray:
+    x = np.asarray(x, dtype=float).ravel()
+    if not np.all(np.isfinite(x)):
+        raise fail("x", x, "the measured state must be finite")
+    if x.size == sp.model.n_physical:
+        return sp.model.lift(x)
+    return as_array("x", x, (sp.nx,))
+
+
+@dataclass(frozen=True)
+class MPPIState:
+    U: np.ndarray  # (T, nu) importance-sampling sequence
+
+
+@dataclass(frozen=True)
+class MPPIInfo:
+    free_energy: float
+    ess: float
+    n_crashed: int
+    valid_weights: bool
+    time_s: float
+
+
+class MPPI:
+    """MPPI on a sampling problem (BaS-MPPI when the problem's model is barrier-embedded)."""
+
+    def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig()):
+        if len(config.sigma) != sp.nu:
+            raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
+        self.sp, self.cfg = sp, config
+        self.sampler = Sampler(sp, config.backend)
+        goal = _full_state(sp, goal) if sp.n_p == sp.nx else as_array("goal", goal, (sp.n_p,))
+        self.consts = SamplerConstants(
+            sigma=np.array(config.sigma), lam=config.lam, nu_mix=config.nu_mix,
+            u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost,
+            eps_h=config.eps_h, p=goal)
+
+    def initial_state(self, x0=None) -> MPPIState:
+        return MPPIState(np.zeros((self.cfg.horizon, self.sp.nu)))
+
+    def step(self, state: MPPIState, x, rng: np.random.Generator):
+        t0 = time.perf_counter()
+        xb = _full_state(self.sp, x)
+        U = state.U
+        for _ in range(self.cfg.iterations):
+            batch = self.sampler.mppi(xb, U, self.cfg.n_samples, self.consts,
+                                      int(rng.integers(0, 2**63)))
+            W = importance_weights(batch.S, self.cfg.lam)
+            if W.valid:
+                U = weighted_controls(batch.v, W.w)
+        u = U[0].copy()
+        info = MPPIInfo(W.free_energy, W.ess, int(batch.crashed.sum()), W.valid,
+                        time.perf_counter() - t0)
+        return MPPIState(_shift(U, 1, self.cfg.tail)), u, info
+
+
+@dataclass(frozen=True)
+class RMPPIConfig:
+    """Robust MPPI settings (SPEC 9, 10; defaults [A] from SPEC 15)."""
+
+    alpha: float = 1e4
+    n_candidates: int = 9
+    candidate_samples: int = 64
+    fallback: Literal["propagated", "keep_previous"] = "propagated"
+    feedback: Literal["bas_ilqg", "ilqg"] = "bas_ilqg"
+    Q_K: tuple[float, ...] = (500.0, 500.0, 100.0, 100.0)
+    R_K: tuple[float, ...] = (1.0, 1.0)
+    q_beta_K: float = 1.0
+    feedback_iterations: int = 3
+    applied: Literal["nominal_feedback", "real"] = "nominal_feedback"
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.alpha) or self.alpha == np.inf):
+            raise fail("RMPPIConfig.alpha", self.alpha, "must be a number")
+        if self.n_candidates < 3 or self.n_candidates % 2 == 0:
+            raise fail("RMPPIConfig.n_candidates", self.n_candidates, "must be odd and >= 3")
+        if self.candidate_samples < 1:
+            raise fail("RMPPIConfig.candidate_samples", self.candidate_samples, "must be >= 1")
+        one_of("RMPPIConfig.fallback", self.fallback, ("propagated", "keep_previous"))
+        one_of("RMPPIConfig.feedback", self.feedback, ("bas_ilqg", "ilqg"))
+        one_of("RMPPIConfig.applied", self.applied, ("nominal_feedback", "real"))
+        if self.feedback_iterations < 1:
+            raise fail("RMPPIConfig.feedback_iterations", self.feedback_iterations, "must be >= 1")
+
+
+@dataclass(frozen=True)
+class RMPPIState:
+    U: np.ndarray  # (T, nu) nominal control sequence u*
+    x_nom: np.ndarray | None  # nominal state x*_0 (full), None before the first call
+    index: int  # previously chosen candidate
+
+
+@dataclass(frozen=True)
+class RMPPIInfo:
+    candidate: int
+    candidate_free_energy: np.ndarray
+    fallback_used: bool
+    free_energy_nom: float
+    free_energy_real: float
+    ess_nom: float
+    ess_real: float
+    n_crashed_real: int
+    n_crashed_nom: int
+    feedback_ok: bool
+    timing: dict[str, float] = field(default_factory=dict)
+    x_nom: np.ndarray | None = None
+
+
+class RobustMPPI:
+    """RMPPI / SA-RMPPI (``RMPPIConfig.feedback`` = "ilqg" / "bas_ilqg")."""
+
+    def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig(),
+                 robust: RMPPIConfig = RMPPIConfig()):
+        if sp.nx == sp.model.n_physical:
+            raise fail("sp.model", sp.model.name, "RMPPI here runs on a barrier-embedded model")
+        self.mppi = MPPI(sp, goal, config)
+        self.sp, self.cfg, self.rcfg = sp, config, robust
+        self.sampler = self.mppi.sampler
+        self.consts = replace(self.mppi.consts, alpha=robust.alpha)
+        m = sp.model
+        if robust.feedback == "bas_ilqg":  # K_safe: BaS-iLQG on the embedded model (SPEC 10.2)
+            fb_model = m
+            cost = quadratic_tracking(m, Q=robust.Q_K, R=robust.R_K, S=robust.Q_K,
+                                      q_beta=robust.q_beta_K, s_beta=robust.q_beta_K,
+                                      beta_cost="absolute")
+        else:  # RMPPI: plain iLQG tracking on the physical model (SPEC 9.4)
+            fb_model = _physical_model(m)
+            cost = quadratic_tracking(fb_model, Q=robust.Q_K, R=robust.R_K, S=robust.Q_K)
+        self.fb_problem = Problem.build(fb_model, cost)
+        self.fb_passes = make_passes(self.fb_problem, config.horizon)
+        self.fb_options = ILQGOptions(max_iter=robust.feedback_iterations, mu_init=1e-6)
+        self._dyn = sp.functions()["dyn"]
+        self._P0 = np.zeros((config.horizon + 1, self.fb_problem.n_p))
+
+    def initial_state(self, x0=None) -> RMPPIState:
+        return RMPPIState(np.zeros((self.cfg.horizon, self.sp.nu)), None, 0)
+
+    def rollout(self, x0, U) -> np.ndarray:
+        """Nominal trajectory of the embedded model under U, (T+1, nx)."""
+        X = np.empty((U.shape[0] + 1, self.sp.nx))
+        X[0] = x0
+        for t in range(U.shape[0]):
+            X[t + 1] = np.asarray(self._dyn(X[t], U[t])).ravel()
+        return X
+
+    def select_nominal(self, state: RMPPIState, xb, rng) -> tuple[np.ndarray, np.ndarray, int,
+                                                                   np.ndarray, bool]:
+        """Nominal-state selection (SPEC 9.3) with s = 1 plant step since the last call."""
+        if state.x_nom is None:
+            return xb, state.U, 0, np.zeros(0), False
+        r, cfg, sp = self.rcfg, self.cfg, self.sp
+        hc = r.n_candidates // 2
+        a0 = state.x_nom
+        a1 = np.asarray(self._dyn(a0, state.U[0])).ravel()
+        a2 = xb
+        W = [(1 - i / hc, i / hc, 0.0) for i in range(hc + 1)]
+        W += [(0.0, 1 - i / hc, i / hc) for i in range(1, hc + 1)]
+        n = sp.model.n_physical
+        starts, strides = [], []
+        for w in W:
+            c = w[0] * a0 + w[1] * a1 + w[2] * a2
+            # beta of an interpolated state is recomputed from its position (SPEC 4.4)
+            starts.append(sp.model.lift(c[:n]))
+            strides.append(round(w[1] + w[2]))  # s = 1 plant step per call
+        M, T = r.candidate_samples, cfg.horizon
+        Z = self.sampler.normals(M * len(W), T, int(rng.integers(0, 2**63)))
+        U_lane = np.empty((M * len(W), T, sp.nu))
+        idx = np.arange(T)
+        for i, s in enumerate(strides):
+            U_lane[i * M : (i + 1) * M] = state.U[np.minimum(idx + s, T - 1)]
+            Z[i * M : (i + 1) * M, :s] = 0.0  # no noise before the stride (MPPI-G)
+        S = self.sampler.candidates(np.repeat(np.array(starts), M, axis=0), U_lane, Z,
+                                    self.consts)
+        S = np.where(np.isfinite(S), S, np.inf).reshape(len(W), M)
+        rho = S.min()  # over all candidates' samples (SPEC 9.3)
+        with np.errstate(divide="ignore"):
+            F = -cfg.lam * np.log(np.mean(np.exp(-(S - rho) / cfg.lam), axis=1)) + rho
+        ok = np.flatnonzero(F < r.alpha)
+        fallback = ok.size == 0
+        if fallback:
+            i_star = hc if r.fallback == "propagated" else state.index
+        else:
+            i_star = int(ok.max())
+        return starts[i_star], _shift(state.U, strides[i_star], cfg.tail), i_star, F, fallback
+
+    def feedback_gains(self, x_nom, U) -> tuple[np.ndarray, bool]:
+        """K_safe (SPEC 10.2) about the nominal trajectory, (T, nu, nx_full)."""
+        T, n = self.cfg.horizon, self.sp.model.n_physical
+        x0 = x_nom[: self.fb_problem.nx]
+        nxf, nu = self.fb_problem.nx, self.sp.nu
+        Xs, _, _ = self.fb_passes.forward(x0, np.zeros((T + 1, nxf)), U, np.zeros((T, nu)),
+                                          np.zeros((T, nu, nxf)), self._P0, 0.0,
+                                          self.sp.model.u_min, self.sp.model.u_max,
+                                          use_policy=False)
+        P = self.fb_problem.cost.params(T, x_ref=Xs[:, :n], u_ref=np.vstack([U, U[-1:]]))
+        try:
+            res = ilqg(self.fb_problem, x0, U, P, self.fb_options, passes=self.fb_passes)
+        except ValueError:
+            return np.zeros((T, self.sp.nu, self.sp.nx)), False
+        K = np.zeros((T, self.sp.nu, self.sp.nx))
+        K[:, :, : res.K.shape[2]] = res.K
+        return K, bool(np.all(np.isfinite(K)))
+
+    def step(self, state: RMPPIState, x, rng: np.random.Generator):
+        timing = {}
+        t0 = time.perf_counter()
+        xb = _full_state(self.sp, x)
+        x_nom, U, idx, F_cand, fallback = self.select_nominal(state, xb, rng)
+        t1 = time.perf_counter()
+        K, fb_ok = self.feedback_gains(x_nom, U)
+        t2 = time.perf_counter()
+        U_real = U
+        for _ in range(self.cfg.iterations):
+            b = self.sampler.sais(xb, x_nom, U, K, self.cfg.n_samples, self.consts,
+                                  int(rng.integers(0, 2**63)))
+            t3 = time.perf_counter()
+            Wn = importance_weights(b.S_nom, self.cfg.lam)
+            Wr = importance_weights(b.S_real, self.cfg.lam)
+            U_new = weighted_controls(b.v_nom, Wn.w) if Wn.valid else U
+            U_real = weighted_controls(b.v_real, Wr.w) if Wr.valid else U_real
+            U = U_new
+        if self.rcfg.applied == "nominal_feedback":
+            u = np.clip(U[0] + K[0] @ (xb - x_nom), self.sp.model.u_min, self.sp.model.u_max)
+        else:
+            u = U_real[0].copy()
+        t4 = time.perf_counter()
+        timing = {"selection": t1 - t0, "k_safe": t2 - t1, "sais": t3 - t2, "update": t4 - t3,
+                  "total": t4 - t0}
+        info = RMPPIInfo(idx, F_cand, fallback, Wn.free_energy, Wr.free_energy, Wn.ess, Wr.ess,
+                         int(b.crashed_real.sum()), int(b.crashed_nom.sum()), fb_ok, timing,
+                         x_nom)
+        return RMPPIState(U, x_nom, idx), u, info
+
+
+def _physical_model(m):
+    """The physical part of a barrier-embedded model, as a plain Model."""
+    from workbench.models import Model
+
+    n = m.n_physical
+    return Model.from_expressions(
+        m.name.replace("+bas", ""), m.x[:n], m.u, m.x_next[:n], dt=m.dt, u_min=m.u_min,
+        u_max=m.u_max, h=m.h if m.nh else None, state_names=m.state_names[:n],
+        control_names=m.control_names, position=m.position, obstacles=m.obstacles)

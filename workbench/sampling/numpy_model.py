@@ -1,0 +1,103 @@
+"""A plain-NumPy twin of the built-in navigation problem (planar double integrator, circular
+obstacles, discrete barrier states, SPEC 8.2 costs), for the NumPy reference sampler.
+
+It shares no code with the CasADi expressions: :func:`numpy_navigation_twin` builds it from the
+model's obstacle list and barrier options and checks it against the CasADi model at random
+points; it returns None when the model is not one it can reproduce (then the reference uses the
+CasADi virtual machine).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workbench.models import Model
+
+
+class NumpyNavigation:
+    """Vectorised over samples: X (N, nx), V (N, nu)."""
+
+    def __init__(self, model: Model, zoh: bool, weights: dict[str, np.ndarray]):
+        self.dt = model.dt
+        self.zoh = zoh
+        self.centers = np.array([c.center for c in model.obstacles])
+        self.radii2 = np.array([c.radius for c in model.obstacles]) ** 2
+        self.spec = model.barrier
+        self.w = weights
+
+    def margins(self, X) -> np.ndarray:
+        d = X[:, None, :2] - self.centers[None]
+        return d[..., 0] ** 2 + d[..., 1] ** 2 - self.radii2[None]
+
+    def _beta(self, h) -> np.ndarray:
+        o = self.spec.options
+        if o.kind == "inverse":
+            B = 1.0 / h
+        elif o.kind == "log":
+            B = -np.log(h / (1.0 + h))
+        else:
+            B = np.exp(-o.kappa * h)
+        out = []
+        for g in self.spec.groups:
+            raw = B[:, list(g)].sum(axis=1)
+            crashed = np.any(h[:, list(g)] <= o.eps_h, axis=1)
+            out.append(np.where(crashed, o.beta_max, np.minimum(raw, o.beta_max)))
+        return np.stack(out, axis=1)
+
+    def step(self, X, V):
+        dt = self.dt
+        p, v = X[:, :2], X[:, 2:4]
+        p_next = p + dt * v + (0.5 * dt * dt * V if self.zoh else 0.0)
+        x_next = np.hstack([p_next, v + dt * V])
+        if self.spec is None:
+            return x_next
+        o = self.spec.options
+        with np.errstate(divide="ignore", invalid="ignore"):
+            beta = self._beta(self.margins(x_next))
+            if o.gamma != 0.0:
+                beta = beta - o.gamma * (X[:, 4:] - self._beta(self.margins(X)))
+        return np.hstack([x_next, beta])
+
+    def crashed(self, X, eps_h) -> np.ndarray:
+        return np.any(self.margins(X) <= eps_h, axis=1)
+
+    def q(self, X, g) -> np.ndarray:
+        ep, v = X[:, :2] - g[:2], X[:, 2:4]
+        out = ep**2 @ self.w["Qp"] + v**2 @ self.w["Qv"]
+        if X.shape[1] > 4:
+            out = out + self.w["q_beta"] * np.sum((X[:, 4:] - g[4:]) ** 2, axis=1)
+        return out
+
+    def phi(self, X, g) -> np.ndarray:
+        return (X - g) ** 2 @ self.w["S"]
+
+
+def numpy_navigation_twin(model: Model, weights: dict[str, np.ndarray], functions
+                          ) -> NumpyNavigation | None:
+    """The NumPy twin if it reproduces the CasADi model at random points, else None."""
+    if model.n_physical != 4 or not model.obstacles or model.nh != len(model.obstacles):
+        return None
+    rng = np.random.default_rng(0)
+    n = 16
+    lo = np.min([c.center for c in model.obstacles], axis=0) - 2
+    hi = np.max([c.center for c in model.obstacles], axis=0) + 2
+    P = rng.uniform(lo, hi, (n, 2))
+    X = np.hstack([P, rng.normal(0, 2, (n, 2))])
+    twin0 = NumpyNavigation(model, False, weights)
+    if model.nx > 4:
+        X = np.hstack([X, twin0._beta(twin0.margins(X))])
+    V = rng.normal(0, 3, (n, model.nu))
+    ref = np.asarray(functions["dyn"].map(n)(X.T, V.T)).T
+    g = X[0]
+    for zoh in (False, True):
+        twin = NumpyNavigation(model, zoh, weights)
+        with np.errstate(all="ignore"):
+            same = (np.allclose(twin.step(X, V), ref, rtol=1e-12, atol=1e-12, equal_nan=True)
+                    and np.allclose(twin.q(X, g), np.asarray(functions["q"].map(n)(X.T, g)).ravel(),
+                                    rtol=1e-12)
+                    and np.allclose(twin.phi(X, g),
+                                    np.asarray(functions["phi"].map(n)(X.T, g)).ravel(),
+                                    rtol=1e-12))
+        if same:
+            return twin
+    return None

@@ -1,0 +1,59 @@
+"""Importance weights, free energy and effective sample size (SPEC 8.1, 11.2).
+
+Non-finite costs (NaN or inf) are treated as +inf: they get zero weight and never reach the
+normalisation. All computations shift by the minimum finite cost (the max-shift).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workbench.validation import fail
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Normalised weights w (N,), the shift rho = min finite cost, and the free energy."""
+
+    w: np.ndarray
+    rho: float
+    free_energy: float
+    ess: float
+    n_finite: int
+
+    @property
+    def valid(self) -> bool:
+        return self.n_finite > 0
+
+
+def importance_weights(S, lam: float) -> Weights:
+    """w_n = exp(-(S_n - rho)/lam) / sum_j exp(-(S_j - rho)/lam), F = -lam log(mean exp) + rho.
+
+    If no cost is finite, w is all zeros, F = +inf and ``valid`` is False (callers keep U).
+    """
+    if not (np.isfinite(lam) and lam > 0):
+        raise fail("lambda", lam, "the temperature must be a finite number > 0")
+    S = np.asarray(S, dtype=float)
+    finite = np.isfinite(S)
+    n = int(finite.sum())
+    if n == 0:
+        return Weights(np.zeros_like(S), np.inf, np.inf, 0.0, 0)
+    rho = float(S[finite].min())
+    e = np.zeros_like(S)
+    e[finite] = np.exp(-(S[finite] - rho) / lam)
+    total = float(e.sum())
+    w = e / total
+    F = -lam * np.log(total / S.size) + rho
+    return Weights(w, rho, float(F), float(1.0 / np.sum(w * w)), n)
+
+
+def free_energy(S, lam: float) -> float:
+    """Monte Carlo free-energy estimate of a batch of costs (SPEC eq. free energy)."""
+    return importance_weights(S, lam).free_energy
+
+
+def weighted_controls(v_lane_major: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """sum_n w_n v_n for lane-major samples v (T, nu, N): the MPPI update, (T, nu)."""
+    return v_lane_major @ w
