@@ -1,0 +1,87 @@
+"""Closed-loop controllers: navigation through the cluttered map, determinism, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from workbench.navigation import navigation_setup
+from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
+from workbench.sim import Disturbance, closed_loop
+
+
+@pytest.fixture(scope="module")
+def nav():
+    return navigation_setup()
+
+
+def _run(nav, ctrl, steps, seed=1, level=0.0):
+    return closed_loop(ctrl, nav.plant, nav.x0, steps, np.random.default_rng(seed),
+                       np.random.default_rng(seed + 100), Disturbance(level))
+
+
+def test_bas_mppi_reaches_goal_safely_undisturbed(nav):
+    ep = _run(nav, MPPI(nav.problem, nav.goal, nav.mppi), 1000)
+    assert not ep.crashed and ep.min_margin > 0
+    assert np.linalg.norm(ep.X[-1, :2] - nav.goal[:2]) < 0.1
+
+
+def test_sa_rmppi_reaches_goal_safely_undisturbed(nav):
+    alpha = nav.alpha_from_bas_mppi(np.random.default_rng(0))
+    ctrl = RobustMPPI(nav.problem, nav.goal, nav.mppi, RMPPIConfig(alpha=alpha))
+    ep = _run(nav, ctrl, 1000)
+    assert not ep.crashed and ep.min_margin > 0
+    assert np.linalg.norm(ep.X[-1, :2] - nav.goal[:2]) < 0.1
+    infos = ep.infos
+    assert all(i.feedback_ok for i in infos)
+    assert infos[0].candidate == 0 and len(infos[1].candidate_free_energy) == 9
+    assert set(infos[-1].timing) == {"selection", "k_safe", "sais", "update", "total"}
+
+
+def test_rmppi_with_plain_ilqg_feedback_runs(nav):
+    ctrl = RobustMPPI(nav.problem, nav.goal, nav.mppi,
+                      RMPPIConfig(alpha=2e4, feedback="ilqg", applied="real"))
+    ep = _run(nav, ctrl, 20, level=10.0)
+    assert ep.U.shape == (20, 2) and np.all(np.isfinite(ep.X))
+
+
+@pytest.mark.parametrize("kind", ["mppi", "sa_rmppi"])
+def test_same_seed_same_trajectory_whatever_the_thread_count(nav, kind):
+    def make():
+        if kind == "mppi":
+            return MPPI(nav.problem, nav.goal, nav.mppi)
+        return RobustMPPI(nav.problem, nav.goal, nav.mppi, RMPPIConfig(alpha=2e4))
+
+    a = _run(nav, make(), 25, seed=3, level=50.0)
+    ctrl = make()
+    ctrl.sampler.lib.set_threads(1)
+    try:
+        b = _run(nav, ctrl, 25, seed=3, level=50.0)
+    finally:
+        ctrl.sampler.lib.set_threads(2)
+    np.testing.assert_array_equal(a.X, b.X)
+    c = _run(nav, make(), 25, seed=4, level=50.0)
+    assert not np.array_equal(a.X, c.X)
+
+
+def test_bad_controller_input_names_the_field(nav):
+    ctrl = MPPI(nav.problem, nav.goal, nav.mppi)
+    with pytest.raises(ValueError, match="x"):
+        ctrl.step(ctrl.initial_state(), [np.nan, 0, 0, 0], np.random.default_rng(0))
+    with pytest.raises(ValueError, match="horizon"):
+        MPPIConfig(horizon=0)
+    with pytest.raises(ValueError, match="n_samples"):
+        MPPIConfig(n_samples=0)
+    with pytest.raises(ValueError, match="lam"):
+        MPPIConfig(lam=0.0)
+    with pytest.raises(ValueError, match="sigma"):
+        MPPIConfig(sigma=(1.0, -1.0))
+    with pytest.raises(ValueError, match="positive definite"):
+        MPPIConfig.with_covariance([[1.0, 2.0], [2.0, 1.0]])
+    with pytest.raises(ValueError, match="n_candidates"):
+        RMPPIConfig(n_candidates=4)
+    with pytest.raises(ValueError, match="steps"):
+        closed_loop(ctrl, nav.plant, nav.x0, 0, np.random.default_rng(0),
+                    np.random.default_rng(1))
+    with pytest.raises(ValueError, match=r"Disturbance\.level"):
+        Disturbance(-1.0)
