@@ -23,7 +23,7 @@ def setup():
     sp = navigation_costs(model)
     lib = sampler_library(sp)
     consts = SamplerConstants(sigma=np.array([6.0, 4.0]), lam=1.3, nu_mix=0.1,
-                              u_min=model.u_min, u_max=model.u_max, crash_cost=1e6, eps_h=1e-6,
+                              u_min=model.u_min, u_max=model.u_max, crash_cost=1e6,
                               p=model.lift([4.0, 4.0, 0.0, 0.0]), alpha=5e4)
     return model, sp, lib, consts
 
@@ -74,13 +74,16 @@ def test_candidate_kernel_equals_reference(setup, rng):
     model, sp, lib, c = setup
     starts = np.stack([model.lift([1.0 + 0.1 * i, 1.0, 1.0, 1.0]) for i in range(N)])
     U_lane = rng.normal(0, 1.0, (N, T, 2))
-    Z = rng.standard_normal((N, T, 2))
-    Z[:5, 0] = 0.0
-    out = lib.candidates(np.column_stack([starts, np.zeros((N, 2))]), consts=c.kernel_consts(),
-                         lane_in={"u": np.transpose(U_lane, (1, 2, 0)),
-                                  "z": np.transpose(Z, (1, 2, 0))})
-    ref = mppi_reference(sp, starts, U_lane, Z, c)
+    delay = rng.integers(0, 3, N).astype(float)
+    carry = np.column_stack([starts, np.zeros((N, 2)), delay])
+    out = lib.candidates(carry, consts=c.kernel_consts(),
+                         lane_in={"u": np.transpose(U_lane, (1, 2, 0))}, seed=11,
+                         keep_noise=True)
+    Z = np.transpose(out.noise, (2, 0, 1))
+    ref = mppi_reference(sp, starts, U_lane, Z, c, delay=delay)
     _close(out.result[:, 0], ref["S"])
+    _close(np.transpose(out.lane_out[0], (2, 0, 1)), ref["v"], rtol=1e-12)
+    np.testing.assert_array_equal(ref["v"][delay == 2, :2], U_lane[delay == 2, :2])
 
 
 def test_zero_gains_reduce_sais_to_the_sampler_without_feedback(setup, rng):

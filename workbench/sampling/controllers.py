@@ -37,7 +37,6 @@ class MPPIConfig:
     nu_mix: float = 0.0
     iterations: int = 1
     crash_cost: float = 1e6
-    eps_h: float = 1e-6
     tail: Literal["hold", "zero"] = "hold"
     backend: Backend = "auto"
 
@@ -56,7 +55,6 @@ class MPPIConfig:
         if not (0.0 <= self.nu_mix < 1.0):
             raise fail("MPPIConfig.nu_mix", self.nu_mix, "must lie in [0, 1)")
         positive("MPPIConfig.crash_cost", self.crash_cost, allow_zero=True)
-        positive("MPPIConfig.eps_h", self.eps_h, allow_zero=True)
         one_of("MPPIConfig.tail", self.tail, ("hold", "zero"))
 
     @classmethod
@@ -115,8 +113,7 @@ class MPPI:
         goal = _full_state(sp, goal) if sp.n_p == sp.nx else as_array("goal", goal, (sp.n_p,))
         self.consts = SamplerConstants(
             sigma=np.array(config.sigma), lam=config.lam, nu_mix=config.nu_mix,
-            u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost,
-            eps_h=config.eps_h, p=goal)
+            u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost, p=goal)
 
     def initial_state(self, x0=None) -> MPPIState:
         return MPPIState(np.zeros((self.cfg.horizon, self.sp.nu)))
@@ -246,14 +243,13 @@ class RobustMPPI:
             starts.append(sp.model.lift(c[:n]))
             strides.append(round(w[1] + w[2]))  # s = 1 plant step per call
         M, T = r.candidate_samples, cfg.horizon
-        Z = self.sampler.normals(M * len(W), T, int(rng.integers(0, 2**63)))
-        U_lane = np.empty((M * len(W), T, sp.nu))
+        U_lane = np.empty((T, sp.nu, M * len(W)))
         idx = np.arange(T)
         for i, s in enumerate(strides):
-            U_lane[i * M : (i + 1) * M] = state.U[np.minimum(idx + s, T - 1)]
-            Z[i * M : (i + 1) * M, :s] = 0.0  # no noise before the stride (MPPI-G)
-        S = self.sampler.candidates(np.repeat(np.array(starts), M, axis=0), U_lane, Z,
-                                    self.consts)
+            U_lane[:, :, i * M : (i + 1) * M] = state.U[np.minimum(idx + s, T - 1)][:, :, None]
+        delay = np.repeat(np.array(strides, float), M)  # no noise before the stride (MPPI-G)
+        S = self.sampler.candidates(np.repeat(np.array(starts), M, axis=0), U_lane, delay,
+                                    self.consts, int(rng.integers(0, 2**63)))
         S = np.where(np.isfinite(S), S, np.inf).reshape(len(W), M)
         rho = S.min()  # over all candidates' samples (SPEC 9.3)
         with np.errstate(divide="ignore"):

@@ -2,8 +2,10 @@
 
 Costs (SPEC 8.2): running state cost q(x, p) evaluated on post-step states k = 1..T, terminal
 phi(x_T, p), plus the crash cost C_crash at every step from a sample's first crash on
-(min_i h_i(p) <= eps_h, SPEC 4.6). ``p`` holds run-time values (the goal); crash cost, eps_h,
-sampling std, temperature and limits are run-time inputs of the kernels, not compiled in.
+(min_i h_i(p) <= eps_h, SPEC 4.6). ``p`` holds run-time values (the goal); crash cost, sampling
+std, temperature and limits are run-time inputs of the kernels. eps_h is compiled in: it is the
+barrier's own crash margin, so the kernel's crash test and the barrier state's share one
+computation.
 """
 
 from __future__ import annotations
@@ -38,6 +40,12 @@ class SamplingProblem:
             extra = [s.name() for s in ca.symvar(expr) if s.name() not in known]
             if extra:
                 raise fail(f"SamplingProblem.{name}", extra, "may depend only on x and p")
+
+    @property
+    def eps_h(self) -> float:
+        """Crash margin: the barrier's eps_h for embedded models, else 1e-6 (SPEC 4.6)."""
+        spec = self.model.barrier
+        return float(spec.options.eps_h) if spec is not None else 1e-6
 
     @property
     def nx(self) -> int:

@@ -27,7 +27,6 @@ class SamplerConstants:
     u_min: np.ndarray
     u_max: np.ndarray
     crash_cost: float
-    eps_h: float
     p: np.ndarray  # cost parameters (the goal state)
     alpha: float = np.inf  # RMPPI threshold (SAIS only)
 
@@ -35,7 +34,7 @@ class SamplerConstants:
         return {"sigma": np.asarray(self.sigma, float),
                 "lr": np.array([self.lam * (1.0 - self.nu_mix)]),
                 "u_min": np.asarray(self.u_min, float), "u_max": np.asarray(self.u_max, float),
-                "crash": np.array([self.crash_cost, self.eps_h]),
+                "crash": np.array([self.crash_cost]),
                 "p": np.asarray(self.p, float), "alpha": np.array([self.alpha])}
 
 
@@ -85,11 +84,14 @@ class _NumpyModel:
 
 
 def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
-                   model_backend: str = "auto") -> dict[str, np.ndarray]:
+                   model_backend: str = "auto", delay=None) -> dict[str, np.ndarray]:
     """MPPI rollouts (SPEC 8.1 + 4.6). X0 (N,nx), U (T,nu) or (N,T,nu) per-sample controls,
-    Z (N,T,nu) standard normals. Returns S (N,), crashed (N,), v (N,T,nu), X (N,T+1,nx)."""
+    Z (N,T,nu) standard normals, delay (N,) leading noise-free steps per sample.
+    Returns S (N,), crashed (N,), v (N,T,nu), X (N,T+1,nx)."""
     X0 = np.asarray(X0, float)
     N, T = Z.shape[0], Z.shape[1]
+    if delay is not None:
+        Z = np.where(np.arange(T)[None, :, None] < np.asarray(delay)[:, None, None], 0.0, Z)
     Ub = np.broadcast_to(U, (N, T, sp.nu))
     m = _Model(sp, N, model_backend)
     inv = 1.0 / (c.sigma**2)
@@ -104,7 +106,7 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
         v = np.clip(u + c.sigma * Z[:, t], c.u_min, c.u_max)
         eps = v - u
         X[:, t + 1] = m.step(X[:, t], v)
-        crashed |= m.crashed(X[:, t + 1], c.eps_h)
+        crashed |= m.crashed(X[:, t + 1], sp.eps_h)
         S += m.cost(m.q, X[:, t + 1], c.p) + c.crash_cost * crashed
         S += half * (np.sum(u * inv * u, axis=1) + 2.0 * np.sum(u * inv * eps, axis=1))
         V[:, t] = v
@@ -136,8 +138,8 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
         eps_eff = vn - u
         kfb_eff = vr - u - eps_eff
         X[:, t + 1], Xs[:, t + 1] = m.step(X[:, t], vr), m.step(Xs[:, t], vn)
-        cr |= m.crashed(X[:, t + 1], c.eps_h)
-        cn |= m.crashed(Xs[:, t + 1], c.eps_h)
+        cr |= m.crashed(X[:, t + 1], sp.eps_h)
+        cn |= m.crashed(Xs[:, t + 1], sp.eps_h)
         qr = m.cost(m.q, X[:, t + 1], c.p) + c.crash_cost * cr
         qn = m.cost(m.q, Xs[:, t + 1], c.p) + c.crash_cost * cn
         S_hat += qr + half * np.sum(kfb_eff * inv * kfb_eff, axis=1)  # line 8

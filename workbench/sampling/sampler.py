@@ -86,18 +86,14 @@ class Sampler:
                          np.transpose(ref["v_nom"], (1, 2, 0)),
                          np.transpose(ref["v_real"], (1, 2, 0)))
 
-    def candidates(self, starts, U_lane, Z, c: SamplerConstants) -> np.ndarray:
+    def candidates(self, starts, U_lane, delay, c: SamplerConstants, seed: int) -> np.ndarray:
         """Costs (N,) of rollouts from per-sample starts (N, nx) with per-sample controls
-        U_lane (N, T, nu) and standard normals Z (N, T, nu); no feedback."""
+        U_lane (T, nu, N) and no noise for the first delay[n] steps; no feedback."""
+        N, T = starts.shape[0], U_lane.shape[0]
         if self.lib is not None:
-            carry = np.column_stack([starts, np.zeros((starts.shape[0], 2))])
-            out = self.lib.candidates(carry, consts=c.kernel_consts(), lane_in={
-                "u": np.transpose(U_lane, (1, 2, 0)), "z": np.transpose(Z, (1, 2, 0))})
+            carry = np.column_stack([starts, np.zeros((N, 2)), delay])
+            out = self.lib.candidates(carry, consts=c.kernel_consts(), lane_in={"u": U_lane},
+                                      seed=seed)
             return out.result[:, 0]
-        return mppi_reference(self.sp, starts, U_lane, Z, c)["S"]
-
-    def normals(self, N: int, T: int, seed: int) -> np.ndarray:
-        """Standard normals (N, T, nu) for candidate evaluation."""
-        if self.lib is not None:
-            return np.transpose(self.lib.normals(N, T, self.sp.nu, seed), (2, 0, 1))
-        return self._noise(N, T, seed)
+        return mppi_reference(self.sp, starts, np.transpose(U_lane, (2, 0, 1)),
+                              self._noise(N, T, seed), c, delay=delay)["S"]
