@@ -8,6 +8,7 @@ comparable figures.
 from __future__ import annotations
 
 import argparse
+import importlib
 import statistics
 import time
 from pathlib import Path
@@ -87,6 +88,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args(argv)
     records = [bench_bas_ilqg_vs_ipopt(args.repeats), bench_ilqg_iteration(args.repeats)]
+    for module in ("benchmarks.tracking", "benchmarks.sampling"):
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError:
+            continue
+        records += mod.records(args.repeats)
     for r in records:
         print(f"{r['name']:32s} {r['value']:10.4f} {r['unit']:14s} baseline "
               f"{r['baseline']} = {r['baseline_value']:.4f}  ratio {r['ratio']:.1f}x")

@@ -138,3 +138,12 @@ def test_results_do_not_depend_on_thread_count(setup, rng):
     lib.set_threads(2)
     np.testing.assert_array_equal(runs[0].result, runs[1].result)
     np.testing.assert_array_equal(runs[0].noise, runs[1].noise)
+
+
+def test_kernel_draws_the_published_noise(setup):
+    """In-kernel noise (vectorised per lane block) equals wb_normals, sample by sample."""
+    model, _, lib, c = setup
+    x0 = model.lift([0.5, 0.5, 0.0, 0.0])
+    out = lib.mppi(np.tile(np.r_[x0, 0, 0], (N, 1)), consts=c.kernel_consts(),
+                   time_in={"u": np.zeros((T, 2))}, seed=99, keep_noise=True)
+    np.testing.assert_array_equal(out.noise, lib.normals(N, T, 2, seed=99))

@@ -84,12 +84,20 @@ class BarrierSpec:
         return len(self.groups)
 
 
+def min_margin(h: ca.SX, indices) -> ca.SX:
+    """min_i h_i as a chain of fmin (one vector min per margin in generated kernels)."""
+    out = None
+    for i in indices:
+        out = h[i] if out is None else ca.fmin(out, h[i])
+    return out
+
+
 def _barrier_values(h: ca.SX, opts: BarrierOptions, groups) -> ca.SX:
     """Barrier-state values of margins h, with the crash rule and the cap."""
     out = []
     for g in groups:
         raw = sum((opts.barrier(h[i]) for i in g), ca.SX(0))
-        crashed = sum((h[i] <= opts.eps_h for i in g), ca.SX(0)) > 0
+        crashed = min_margin(h, g) <= opts.eps_h
         out.append(ca.if_else(crashed, opts.beta_max, ca.fmin(raw, opts.beta_max)))
     return ca.vertcat(*out)
 

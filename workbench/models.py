@@ -112,11 +112,11 @@ class Model:
         )
 
     @functools.cached_property
-    def _lift_fn(self) -> ca.Function:
+    def lift_function(self) -> ca.Function:
         return ca.Function("lift", [self.x[: self.n_physical]], [self.lift_expr])
 
     @functools.cached_property
-    def _margins_fn(self) -> ca.Function:
+    def margins_function(self) -> ca.Function:
         return ca.Function("h", [self.x[: self.n_physical]], [self.h])
 
     def lift(self, x_phys) -> np.ndarray:
@@ -124,14 +124,14 @@ class Model:
         xp = as_array("x", x_phys, (self.n_physical,))
         if self.lift_expr is None or self.n_physical == self.nx:
             return xp.copy()
-        return np.asarray(self._lift_fn(xp)).ravel()
+        return np.asarray(self.lift_function(xp)).ravel()
 
     def margins(self, x) -> np.ndarray:
         """Safety margins h(x) at a full (or physical) state; NumPy in, NumPy out."""
         xa = np.asarray(x, dtype=float).ravel()
         if xa.size not in (self.n_physical, self.nx):
             raise fail("x", xa, f"expected {self.n_physical} or {self.nx} entries")
-        return np.asarray(self._margins_fn(xa[: self.n_physical])).ravel()
+        return np.asarray(self.margins_function(xa[: self.n_physical])).ravel()
 
 
 def double_integrator(

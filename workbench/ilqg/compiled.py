@@ -79,7 +79,9 @@ def _c(a) -> np.ndarray:
 class CompiledPasses:
     """Same interface as :class:`~workbench.ilqg.reference.NumpyPasses`, in compiled C.
 
-    Work arrays are allocated once per (problem, horizon) and reused across iterations.
+    Every array the C functions read or write lives in a buffer allocated once per
+    (problem, horizon), whose address is looked up once: a call copies its inputs into the
+    buffers (a no-op when they already are the buffers) and copies results out.
     """
 
     name = "compiled"
@@ -87,52 +89,63 @@ class CompiledPasses:
     def __init__(self, problem: Problem, T: int, library: Library):
         nx, nu = problem.nx, problem.nu
         self.problem, self.T, self._c = problem, T, library.cdll
-        self._d = {
-            "A": np.zeros((T, nx, nx)), "B": np.zeros((T, nx, nu)),
-            "lx": np.zeros((T + 1, nx)), "lu": np.zeros((T, nu)),
-            "lxx": np.zeros((T + 1, nx, nx)), "luu": np.zeros((T, nu, nu)),
-            "lux": np.zeros((T, nu, nx)),
+        shapes = {
+            "A": (T, nx, nx), "B": (T, nx, nu), "lx": (T + 1, nx), "lu": (T, nu),
+            "lxx": (T + 1, nx, nx), "luu": (T, nu, nu), "lux": (T, nu, nx),
+            "X": (T + 1, nx), "U": (T, nu), "P": (T + 1, max(problem.n_p, 1)), "x0": (nx,),
+            "k": (T, nu), "K": (T, nu, nx), "dV": (2,), "umin": (nu,), "umax": (nu,),
+            "Xn": (T + 1, nx), "Un": (T, nu), "out": (3,), "alphas": (32,),
         }
-        self._pd = [_ptr(self._d[n]) for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")]
-        self._P_dummy = np.zeros((T + 1, 1))
+        self._b = {n: np.zeros(s) for n, s in shapes.items()}
+        self._a = {n: _ptr(v) for n, v in self._b.items()}
+        self._d = {n: self._b[n] for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")}
+        self._pd = [self._a[n] for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")]
 
-    def _params(self, P):
-        return self._P_dummy if P.shape[1] == 0 else _c(P)
+    def _put(self, name: str, value) -> int:
+        buf = self._b[name]
+        if value is not buf and not (name == "P" and np.shape(value)[-1] == 0):
+            np.copyto(buf, value)
+        return self._a[name]
 
     def derivatives(self, X, U, P):
-        X, U, P = _c(X), _c(U), self._params(P)
-        self._c.wb_derivatives(self.T, _ptr(X), _ptr(U), _ptr(P), *self._pd)
+        self._c.wb_derivatives(self.T, self._put("X", X), self._put("U", U), self._put("P", P),
+                               *self._pd)
         return self._d
 
     def backward(self, d, U, umin, umax, mu, reg, boxed):
-        T, nx, nu = self.T, self.problem.nx, self.problem.nu
-        k, K, dV = np.zeros((T, nu)), np.zeros((T, nu, nx)), np.zeros(2)
-        U, lo, hi = _c(U), _c(umin), _c(umax)
-        ptrs = self._pd if d is self._d else [
-            _ptr(_c(d[n])) for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")]
-        status = self._c.wb_backward(T, *ptrs, _ptr(U), _ptr(lo), _ptr(hi), float(mu), int(reg),
-                                     int(boxed), _ptr(k), _ptr(K), _ptr(dV))
-        return status, k, K, dV
+        if d is not self._d:
+            for n in self._d:
+                np.copyto(self._d[n], d[n])
+        status = self._c.wb_backward(
+            self.T, *self._pd, self._put("U", U), self._put("umin", umin),
+            self._put("umax", umax), float(mu), int(reg), int(boxed), self._a["k"],
+            self._a["K"], self._a["dV"])
+        return status, self._b["k"].copy(), self._b["K"].copy(), self._b["dV"].copy()
+
+    def _policy(self, x0, X, U, k, K, P, umin, umax) -> list[int]:
+        return [self._put("x0", x0), self._put("X", X), self._put("U", U), self._put("k", k),
+                self._put("K", K), self._put("P", P)]
 
     def forward(self, x0, X, U, k, K, P, alpha, umin, umax, use_policy=True):
-        x0, X, U, k, K, P = _c(x0), _c(X), _c(U), _c(k), _c(K), self._params(P)
-        umin, umax = _c(umin), _c(umax)
-        Xn, Un = np.empty_like(X), np.empty_like(U)
-        J = self._c.wb_forward(self.T, _ptr(x0), _ptr(X), _ptr(U), _ptr(k), _ptr(K), _ptr(P),
-                               float(alpha), _ptr(umin), _ptr(umax), int(use_policy),
-                               _ptr(Xn), _ptr(Un))
-        return Xn, Un, float(J)
+        ptrs = self._policy(x0, X, U, k, K, P, umin, umax)
+        J = self._c.wb_forward(self.T, *ptrs, float(alpha), self._put("umin", umin),
+                               self._put("umax", umax), int(use_policy), self._a["Xn"],
+                               self._a["Un"])
+        return self._b["Xn"].copy(), self._b["Un"].copy(), float(J)
 
     def line_search(self, x0, X, U, k, K, P, J, dV, alphas, z_min, umin, umax):
-        x0, X, U, k, K, P = _c(x0), _c(X), _c(U), _c(k), _c(K), self._params(P)
-        umin, umax, dV, a = _c(umin), _c(umax), _c(dV), _c(alphas)
-        Xn, Un, out = np.empty_like(X), np.empty_like(U), np.zeros(3)
-        i = self._c.wb_line_search(self.T, _ptr(x0), _ptr(X), _ptr(U), _ptr(k), _ptr(K),
-                                   _ptr(P), float(J), _ptr(dV), _ptr(a), a.size, float(z_min),
-                                   _ptr(umin), _ptr(umax), _ptr(Xn), _ptr(Un), _ptr(out))
+        ptrs = self._policy(x0, X, U, k, K, P, umin, umax)
+        n = len(alphas)
+        self._b["alphas"][:n] = alphas
+        i = self._c.wb_line_search(self.T, *ptrs, float(J), self._put("dV", dV),
+                                   self._a["alphas"], n, float(z_min), self._put("umin", umin),
+                                   self._put("umax", umax), self._a["Xn"], self._a["Un"],
+                                   self._a["out"])
         if i < 0:
             return False, X, U, J, 0.0, 0.0
-        return True, Xn, Un, float(out[0]), float(out[1]), float(out[2])
+        out = self._b["out"]
+        return (True, self._b["Xn"].copy(), self._b["Un"].copy(), float(out[0]), float(out[1]),
+                float(out[2]))
 
 
 def box_qp_compiled(library: Library, H, g, lo, hi, x0):

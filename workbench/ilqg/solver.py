@@ -48,8 +48,8 @@ class ILQGOptions:
         positive("ILQGOptions.mu_min", self.mu_min, allow_zero=True)
         positive("ILQGOptions.mu_max", self.mu_max)
         one_of("ILQGOptions.regularization", self.regularization, ("control", "state"))
-        if not self.alphas or any(not (0 < a <= 1) for a in self.alphas):
-            raise fail("ILQGOptions.alphas", self.alphas, "need step sizes in (0, 1]")
+        if not 0 < len(self.alphas) <= 32 or any(not (0 < a <= 1) for a in self.alphas):
+            raise fail("ILQGOptions.alphas", self.alphas, "need 1 to 32 step sizes in (0, 1]")
         for name in ("tol_abs", "tol_rel", "tol_grad"):
             positive(f"ILQGOptions.{name}", getattr(self, name), allow_zero=True)
         one_of("ILQGOptions.backend", self.backend, ("auto", "compiled", "numpy"))

@@ -83,8 +83,8 @@ def _full_state(sp: SamplingProblem, x) -> np.ndarray:
     x = np.asarray(x, dtype=float).ravel()
     if not np.all(np.isfinite(x)):
         raise fail("x", x, "the measured state must be finite")
-    if x.size == sp.model.n_physical:
-        return sp.model.lift(x)
+    if x.size == sp.model.n_physical and sp.nx != x.size:
+        return np.asarray(sp.model.lift_function(x)).ravel()
     return as_array("x", x, (sp.nx,))
 
 
@@ -210,6 +210,7 @@ class RobustMPPI:
         self.fb_passes = make_passes(self.fb_problem, config.horizon)
         self.fb_options = ILQGOptions(max_iter=robust.feedback_iterations, mu_init=1e-6)
         self._dyn = sp.functions()["dyn"]
+        self._lift_all = sp.model.lift_function.map(robust.n_candidates)
         self._P0 = np.zeros((config.horizon + 1, self.fb_problem.n_p))
 
     def initial_state(self, x0=None) -> RMPPIState:
@@ -236,19 +237,18 @@ class RobustMPPI:
         W = [(1 - i / hc, i / hc, 0.0) for i in range(hc + 1)]
         W += [(0.0, 1 - i / hc, i / hc) for i in range(1, hc + 1)]
         n = sp.model.n_physical
-        starts, strides = [], []
-        for w in W:
-            c = w[0] * a0 + w[1] * a1 + w[2] * a2
-            # beta of an interpolated state is recomputed from its position (SPEC 4.4)
-            starts.append(sp.model.lift(c[:n]))
-            strides.append(round(w[1] + w[2]))  # s = 1 plant step per call
+        Wm = np.array(W)
+        mixed = Wm @ np.stack([a0, a1, a2])
+        # beta of an interpolated state is recomputed from its position (SPEC 4.4)
+        starts = np.asarray(self._lift_all(mixed[:, :n].T)).T
+        strides = [round(w[1] + w[2]) for w in W]  # s = 1 plant step per call
         M, T = r.candidate_samples, cfg.horizon
         U_lane = np.empty((T, sp.nu, M * len(W)))
         idx = np.arange(T)
         for i, s in enumerate(strides):
             U_lane[:, :, i * M : (i + 1) * M] = state.U[np.minimum(idx + s, T - 1)][:, :, None]
         delay = np.repeat(np.array(strides, float), M)  # no noise before the stride (MPPI-G)
-        S = self.sampler.candidates(np.repeat(np.array(starts), M, axis=0), U_lane, delay,
+        S = self.sampler.candidates(np.repeat(starts, M, axis=0), U_lane, delay,
                                     self.consts, int(rng.integers(0, 2**63)))
         S = np.where(np.isfinite(S), S, np.inf).reshape(len(W), M)
         rho = S.min()  # over all candidates' samples (SPEC 9.3)

@@ -211,18 +211,17 @@ def emit_kernel(spec: KernelSpec) -> str:
     out += ["    }"]
     if nz:
         out += [f"    double z{j}[{LANES}];" for j in range(nz)]
-        out += [f"    wb_rng rng[{LANES}];",
-                f"    if (gen_noise) for (int l = 0; l < {LANES}; ++l) "
-                "wb_rng_seed(&rng[l], seed, (unsigned long long)(n0 + l));"]
+        out += ["    wb_rng_block rng;",
+                "    if (gen_noise) wb_block_seed(&rng, seed, (unsigned long long)n0);"]
     out += ["    for (int t = 0; t < T; ++t) {"]
     out += [f"      const double* tin{j} = time_in[{j}];" for j in range(len(time_))]
     if nz:
-        gen = "".join(f" z{j}[l] = wb_normal(&rng[l]);" for j in range(nz))
+        gen = "".join(f" wb_block_normals(&rng, z{j});" for j in range(nz))
         wr = "".join(f" noise[((size_t)t*{nz}+{j})*N+n0+l] = z{j}[l];" for j in range(nz))
         rd = "".join(f" z{j}[l] = noise[((size_t)t*{nz}+{j})*N+n0+l];" for j in range(nz))
         out += [
             "      if (gen_noise) {",
-            f"        for (int l = 0; l < {LANES}; ++l) {{{gen} }}",
+            f"       {gen}",
             f"        if (noise) for (int l = 0; l < {LANES}; ++l) {{{wr} }}",
             "      } else {",
             f"        for (int l = 0; l < {LANES}; ++l) {{{rd} }}",
@@ -315,11 +314,59 @@ static inline double wb_normal(wb_rng* r) {{
   if (__builtin_expect(fabs(u) < wb_zig_r[i], 1)) return u * wb_zig_x[i];
   return wb_normal_slow(r, i, u);
 }}
+/* The generators of WB_LANES consecutive samples in structure-of-arrays form, so that the
+   xoshiro steps and the rectangle test vectorise across samples. Each lane draws exactly the
+   sequence its own scalar generator would (wb_normals), so results never depend on blocking. */
+#define WB_LANES {LANES}
+typedef struct {{ uint64_t s0[WB_LANES], s1[WB_LANES], s2[WB_LANES], s3[WB_LANES]; }} wb_rng_block;
+static inline void wb_block_seed(wb_rng_block* b, unsigned long long seed, unsigned long long n0) {{
+  for (int l = 0; l < WB_LANES; ++l) {{
+    wb_rng r;
+    wb_rng_seed(&r, seed, n0 + (unsigned long long)l);
+    b->s0[l] = r.s[0]; b->s1[l] = r.s[1]; b->s2[l] = r.s[2]; b->s3[l] = r.s[3];
+  }}
+}}
+static inline void wb_block_normals(wb_rng_block* b, double* z) {{
+  uint64_t bits[WB_LANES];
+  int miss = 0;
+  for (int l = 0; l < WB_LANES; ++l) {{
+    const uint64_t s0 = b->s0[l], s1 = b->s1[l];
+    uint64_t s2 = b->s2[l] ^ s0, s3 = b->s3[l] ^ s1;
+    bits[l] = wb_rotl(s1 * 5, 7) * 9;
+    b->s1[l] = s1 ^ s2;
+    b->s0[l] = s0 ^ s3;
+    b->s2[l] = s2 ^ (s1 << 17);
+    b->s3[l] = wb_rotl(s3, 45);
+  }}
+  for (int l = 0; l < WB_LANES; ++l) {{
+    const int i = (int)(bits[l] & 0x7F);
+    const double u = 2.0 * ((double)(int64_t)(bits[l] >> 11) * 0x1p-53) - 1.0;
+    z[l] = u * wb_zig_x[i];
+    miss |= !(fabs(u) < wb_zig_r[i]);
+  }}
+  if (__builtin_expect(miss, 0)) {{
+    for (int l = 0; l < WB_LANES; ++l) {{
+      const int i = (int)(bits[l] & 0x7F);
+      const double u = 2.0 * ((double)(int64_t)(bits[l] >> 11) * 0x1p-53) - 1.0;
+      if (fabs(u) < wb_zig_r[i]) continue;
+      wb_rng r = {{{{b->s0[l], b->s1[l], b->s2[l], b->s3[l]}}}};
+      z[l] = wb_normal_slow(&r, i, u);
+      b->s0[l] = r.s[0]; b->s1[l] = r.s[1]; b->s2[l] = r.s[2]; b->s3[l] = r.s[3];
+    }}
+  }}
+}}
 void wb_set_threads(int n) {{
 #ifdef _OPENMP
   omp_set_num_threads(n);
 #else
   (void)n;
+#endif
+}}
+int wb_get_threads(void) {{
+#ifdef _OPENMP
+  return omp_get_max_threads();
+#else
+  return 1;
 #endif
 }}
 /* Standard normals of samples [0, N) for T steps and m per step, written (T, m, N): exactly

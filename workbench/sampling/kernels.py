@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from workbench.barrier import min_margin
 from workbench.codegen import build_library
 from workbench.sampling.emit import LANES, KernelSpec, emit_kernel, rng_source
 from workbench.sampling.problem import SamplingProblem
@@ -51,8 +52,7 @@ def _crashed(margins, x, eps_h: float, nh: int):
     """1 if any margin is <= eps_h; built like the barrier's crash rule so CSE shares it."""
     if nh == 0:
         return ca.SX(0)
-    h = margins(x)
-    return sum((h[i] <= eps_h for i in range(nh)), ca.SX(0)) > 0
+    return min_margin(margins(x), range(nh)) <= eps_h
 
 
 def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", delayed: bool = False) -> KernelSpec:
@@ -252,6 +252,7 @@ def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
             c.wb_normals.restype = None
             c.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
             c.wb_set_threads.argtypes = [ctypes.c_int]
+            c.wb_get_threads.restype = ctypes.c_int
             kernels = [CompiledKernel(s, c) for s in specs]
             _LIBS[key] = SamplerLibrary(*kernels, cdll=c)
     return _LIBS[key]
