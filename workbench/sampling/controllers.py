@@ -216,14 +216,6 @@ class RobustMPPI:
     def initial_state(self, x0=None) -> RMPPIState:
         return RMPPIState(np.zeros((self.cfg.horizon, self.sp.nu)), None, 0)
 
-    def rollout(self, x0, U) -> np.ndarray:
-        """Nominal trajectory of the embedded model under U, (T+1, nx)."""
-        X = np.empty((U.shape[0] + 1, self.sp.nx))
-        X[0] = x0
-        for t in range(U.shape[0]):
-            X[t + 1] = np.asarray(self._dyn(X[t], U[t])).ravel()
-        return X
-
     def select_nominal(self, state: RMPPIState, xb, rng) -> tuple[np.ndarray, np.ndarray, int,
                                                                    np.ndarray, bool]:
         """Nominal-state selection (SPEC 9.3) with s = 1 plant step since the last call."""
