@@ -73,17 +73,20 @@ def test_sais_kernel_equals_reference(setup, rng, model_backend):
 def test_candidate_kernel_equals_reference(setup, rng):
     model, sp, lib, c = setup
     starts = np.stack([model.lift([1.0 + 0.1 * i, 1.0, 1.0, 1.0]) for i in range(N)])
-    U_lane = rng.normal(0, 1.0, (N, T, 2))
-    delay = rng.integers(0, 3, N).astype(float)
-    carry = np.column_stack([starts, np.zeros((N, 2)), delay])
-    out = lib.candidates(carry, consts=c.kernel_consts(),
-                         lane_in={"u": np.transpose(U_lane, (1, 2, 0))}, seed=11,
-                         keep_noise=True)
+    U = rng.normal(0, 1.0, (T, 2))
+    U_next = np.vstack([U[1:], U[-1:]])
+    stride = rng.integers(0, 2, N).astype(float)
+    carry = np.column_stack([starts, np.zeros((N, 2)), stride, stride])
+    out = lib.candidates(carry, consts=c.kernel_consts(), time_in={"u": U, "u_next": U_next},
+                         seed=11, keep_noise=True)
     Z = np.transpose(out.noise, (2, 0, 1))
-    ref = mppi_reference(sp, starts, U_lane, Z, c, delay=delay)
+    U_lane = np.where(stride[:, None, None] > 0, U_next[None], U[None])
+    ref = mppi_reference(sp, starts, U_lane, Z, c, delay=stride)
     _close(out.result[:, 0], ref["S"])
     _close(np.transpose(out.lane_out[0], (2, 0, 1)), ref["v"], rtol=1e-12)
-    np.testing.assert_array_equal(ref["v"][delay == 2, :2], U_lane[delay == 2, :2])
+    shifted = ref["v"][stride == 1, 0]  # u_1 at t = 0, no noise
+    np.testing.assert_array_equal(shifted, np.broadcast_to(U[1], shifted.shape))
+    assert 0 < stride.sum() < N
 
 
 def test_zero_gains_reduce_sais_to_the_sampler_without_feedback(setup, rng):

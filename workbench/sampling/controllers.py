@@ -234,14 +234,11 @@ class RobustMPPI:
         # beta of an interpolated state is recomputed from its position (SPEC 4.4)
         starts = np.asarray(self._lift_all(mixed[:, :n].T)).T
         strides = [round(w[1] + w[2]) for w in W]  # s = 1 plant step per call
-        M, T = r.candidate_samples, cfg.horizon
-        U_lane = np.empty((T, sp.nu, M * len(W)))
-        idx = np.arange(T)
-        for i, s in enumerate(strides):
-            U_lane[:, :, i * M : (i + 1) * M] = state.U[np.minimum(idx + s, T - 1)][:, :, None]
-        delay = np.repeat(np.array(strides, float), M)  # no noise before the stride (MPPI-G)
-        S = self.sampler.candidates(np.repeat(starts, M, axis=0), U_lane, delay,
-                                    self.consts, int(rng.integers(0, 2**63)))
+        M = r.candidate_samples
+        # controls u*_{min(t+s, T-1)}, no noise before the stride (MPPI-G)
+        S = self.sampler.candidates(np.repeat(starts, M, axis=0), state.U,
+                                    np.repeat(np.array(strides, float), M), self.consts,
+                                    int(rng.integers(0, 2**63)))
         S = np.where(np.isfinite(S), S, np.inf).reshape(len(W), M)
         rho = S.min()  # over all candidates' samples (SPEC 9.3)
         with np.errstate(divide="ignore"):

@@ -55,18 +55,24 @@ def _crashed(margins, x, eps_h: float, nh: int):
     return min_margin(margins(x), range(nh)) <= eps_h
 
 
-def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", delayed: bool = False) -> KernelSpec:
-    """MPPI rollout (SPEC 8.1 with the crash rule of 4.6). ``delayed`` adds a per-sample count
-    of leading steps without noise as the last carry entry (RMPPI candidates, SPEC 9.3)."""
+def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False) -> KernelSpec:
+    """MPPI rollout (SPEC 8.1 with the crash rule of 4.6).
+
+    ``strided`` (RMPPI candidates, SPEC 9.3) adds per-sample ``delay`` and ``stride`` s in
+    {0, 1} as the last carry entries: the sample follows u_{min(t+s, T-1)} (time input
+    ``u_next`` holds the shifted sequence) and draws no noise while delay > 0.
+    """
     nx, nu, nh = sp.nx, sp.nu, sp.model.nh
     dyn, margins, q, phi = _model_parts(sp)
     c = _symbols(sp)
-    carry = ca.SX.sym("carry", nx + 2 + int(delayed))
-    z, u = ca.SX.sym("z", nu), ca.SX.sym("u", nu)
+    carry = ca.SX.sym("carry", nx + 2 + 2 * int(strided))
+    z, u_in, u_next = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("u_next", nu)
     x, S, cr = carry[:nx], carry[nx], carry[nx + 1]
-    noise = c["sigma"] * z
-    if delayed:
-        noise = ca.if_else(carry[nx + 2] <= 0, noise, ca.SX.zeros(nu))
+    noise, u = c["sigma"] * z, u_in
+    if strided:
+        delay, stride = carry[nx + 2], carry[nx + 3]
+        noise = ca.if_else(delay <= 0, noise, ca.SX.zeros(nu))
+        u = ca.if_else(stride > 0, u_next, u_in)
     v = _clip(u + noise, c["u_min"], c["u_max"])
     eps = v - u
     xn = dyn(x, v)
@@ -74,21 +80,20 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", delayed: bool = False)
     inv = 1.0 / (c["sigma"] * c["sigma"])
     lr = 0.5 * c["lr"] * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, eps))
     Sn = S + (q(xn, c["p"]) + c["crash"][0] * crn) + lr
-    ins = {"carry": carry, "z": z, "u": u, **c}
-    new = [xn, Sn, crn] + ([carry[nx + 2] - 1] if delayed else [])
+    ins = {"carry": carry, "z": z, "u": u_in, **({"u_next": u_next} if strided else {}), **c}
+    new = [xn, Sn, crn] + ([carry[nx + 2] - 1, carry[nx + 3]] if strided else [])
     step = ca.Function(name + "_step", list(ins.values()), [ca.vertcat(*new), v],
                        list(ins), ["carry_next", "v"], _OPTS)
     final = ca.Function(name + "_final", [carry, c["p"]],
                         [ca.vertcat(S + phi(x, c["p"]), cr)], ["carry", "p"], ["result"], _OPTS)
-    roles = {"carry": "carry", "z": "noise", "u": "time", **{k: "const" for k in _CONSTS}}
+    roles = {"carry": "carry", "z": "noise", "u": "time", "u_next": "time",
+             **{k: "const" for k in _CONSTS}}
     return KernelSpec(name, step, final, roles)
 
 
 def candidate_spec(sp: SamplingProblem) -> KernelSpec:
-    """RMPPI candidate evaluation (SPEC 9.3): MPPI rollouts with per-sample controls (the
-    stride shift) and a per-sample count of leading noise-free steps in the carry."""
-    base = mppi_spec(sp, "wb_candidates", delayed=True)
-    return KernelSpec("wb_candidates", base.step, base.final, {**base.roles, "u": "lane"})
+    """RMPPI candidate evaluation (SPEC 9.3): strided MPPI rollouts, no feedback."""
+    return mppi_spec(sp, "wb_candidates", strided=True)
 
 
 def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:

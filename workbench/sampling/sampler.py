@@ -86,14 +86,19 @@ class Sampler:
                          np.transpose(ref["v_nom"], (1, 2, 0)),
                          np.transpose(ref["v_real"], (1, 2, 0)))
 
-    def candidates(self, starts, U_lane, delay, c: SamplerConstants, seed: int) -> np.ndarray:
-        """Costs (N,) of rollouts from per-sample starts (N, nx) with per-sample controls
-        U_lane (T, nu, N) and no noise for the first delay[n] steps; no feedback."""
-        N, T = starts.shape[0], U_lane.shape[0]
+    def candidates(self, starts, U, stride, c: SamplerConstants, seed: int) -> np.ndarray:
+        """Costs (N,) of rollouts from per-sample starts (N, nx) following U shifted by the
+        per-sample stride s in {0, 1} (u_{min(t+s, T-1)}), with no noise for t < s."""
+        N, T = starts.shape[0], U.shape[0]
+        stride = np.asarray(stride, dtype=float)
+        if np.any((stride != 0) & (stride != 1)):
+            raise fail("stride", stride, "candidate strides must be 0 or 1")
+        U_next = np.vstack([U[1:], U[-1:]])
         if self.lib is not None:
-            carry = np.column_stack([starts, np.zeros((N, 2)), delay])
-            out = self.lib.candidates(carry, consts=c.kernel_consts(), lane_in={"u": U_lane},
-                                      seed=seed)
+            carry = np.column_stack([starts, np.zeros((N, 2)), stride, stride])
+            out = self.lib.candidates(carry, consts=c.kernel_consts(),
+                                      time_in={"u": U, "u_next": U_next}, seed=seed)
             return out.result[:, 0]
-        return mppi_reference(self.sp, starts, np.transpose(U_lane, (2, 0, 1)),
-                              self._noise(N, T, seed), c, delay=delay)["S"]
+        U_lane = np.where(stride[:, None, None] > 0, U_next[None], U[None])
+        return mppi_reference(self.sp, starts, U_lane, self._noise(N, T, seed), c,
+                              delay=stride)["S"]
