@@ -71,8 +71,10 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False)
     noise, u = c["sigma"] * z, u_in
     if strided:
         delay, stride = carry[nx + 2], carry[nx + 3]
-        noise = ca.if_else(delay <= 0, noise, ca.SX.zeros(nu))
-        u = ca.if_else(stride > 0, u_next, u_in)
+        # arithmetic blends, exact for 0/1 weights: a select here makes gcc turn the time-input
+        # loads into masked loads, which stops it vectorising the lane loop
+        noise = noise * (delay <= 0)
+        u = (1.0 - stride) * u_in + stride * u_next
     v = _clip(u + noise, c["u_min"], c["u_max"])
     eps = v - u
     xn = dyn(x, v)
