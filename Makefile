@@ -7,7 +7,7 @@ PROFILE ?= quick
 export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
-.PHONY: venv test study study-tracking-demo bench lint clean-cache clean
+.PHONY: venv test study study-tracking-demo study-tracking bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -23,10 +23,13 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check workbench studies tests benchmarks
 
-study: study-tracking-demo
+study: study-tracking-demo study-tracking
 
 study-tracking-demo: $(STAMP)
 	$(PY) -m studies.tracking_demo --profile $(PROFILE) --out reports/tracking_demo
+
+study-tracking: $(STAMP)
+	$(PY) -m studies.tracking_comparison --profile $(PROFILE) --out reports/tracking_comparison
 
 bench: $(STAMP)
 	$(PY) -m benchmarks --out reports/bench/bench.json

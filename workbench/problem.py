@@ -151,5 +151,5 @@ class Problem:
         """J = sum_k l(x_k, u_k, p_k) + l_T(x_T, p_T)."""
         T = U.shape[0]
         stage = self.functions["stage"].map(T)
-        return float(np.sum(stage(X[:-1].T, U.T, P[:-1].T))) + float(
-            self.functions["term"](X[-1], P[-1]))
+        stages = np.asarray(stage(X[:-1].T, U.T, P[:-1].T))
+        return float(stages.sum()) + float(self.functions["term"](X[-1], P[-1]))

@@ -1,0 +1,163 @@
+"""Study configuration: frozen, validated at construction, hashed per (method, seed) task."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field, replace
+from numbers import Integral, Real
+
+import numpy as np
+
+from workbench.validation import fail, one_of
+
+METHODS: tuple[str, ...] = ("ecbf", "al", "bas")
+PROFILES: tuple[str, ...] = ("quick", "full")
+RESULT_VERSION = 1  # bump when the meaning of stored task results changes
+SWEPT = ("q_beta", "pole", "q_scale", "ecbf_noise")
+NOISE_PLACEMENTS = ("before", "after")
+# the swept values each method's results depend on
+RELEVANT = {"ecbf": ("pole", "q_scale", "ecbf_noise"), "al": ("q_scale",),
+            "bas": ("q_beta", "q_scale")}
+
+
+def _int(name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
+        raise fail(name, value, f"must be an integer >= {minimum}")
+    return int(value)
+
+
+def _real(name: str, value, *, minimum: float = 0.0, strict: bool = True) -> float:
+    ok = isinstance(value, Real) and not isinstance(value, bool) and np.isfinite(value) and (
+        value > minimum if strict else value >= minimum)
+    if not ok:
+        raise fail(name, value, f"must be a finite number {'>' if strict else '>='} {minimum}")
+    return float(value)
+
+
+def _values(name: str, values, *, strict: bool = True) -> tuple[float, ...]:
+    if isinstance(values, str) or not hasattr(values, "__iter__") or len(values) == 0:
+        raise fail(name, values, "must be a non-empty sequence of numbers")
+    return tuple(_real(f"{name}[{i}]", v, strict=strict) for i, v in enumerate(values))
+
+
+@dataclass(frozen=True)
+class Variant:
+    """The [A] values a run depends on (SPEC 15), swept by the sensitivity study.
+
+    q_beta: BaS barrier-state weight; pole: ECBF poles p1 = p2 = pole; q_scale: factor on the
+    tracking weight Q = diag(10, 10, 1, 1) (R and S unchanged); ecbf_noise: whether the control
+    noise enters before the ECBF filter (SPEC 6.3 default) or after it (SPEC 13 E7).
+    """
+
+    q_beta: float = 1e-2
+    pole: float = 5.0
+    q_scale: float = 1.0
+    ecbf_noise: str = "before"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "q_beta", _real("q_beta", self.q_beta, strict=False))
+        object.__setattr__(self, "pole", _real("pole", self.pole))
+        object.__setattr__(self, "q_scale", _real("q_scale", self.q_scale))
+        one_of("ecbf_noise", self.ecbf_noise, NOISE_PLACEMENTS)
+
+    def relevant(self, method: str) -> dict[str, float | str]:
+        """The values that change a method's results (others do not enter its task key)."""
+        return {k: getattr(self, k) for k in RELEVANT[method]}
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """Everything a run depends on. Build with :meth:`for_profile` or directly; bad values raise
+    ValueError naming the field.
+
+    Main study: n_seeds x n_rollouts per method at ``base``. Sweep: for each [A] parameter and each
+    of its values (others at base), sweep_seeds x sweep_rollouts per method. Noise std in the
+    control channel; failure = unsafe or final distance > target_radius [A].
+    """
+
+    profile: str = "full"
+    methods: tuple[str, ...] = METHODS
+    noise_std: float = 10.0
+    n_rollouts: int = 500
+    n_seeds: int = 10
+    seed: int = 2022
+    target_radius: float = 0.5
+    workers: int = 2
+    base: Variant = field(default_factory=Variant)
+    sweep: bool = True
+    sweep_q_beta: tuple[float, ...] = (1e-3, 1e-2, 1e-1, 1.0)
+    sweep_pole: tuple[float, ...] = (2.0, 5.0, 10.0)
+    sweep_q_scale: tuple[float, ...] = (0.1, 1.0, 10.0)
+    sweep_ecbf_noise: tuple[str, ...] = NOISE_PLACEMENTS
+    sweep_rollouts: int = 250
+    sweep_seeds: int = 2
+
+    def __post_init__(self) -> None:
+        one_of("profile", self.profile, PROFILES)
+        methods = self.methods
+        if isinstance(methods, str) or not hasattr(methods, "__iter__") or len(methods) == 0:
+            raise fail("methods", methods, f"must be a non-empty subset of {METHODS}")
+        for m in methods:
+            if m not in METHODS:
+                raise fail("methods", m, f"unknown method; allowed values are {METHODS}")
+        if len(set(methods)) != len(methods):
+            raise fail("methods", methods, "must not repeat a method")
+        object.__setattr__(self, "methods", tuple(m for m in METHODS if m in methods))
+        object.__setattr__(self, "noise_std",
+                           _real("noise_std", self.noise_std, strict=False))
+        object.__setattr__(self, "n_rollouts", _int("n_rollouts", self.n_rollouts, 1))
+        object.__setattr__(self, "n_seeds", _int("n_seeds", self.n_seeds, 1))
+        object.__setattr__(self, "seed", _int("seed", self.seed, 0))
+        object.__setattr__(self, "target_radius", _real("target_radius", self.target_radius))
+        object.__setattr__(self, "workers", _int("workers", self.workers, 1))
+        if not isinstance(self.base, Variant):
+            raise fail("base", self.base, "must be a Variant")
+        for name in SWEPT[:3]:
+            object.__setattr__(self, f"sweep_{name}", _values(
+                f"sweep_{name}", getattr(self, f"sweep_{name}"), strict=name != "q_beta"))
+        placements = self.sweep_ecbf_noise
+        if isinstance(placements, str) or len(placements) == 0 or any(
+                p not in NOISE_PLACEMENTS for p in placements):
+            raise fail("sweep_ecbf_noise", placements, f"must be a non-empty subset of "
+                       f"{NOISE_PLACEMENTS}")
+        object.__setattr__(self, "sweep_ecbf_noise", tuple(placements))
+        object.__setattr__(self, "sweep_rollouts",
+                           _int("sweep_rollouts", self.sweep_rollouts, 1))
+        object.__setattr__(self, "sweep_seeds", _int("sweep_seeds", self.sweep_seeds, 1))
+
+    @classmethod
+    def for_profile(cls, profile: str, **overrides) -> StudyConfig:
+        """quick: 2 seeds x 100 rollouts, sweep 1 x 100 (make study); full: 10 x 500, 2 x 250."""
+        one_of("profile", profile, PROFILES)
+        sizes = ({"n_rollouts": 100, "n_seeds": 2, "sweep_rollouts": 100, "sweep_seeds": 1}
+                 if profile == "quick" else {})
+        return cls(profile=profile, **{**sizes, **overrides})
+
+    def sweep_points(self) -> list[tuple[str, float | str, Variant]]:
+        """(parameter, value, variant) for every swept value, the others at base."""
+        if not self.sweep:
+            return []
+        return [(name, v, replace(self.base, **{name: v}))
+                for name in SWEPT for v in getattr(self, f"sweep_{name}")]
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def task_key(config: StudyConfig, method: str, variant: Variant, seed_index: int,
+             n_rollouts: int, fixed: dict) -> str:
+    """Content hash of everything a (method, variant, seed) task's results depend on."""
+    payload = {"version": RESULT_VERSION, "method": method, "variant": variant.relevant(method),
+               "seed": config.seed, "seed_index": seed_index, "n_rollouts": n_rollouts,
+               "noise_std": config.noise_std, "fixed": fixed}
+    text = json.dumps(payload, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def nominal_key(method: str, variant: Variant, fixed: dict) -> str:
+    """Content hash of a nominal solution's inputs."""
+    text = json.dumps({"version": RESULT_VERSION, "method": method,
+                       "variant": variant.relevant(method), "fixed": fixed},
+                      sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -1,0 +1,200 @@
+"""ECBF safety filter (SPEC 7): Lie derivatives, closed forms, a second QP solver, infeasibility."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+import qpsolvers
+
+from workbench.ecbf import ECBFFilter, ECBFOptions, control_affine, ecbf_rows
+from workbench.models import Model, double_integrator, single_integrator
+from workbench.obstacles import Circle, circle_margins
+
+OBSTACLES = (Circle((0.0, 0.1), 1.5), Circle((2.5, -1.0), 0.7))
+
+
+def _random_states(rng, n, around=(0.0, 0.1), r_min=1.6, r_max=3.5, speed=6.0):
+    ang = rng.uniform(0, 2 * np.pi, n)
+    d = rng.uniform(r_min, r_max, n)
+    p = np.array(around) + d[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
+    return np.hstack([p, speed * rng.standard_normal((n, 2))])
+
+
+def _unicycle(obstacle: Circle) -> Model:
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 2)
+    dt = 0.05
+    x_next = x + dt * ca.vertcat(u[0] * ca.cos(x[2]), u[0] * ca.sin(x[2]), u[1])
+    return Model.from_expressions("unicycle", x, u, x_next, dt=dt, u_min=[-2, -3],
+                                  u_max=[2, 3], h=circle_margins(x[:2], (obstacle,)),
+                                  obstacles=(obstacle,))
+
+
+def test_rows_match_the_spec_closed_form_for_the_double_integrator(rng):
+    opts = ECBFOptions(poles=(3.0, 7.0))
+    rows = ecbf_rows(double_integrator(obstacles=OBSTACLES), opts)
+    assert rows.relative_degrees == (2, 2)
+    k0, k1 = 21.0, 10.0
+    for x in _random_states(rng, 20):
+        a, b = rows(x)
+        p, v = x[:2], x[2:]
+        for i, c in enumerate(OBSTACLES):
+            d = p - np.array(c.center)
+            h = d @ d - c.radius**2
+            np.testing.assert_allclose(a[i], 2 * d, rtol=1e-12, atol=1e-12)  # L_g L_f h
+            np.testing.assert_allclose(b[i], -2 * v @ v - 2 * k1 * d @ v - k0 * h,
+                                       rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("make", [
+    lambda: double_integrator(obstacles=OBSTACLES, integrator="euler"),
+    lambda: single_integrator(obstacles=OBSTACLES),
+    lambda: _unicycle(Circle((1.0, 0.5), 0.6)),
+])
+def test_lie_derivatives_match_finite_differences(make, rng):
+    """L_f h, L_g h, L_f^2 h, L_g L_f h against central differences along f and the columns
+    of g (f, g from the discrete map (F - x)/dt)."""
+    model = make()
+    f_sx, g_sx = control_affine(model)
+    f = ca.Function("f", [model.x], [f_sx])
+    g = ca.Function("g", [model.x], [g_sx])
+    h = ca.Function("h", [model.x], [model.h])
+    rows = ecbf_rows(model)
+    eps = 1e-6
+
+    def along(fun, x, d):
+        return (np.asarray(fun(x + eps * d)).ravel() - np.asarray(fun(x - eps * d)).ravel()) / (
+            2 * eps)
+
+    lfh_fun = ca.Function("lfh", [model.x], [rows.lie(model.x)[1]])
+    for _ in range(5):
+        x = rng.standard_normal(model.nx) * 2 + 3.0
+        _, lfh, lf2h, lgh, lglfh = (np.asarray(v) for v in rows.lie(x))
+        fx, gx = np.asarray(f(x)).ravel(), np.asarray(g(x))
+        np.testing.assert_allclose(lfh.ravel(), along(h, x, fx), atol=1e-6)
+        np.testing.assert_allclose(lf2h.ravel(), along(lfh_fun, x, fx), atol=1e-5)
+        for j in range(model.nu):
+            np.testing.assert_allclose(lgh[:, j], along(h, x, gx[:, j]), atol=1e-6)
+            np.testing.assert_allclose(lglfh[:, j], along(lfh_fun, x, gx[:, j]), atol=1e-5)
+    expected = {"double_integrator": 2, "single_integrator": 1, "unicycle": 1}[model.name]
+    assert set(rows.relative_degrees) == {expected}
+
+
+def test_single_integrator_row_is_the_spec_cbf():
+    rows = ecbf_rows(single_integrator(obstacles=OBSTACLES[:1]), ECBFOptions(gamma=4.0))
+    x = np.array([-2.0, 0.5])
+    a, b = rows(x)
+    d = x - np.array(OBSTACLES[0].center)
+    np.testing.assert_allclose(a[0], 2 * d)
+    np.testing.assert_allclose(b[0], -4.0 * (d @ d - 1.5**2))
+
+
+def test_invalid_models_and_options_name_the_field():
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 2)
+    nonaffine = Model.from_expressions("sq", x, u, x + 0.1 * u**2, dt=0.1, u_min=[-1, -1],
+                                       u_max=[1, 1], h=circle_margins(x, OBSTACLES[:1]))
+    with pytest.raises(ValueError, match=r"model.x_next"):
+        ECBFFilter(nonaffine)
+    with pytest.raises(ValueError, match=r"relative_degree"):
+        ecbf_rows(single_integrator(obstacles=OBSTACLES), ECBFOptions(relative_degree=2))
+    with pytest.raises(ValueError, match=r"relative_degree"):
+        ecbf_rows(double_integrator(obstacles=OBSTACLES), ECBFOptions(relative_degree=1))
+    with pytest.raises(ValueError, match=r"model.h"):
+        ecbf_rows(double_integrator())
+    with pytest.raises(ValueError, match=r"ECBFOptions.poles"):
+        ECBFOptions(poles=(5.0, -1.0))
+    with pytest.raises(ValueError, match=r"ECBFOptions.mode"):
+        ECBFOptions(mode="medium")
+
+
+@pytest.mark.parametrize("mode", ["soft", "hard"])
+def test_single_constraint_equals_its_closed_form_projection(mode, rng):
+    """Without an active box, min |u - u_ref|^2 s.t. a u >= b is u_ref + max(0, b - a u_ref)
+    a / |a|^2: OSQP must reproduce it when the row is violated; otherwise u = u_ref exactly."""
+    model = double_integrator(obstacles=OBSTACLES[:1], u_limit=1e4)
+    filt = ECBFFilter(model, ECBFOptions(mode=mode))
+    n_active = 0
+    for x in _random_states(rng, 40):
+        u_ref = 20 * rng.standard_normal(2)
+        a, b = filt.ecbf(x)
+        a, b = a[0], b[0]
+        expected = u_ref + max(0.0, b - a @ u_ref) / (a @ a) * a
+        res = filt(x, u_ref)
+        assert not res.infeasible and not res.fallback_used
+        np.testing.assert_allclose(res.u, expected, atol=1e-6)
+        if b - a @ u_ref > 0:
+            n_active += 1
+            assert res.status == "solved" and res.active_rows == (0,)
+        else:
+            assert res.status == "unconstrained" and res.active_rows == ()
+            np.testing.assert_array_equal(res.u, u_ref)
+    assert 5 <= n_active <= 35
+
+
+@pytest.mark.parametrize("mode", ["soft", "hard"])
+def test_osqp_agrees_with_daqp_on_random_instances(mode, rng):
+    """The same QP (rows normalised, slacks in soft mode) through qpsolvers/daqp, on instances
+    where OSQP runs and where the exact shortcuts (u_ref, clip(u_ref)) apply."""
+    model = double_integrator(obstacles=OBSTACLES, u_limit=15.0)
+    opts = ECBFOptions(mode=mode)
+    filt = ECBFFilter(model, opts)
+    lb, ub = model.u_min, model.u_max
+    statuses = []
+    for x in _random_states(rng, 200, r_min=1.55, r_max=2.5, speed=4.0):
+        u_ref = 12 * rng.standard_normal(2)
+        a, b = filt.ecbf(x)
+        an = a / np.linalg.norm(a, axis=1)[:, None]
+        bn = b / np.linalg.norm(a, axis=1)
+        if mode == "hard":
+            ref = qpsolvers.solve_qp(2 * np.eye(2), -2 * u_ref, G=-an, h=-bn, lb=lb, ub=ub,
+                                     solver="daqp")
+            if ref is None:  # infeasible: see the infeasibility test
+                continue
+        else:
+            nh = len(b)
+            P = np.diag(np.r_[2.0, 2.0, 2 * opts.slack_quadratic * np.ones(nh)])
+            q = np.r_[-2 * u_ref, opts.slack_linear * np.ones(nh)]
+            G = -np.hstack([an, np.eye(nh)])
+            ref = qpsolvers.solve_qp(P, q, G=G, h=-bn, lb=np.r_[lb, np.zeros(nh)],
+                                     ub=np.r_[ub, np.full(nh, np.inf)], solver="daqp")
+        res = filt(x, u_ref)
+        statuses.append(res.status)
+        assert not res.fallback_used
+        np.testing.assert_allclose(res.u, ref[:2], atol=1e-6)
+        if not res.infeasible:
+            assert np.all(res.slack <= 1e-6)
+    assert statuses.count("solved") >= 40
+    assert {"unconstrained", "box", "solved"} <= set(statuses)
+
+
+def test_infeasible_step_gives_slack_and_a_flag_never_an_exception(capfd):
+    """Fast towards the obstacle and close to it: no control in the box satisfies the row."""
+    model = double_integrator(obstacles=OBSTACLES[:1], u_limit=15.0)
+    x = np.array([-1.6, 0.1, 10.0, 0.0])
+    u_ref = np.array([10.0, 0.0])
+    a, b = ECBFFilter(model).ecbf(x)
+    assert a[0] @ np.array([-15.0, 0.0]) < b[0]  # infeasible within the box
+    soft = ECBFFilter(model)(x, u_ref)
+    assert soft.infeasible and not soft.fallback_used and soft.status == "solved"
+    assert soft.slack[0] > 1.0
+    np.testing.assert_allclose(soft.u, [-15.0, 0.0], atol=1e-6)  # the least-violation control
+    np.testing.assert_allclose(soft.slack[0], (b[0] - a[0] @ soft.u) / np.linalg.norm(a[0]))
+    hard = ECBFFilter(model, ECBFOptions(mode="hard"))(x, u_ref)
+    assert hard.infeasible and hard.fallback_used and hard.status.startswith("fallback")
+    np.testing.assert_array_equal(hard.u, u_ref)  # clip(u_ref); inside the box here
+    assert hard.slack[0] > 1.0
+    assert capfd.readouterr().out == ""
+
+
+def test_filter_batch_equals_stepwise_calls(rng):
+    model = double_integrator(obstacles=OBSTACLES, u_limit=15.0)
+    X = _random_states(rng, 50, r_min=1.55, r_max=3.0, speed=5.0)
+    U_ref = 12 * rng.standard_normal((50, 2))
+    batch = ECBFFilter(model).filter_batch(X, U_ref)
+    single = ECBFFilter(model)
+    results = [single(x, u) for x, u in zip(X, U_ref, strict=True)]
+    np.testing.assert_array_equal(batch.u, np.array([r.u for r in results]))
+    np.testing.assert_array_equal(batch.infeasible, [r.infeasible for r in results])
+    np.testing.assert_array_equal(batch.qp_solved,
+                                  [r.status not in ("unconstrained", "box") for r in results])
+    assert batch.qp_solved.any() and not batch.qp_solved.all()
