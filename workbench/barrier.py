@@ -92,11 +92,22 @@ def min_margin(h: ca.SX, indices) -> ca.SX:
     return out
 
 
+def _barrier_sum(h: ca.SX, g, opts: BarrierOptions) -> ca.SX:
+    """sum_i B(h_i). For the inverse barrier, pairs are summed as (h_a + h_b) / (h_a h_b): one
+    division per pair instead of two (divisions bound the sampler kernels)."""
+    if opts.kind != "inverse":
+        return sum((opts.barrier(h[i]) for i in g), ca.SX(0))
+    terms = [(h[a] + h[b]) / (h[a] * h[b]) for a, b in zip(g[0::2], g[1::2], strict=False)]
+    if len(g) % 2:
+        terms.append(1.0 / h[g[-1]])
+    return sum(terms, ca.SX(0))
+
+
 def _barrier_values(h: ca.SX, opts: BarrierOptions, groups) -> ca.SX:
     """Barrier-state values of margins h, with the crash rule and the cap."""
     out = []
     for g in groups:
-        raw = sum((opts.barrier(h[i]) for i in g), ca.SX(0))
+        raw = _barrier_sum(h, g, opts)
         crashed = min_margin(h, g) <= opts.eps_h
         out.append(ca.if_else(crashed, opts.beta_max, ca.fmin(raw, opts.beta_max)))
     return ca.vertcat(*out)
