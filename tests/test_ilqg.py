@@ -164,3 +164,21 @@ def test_bad_input_raises_named_errors(bas_tracking, scene):
         ILQGOptions(regularization="both")
     with pytest.raises(ValueError, match="alphas"):
         ILQGOptions(alphas=(1.0, 2.0))
+
+
+@pytest.mark.parametrize("q_beta", [1e-2, 1.0])
+def test_compiled_outer_loop_equals_python_loop(scene, q_beta):
+    """wb_solve (C) and the Python loop over the same compiled passes take the same steps."""
+    from conftest import bas_tracking_problem
+
+    problem, P = bas_tracking_problem(scene, q_beta=q_beta)
+    U0 = np.zeros((scene.horizon, 2))
+    a = ilqg(problem, scene.start, U0, P, ILQGOptions(outer_loop="compiled"))
+    b = ilqg(problem, scene.start, U0, P, ILQGOptions(outer_loop="python"))
+    assert (a.iterations, a.stop_reason, a.converged) == (b.iterations, b.stop_reason,
+                                                          b.converged)
+    assert [h.accepted for h in a.history] == [h.accepted for h in b.history]
+    np.testing.assert_array_equal([h.alpha for h in a.history], [h.alpha for h in b.history])
+    np.testing.assert_allclose(a.cost, b.cost, rtol=1e-14)
+    np.testing.assert_allclose(a.U, b.U, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.K, b.K, rtol=1e-10, atol=1e-10)

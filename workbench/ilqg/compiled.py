@@ -63,6 +63,8 @@ def _declare(c: ctypes.CDLL) -> None:
     c.wb_line_search.argtypes = [i] + [_dp] * 6 + [d, _dp, _dp, i, d, _dp, _dp, _dp, _dp, _dp]
     c.wb_backward.restype = i
     c.wb_backward.argtypes = [i] + [_dp] * 10 + [d, i, i, _dp, _dp, _dp]
+    c.wb_solve.restype = None
+    c.wb_solve.argtypes = [i] + [_dp] * 9 + [i] + [_dp] * 16
     c.wb_box_qp.restype = i
     c.wb_box_qp.argtypes = [i, _dp, _dp, _dp, _dp, _dp, _dp, _dp, _dp, _dp]
 
@@ -95,6 +97,7 @@ class CompiledPasses:
             "X": (T + 1, nx), "U": (T, nu), "P": (T + 1, max(problem.n_p, 1)), "x0": (nx,),
             "k": (T, nu), "K": (T, nu, nx), "dV": (2,), "umin": (nu,), "umax": (nu,),
             "Xn": (T + 1, nx), "Un": (T, nu), "out": (3,), "alphas": (32,),
+            "k2": (T, nu), "K2": (T, nu, nx), "J": (1,), "opt": (11,), "sout": (4,),
         }
         self._b = {n: np.zeros(s) for n, s in shapes.items()}
         self._a = {n: _ptr(v) for n, v in self._b.items()}
@@ -132,6 +135,24 @@ class CompiledPasses:
                                self._put("umax", umax), int(use_policy), self._a["Xn"],
                                self._a["Un"])
         return self._b["Xn"].copy(), self._b["Un"].copy(), float(J)
+
+    def solve(self, x0, X, U, J, P, umin, umax, opt, alphas, max_iter):
+        """The whole outer loop in C (``wb_solve``); returns (X, U, k, K, J, stop code,
+        converged, history (n, 7), final mu)."""
+        b, a = self._b, self._a
+        self._put("X", X), self._put("U", U), self._put("P", P), self._put("x0", x0)
+        b["J"][0] = J
+        b["opt"][:] = opt
+        n = len(alphas)
+        b["alphas"][:n] = alphas
+        hist = np.empty((max_iter, 7))
+        self._c.wb_solve(self.T, a["x0"], a["X"], a["U"], a["J"], a["P"],
+                         self._put("umin", umin), self._put("umax", umax), a["opt"],
+                         a["alphas"], n, a["k"], a["K"], _ptr(hist), a["sout"], *self._pd,
+                         a["k2"], a["K2"], a["Xn"], a["Un"], a["out"])
+        stop, conv, n_hist, mu = b["sout"]
+        return (b["X"].copy(), b["U"].copy(), b["k"].copy(), b["K"].copy(), float(b["J"][0]),
+                int(stop), bool(conv), hist[: int(n_hist)].copy(), float(mu))
 
     def line_search(self, x0, X, U, k, K, P, J, dV, alphas, z_min, umin, umax):
         ptrs = self._policy(x0, X, U, k, K, P, umin, umax)

@@ -358,3 +358,87 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
   }
   return 0;
 }
+
+/* The outer loop of workbench/ilqg/solver.py (ilqg, python loop) in C, for small problems where
+ * the Python loop costs more than the passes. Keep the two in step; tests compare them.
+ * opt = [max_iter, mu_init, mu_factor, mu_min, mu_max, reg, boxed, z_min, tol_abs, tol_rel,
+ *        tol_grad]; X, U hold the initial (accepted) rollout and are updated in place; *J its
+ * cost. hist rows (max_iter, 7): cost, dJ, expected, alpha, mu, grad_norm, accepted.
+ * out = [stop code (0 max_iter, 1 regularization_limit, 2 gradient, 3 cost_change,
+ * 4 line_search_failed), converged, n_hist, final mu]. Work: derivative arrays (7, as
+ * wb_derivatives), k2 (T,NU), K2 (T,NU,NX), Xn, Un, ls_out (3). */
+void wb_solve(int T, const double* x0, double* X, double* U, double* J, const double* P,
+              const double* umin, const double* umax, const double* opt, const double* alphas,
+              int n_alpha, double* k, double* K, double* hist, double* out, double* A,
+              double* B, double* lx, double* lu, double* lxx, double* luu, double* lux,
+              double* k2, double* K2, double* Xn, double* Un, double* ls) {
+  const int max_iter = (int)opt[0], reg = (int)opt[5], boxed = (int)opt[6];
+  const double f = opt[2], mu_min = opt[3], mu_max = opt[4], z_min = opt[7];
+  const double tol_abs = opt[8], tol_rel = opt[9], tol_grad = opt[10];
+  double mu = opt[1], delta = 1.0, dV[2];
+  int d_valid = 0, stop = 0, converged = 0, n_hist = 0;
+  for (int it = 1; it <= max_iter; ++it) {
+    if (!d_valid) {
+      wb_derivatives(T, X, U, P, A, B, lx, lu, lxx, luu, lux);
+      d_valid = 1;
+    }
+    for (;;) {
+      if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k, K,
+                      dV) == 0)
+        break;
+      delta = delta * f > f ? delta * f : f;
+      mu = mu * delta > mu_min ? mu * delta : mu_min;
+      if (mu > mu_max) break;
+    }
+    if (mu > mu_max) { stop = 1; break; }
+    double g = 0.0;
+    for (int t = 0; t < T; ++t) {
+      double m = 0.0;
+      for (int i = 0; i < NU; ++i) {
+        const double r = fabs(k[t * NU + i]) / (fabs(U[t * NU + i]) + 1.0);
+        if (i == 0 || r > m) m = r;
+      }
+      g += m;
+    }
+    g /= T;
+    double* h = hist + (size_t)n_hist * 7;
+    if (g < tol_grad && mu < 1e-5) {
+      delta = delta / f < 1.0 / f ? delta / f : 1.0 / f;
+      mu = mu * delta * (mu > mu_min ? 1.0 : 0.0);
+      h[0] = *J; h[1] = h[2] = h[3] = 0.0; h[4] = mu; h[5] = g; h[6] = 0.0;
+      ++n_hist;
+      stop = 2; converged = 1;
+      break;
+    }
+    const int acc = wb_line_search(T, x0, X, U, k, K, P, *J, dV, alphas, n_alpha, z_min, umin,
+                                   umax, Xn, Un, ls);
+    if (acc >= 0) {
+      const double dJ = *J - ls[0];
+      delta = delta / f < 1.0 / f ? delta / f : 1.0 / f;
+      mu = mu * delta * (mu > mu_min ? 1.0 : 0.0);
+      memcpy(X, Xn, sizeof(double) * (size_t)(T + 1) * NX);
+      memcpy(U, Un, sizeof(double) * (size_t)T * NU);
+      *J = ls[0];
+      d_valid = 0;
+      h[0] = *J; h[1] = dJ; h[2] = ls[2]; h[3] = ls[1]; h[4] = mu; h[5] = g; h[6] = 1.0;
+      ++n_hist;
+      const double tol = tol_abs > tol_rel * fabs(*J) ? tol_abs : tol_rel * fabs(*J);
+      if (dJ <= tol) { stop = 3; converged = 1; break; }
+    } else {
+      delta = delta * f > f ? delta * f : f;
+      mu = mu * delta > mu_min ? mu * delta : mu_min;
+      h[0] = *J; h[1] = h[2] = h[3] = 0.0; h[4] = mu; h[5] = g; h[6] = 0.0;
+      ++n_hist;
+      if (mu > mu_max) { stop = 4; break; }
+    }
+  }
+  if (!d_valid) { /* gains about the returned trajectory */
+    wb_derivatives(T, X, U, P, A, B, lx, lu, lxx, luu, lux);
+    if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k2, K2,
+                    dV) == 0) {
+      memcpy(k, k2, sizeof(double) * (size_t)T * NU);
+      memcpy(K, K2, sizeof(double) * (size_t)T * NU * NX);
+    }
+  }
+  out[0] = stop; out[1] = converged; out[2] = n_hist; out[3] = mu;
+}

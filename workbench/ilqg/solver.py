@@ -38,6 +38,7 @@ class ILQGOptions:
     tol_grad: float = 1e-4
     box_qp: bool = True
     backend: Backend = "auto"
+    outer_loop: Literal["compiled", "python"] = "compiled"  # compiled: wb_solve, when available
 
     def __post_init__(self) -> None:
         if not isinstance(self.max_iter, int) or self.max_iter < 1:
@@ -53,6 +54,7 @@ class ILQGOptions:
         for name in ("tol_abs", "tol_rel", "tol_grad"):
             positive(f"ILQGOptions.{name}", getattr(self, name), allow_zero=True)
         one_of("ILQGOptions.backend", self.backend, ("auto", "compiled", "numpy"))
+        one_of("ILQGOptions.outer_loop", self.outer_loop, ("compiled", "python"))
 
 
 @dataclass(frozen=True)
@@ -134,6 +136,8 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
         if not np.isfinite(J) or J >= 1e10:
             raise fail("U0", U0, "neither the initial guess nor zero controls give a safe, "
                        "finite rollout")
+    if opts.outer_loop == "compiled" and hasattr(passes, "solve"):
+        return _compiled_loop(passes, opts, x0, X, U, J, P, reg, boxed, t_start, replaced)
     mu, delta = opts.mu_init, 1.0
     k, K = zeros_k, zeros_K
     history: list[Iteration] = []
@@ -191,3 +195,24 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
         iterations=len(history), history=tuple(history), backend=passes.name,
         solve_time_s=time.perf_counter() - t_start, initial_guess_replaced=replaced,
     )
+
+
+_STOPS = ("max_iter", "regularization_limit", "gradient", "cost_change", "line_search_failed")
+
+
+def _compiled_loop(passes, opts: ILQGOptions, x0, X, U, J, P, reg, boxed, t_start, replaced):
+    """The same outer loop in C (core.c ``wb_solve``); per-iteration times are the mean."""
+    problem = passes.problem
+    opt = np.array([opts.max_iter, opts.mu_init, opts.mu_factor, opts.mu_min, opts.mu_max, reg,
+                    int(boxed), opts.z_min, opts.tol_abs, opts.tol_rel, opts.tol_grad])
+    X, U, k, K, J, stop, converged, hist, _ = passes.solve(
+        x0, X, U, J, P, problem.model.u_min, problem.model.u_max, opt, opts.alphas,
+        opts.max_iter)
+    elapsed = time.perf_counter() - t_start
+    per = elapsed / max(len(hist), 1)
+    history = tuple(Iteration(i + 1, float(h[0]), float(h[1]), float(h[2]), float(h[3]),
+                              float(h[4]), float(h[5]), bool(h[6]), per)
+                    for i, h in enumerate(hist))
+    return ILQGResult(X=X, U=U, k=k, K=K, cost=J, converged=converged, stop_reason=_STOPS[stop],
+                      iterations=len(history), history=history, backend=passes.name,
+                      solve_time_s=elapsed, initial_guess_replaced=replaced)
