@@ -14,6 +14,7 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
+from workbench.fastcall import FastFunction
 from workbench.obstacles import Circle, HForm, circle_margins
 from workbench.validation import as_array, bounds, fail, one_of, positive
 
@@ -119,19 +120,27 @@ class Model:
     def margins_function(self) -> ca.Function:
         return ca.Function("h", [self.x[: self.n_physical]], [self.h])
 
+    @functools.cached_property
+    def _fast_lift(self) -> FastFunction:
+        return FastFunction(self.lift_function)
+
+    @functools.cached_property
+    def _fast_margins(self) -> FastFunction:
+        return FastFunction(self.margins_function)
+
     def lift(self, x_phys) -> np.ndarray:
         """Full state (physical state plus barrier states, if any) from a physical state."""
         xp = as_array("x", x_phys, (self.n_physical,))
         if self.lift_expr is None or self.n_physical == self.nx:
             return xp.copy()
-        return np.asarray(self.lift_function(xp)).ravel()
+        return self._fast_lift(xp)[0]
 
     def margins(self, x) -> np.ndarray:
         """Safety margins h(x) at a full (or physical) state; NumPy in, NumPy out."""
         xa = np.asarray(x, dtype=float).ravel()
         if xa.size not in (self.n_physical, self.nx):
             raise fail("x", xa, f"expected {self.n_physical} or {self.nx} entries")
-        return np.asarray(self.margins_function(xa[: self.n_physical])).ravel()
+        return self._fast_margins(xa[: self.n_physical])[0]
 
 
 def double_integrator(

@@ -6,8 +6,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
+import casadi as ca
 import numpy as np
 
+from workbench.fastcall import FastFunction
 from workbench.models import Model
 from workbench.validation import fail, one_of, positive
 
@@ -76,26 +78,24 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
     x = np.asarray(x0, dtype=float)
     if x.shape != (plant.nx,) or not np.all(np.isfinite(x)):
         raise fail("x0", x0, f"must be {plant.nx} finite numbers")
-    import casadi as ca
-
-    f = ca.Function("plant", [plant.x, plant.u], [plant.x_next])
-    margins = ca.Function("h", [plant.x], [plant.h]) if plant.nh else None
+    f = FastFunction(ca.Function("plant", [plant.x, plant.u], [plant.x_next]))
+    margins = FastFunction(ca.Function("h", [plant.x], [plant.h])) if plant.nh else None
     state = controller.initial_state(x)
     X, U, times, infos = [x.copy()], [], [], []
     crashed, crash_step = False, None
-    min_h = float(np.min(np.asarray(margins(x)))) if margins else np.inf
+    min_h = float(np.min(margins(x)[0])) if margins else np.inf
     for k in range(steps):
         t0 = time.perf_counter()
         state, u, info = controller.step(state, x, rng_controller)
         times.append(time.perf_counter() - t0)
         u = np.clip(u, plant.u_min, plant.u_max)
-        x = np.asarray(f(x, u)).ravel() + disturbance.sample(plant.nx, plant.dt, rng_plant)
+        x = f(x, u)[0] + disturbance.sample(plant.nx, plant.dt, rng_plant)
         X.append(x.copy())
         U.append(u)
         if keep_infos:
             infos.append(info)
         if margins is not None:
-            h = float(np.min(np.asarray(margins(x))))
+            h = float(np.min(margins(x)[0]))
             min_h = min(min_h, h)
             if h <= 0:
                 crashed, crash_step = True, k + 1

@@ -17,6 +17,7 @@ from typing import Literal
 import numpy as np
 
 from workbench.costs import quadratic_tracking
+from workbench.fastcall import FastFunction
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.problem import Problem
 from workbench.sampling.problem import SamplingProblem
@@ -84,7 +85,7 @@ def _full_state(sp: SamplingProblem, x) -> np.ndarray:
     if not np.all(np.isfinite(x)):
         raise fail("x", x, "the measured state must be finite")
     if x.size == sp.model.n_physical and sp.nx != x.size:
-        return np.asarray(sp.model.lift_function(x)).ravel()
+        return sp.model.lift(x)
     return as_array("x", x, (sp.nx,))
 
 
@@ -209,8 +210,8 @@ class RobustMPPI:
         self.fb_problem = Problem.build(fb_model, cost)
         self.fb_passes = make_passes(self.fb_problem, config.horizon)
         self.fb_options = ILQGOptions(max_iter=robust.feedback_iterations, mu_init=1e-6)
-        self._dyn = sp.functions()["dyn"]
-        self._lift_all = sp.model.lift_function.map(robust.n_candidates)
+        self._dyn = FastFunction(sp.functions()["dyn"])
+        self._lift_all = FastFunction(sp.model.lift_function, robust.n_candidates)
         self._P0 = np.zeros((config.horizon + 1, self.fb_problem.n_p))
 
     def initial_state(self, x0=None) -> RMPPIState:
@@ -224,7 +225,7 @@ class RobustMPPI:
         r, cfg, sp = self.rcfg, self.cfg, self.sp
         hc = r.n_candidates // 2
         a0 = state.x_nom
-        a1 = np.asarray(self._dyn(a0, state.U[0])).ravel()
+        a1 = self._dyn(a0, state.U[0])[0]
         a2 = xb
         W = [(1 - i / hc, i / hc, 0.0) for i in range(hc + 1)]
         W += [(0.0, 1 - i / hc, i / hc) for i in range(1, hc + 1)]
@@ -232,7 +233,7 @@ class RobustMPPI:
         Wm = np.array(W)
         mixed = Wm @ np.stack([a0, a1, a2])
         # beta of an interpolated state is recomputed from its position (SPEC 4.4)
-        starts = np.asarray(self._lift_all(mixed[:, :n].T)).T
+        starts = self._lift_all(mixed[:, :n])[0].reshape(len(W), sp.nx)
         strides = [round(w[1] + w[2]) for w in W]  # s = 1 plant step per call
         M = r.candidate_samples
         # controls u*_{min(t+s, T-1)}, no noise before the stride (MPPI-G)
