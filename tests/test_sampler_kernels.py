@@ -109,11 +109,11 @@ def test_zero_gains_reduce_sais_to_the_sampler_without_feedback(setup, rng):
 
 
 def test_numpy_twin_is_used_for_the_navigation_problem(setup):
-    from workbench.sampling.reference import _Model, _NumpyModel
+    from workbench.sampling.reference import _model, _NumpyModel
 
     _, sp, _, _ = setup
-    assert isinstance(_Model(sp, 4), _NumpyModel)
-    assert not isinstance(_Model(sp, 4, "casadi"), _NumpyModel)
+    assert isinstance(_model(sp, 4), _NumpyModel)
+    assert not isinstance(_model(sp, 4, "casadi"), _NumpyModel)
 
 
 def test_kernel_noise_is_standard_normal_and_deterministic(setup):

@@ -19,6 +19,7 @@ import numpy as np
 from workbench.costs import quadratic_tracking
 from workbench.fastcall import FastFunction
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
+from workbench.models import Model
 from workbench.problem import Problem
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import SamplerConstants
@@ -301,10 +302,8 @@ class RobustMPPI:
         return RMPPIState(U, x_nom, idx), u, info
 
 
-def _physical_model(m):
+def _physical_model(m: Model) -> Model:
     """The physical part of a barrier-embedded model, as a plain Model."""
-    from workbench.models import Model
-
     n = m.n_physical
     return Model.from_expressions(
         m.name.replace("+bas", ""), m.x[:n], m.u, m.x_next[:n], dt=m.dt, u_min=m.u_min,

@@ -38,18 +38,18 @@ class SamplerConstants:
                 "p": np.asarray(self.p, float), "alpha": np.array([self.alpha])}
 
 
-class _Model:
-    """Model evaluation for the twin: plain NumPy for the built-in navigation problem,
-    otherwise the CasADi virtual machine (mapped over samples)."""
+def _model(sp: SamplingProblem, N: int, model_backend: str = "auto"):
+    """Model evaluation for the twin: plain NumPy for the built-in navigation problem (unless
+    ``model_backend == "casadi"``), otherwise the CasADi virtual machine mapped over samples."""
+    if model_backend != "casadi" and sp.weights is not None:
+        twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
+        if twin is not None:
+            return _NumpyModel(twin)
+    return _CasadiModel(sp, N)
 
-    def __new__(cls, sp: SamplingProblem, N: int, model_backend: str = "auto"):
-        if model_backend != "casadi" and sp.weights is not None:
-            twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
-            if twin is not None:
-                return _NumpyModel(twin)
-        return super().__new__(cls)
 
-    def __init__(self, sp: SamplingProblem, N: int, model_backend: str = "auto"):
+class _CasadiModel:
+    def __init__(self, sp: SamplingProblem, N: int):
         f = sp.functions()
         self.dyn = f["dyn"].map(N)
         self.margins = f["margins"].map(N) if sp.model.nh else None
@@ -93,7 +93,7 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
     if delay is not None:
         Z = np.where(np.arange(T)[None, :, None] < np.asarray(delay)[:, None, None], 0.0, Z)
     Ub = np.broadcast_to(U, (N, T, sp.nu))
-    m = _Model(sp, N, model_backend)
+    m = _model(sp, N, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
@@ -120,7 +120,7 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
     samples without, the same noise for both. X0, Xs0 (N,nx) real and nominal starts, U (T,nu),
     K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces they are made of."""
     N, T = Z.shape[0], Z.shape[1]
-    m = _Model(sp, N, model_backend)
+    m = _model(sp, N, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
