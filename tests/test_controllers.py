@@ -85,3 +85,13 @@ def test_bad_controller_input_names_the_field(nav):
                     np.random.default_rng(1))
     with pytest.raises(ValueError, match=r"Disturbance\.level"):
         Disturbance(-1.0)
+
+
+def test_plain_mppi_runs_on_the_physical_model(nav):
+    from workbench.sampling.problem import navigation_costs
+
+    sp = navigation_costs(nav.plant, S=(10.0, 10.0, 1.0, 1.0))
+    ctrl = MPPI(sp, nav.goal, nav.mppi)
+    ep = _run(nav, ctrl, 30)
+    assert not ep.crashed and ep.U.shape == (30, 2)
+    assert np.linalg.norm(ep.X[-1, :2] - nav.x0[:2]) > 0.05  # it moves towards the goal

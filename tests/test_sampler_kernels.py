@@ -150,3 +150,22 @@ def test_kernel_draws_the_published_noise(setup):
     out = lib.mppi(np.tile(np.r_[x0, 0, 0], (N, 1)), consts=c.kernel_consts(),
                    time_in={"u": np.zeros((T, 2))}, seed=99, keep_noise=True)
     np.testing.assert_array_equal(out.noise, lib.normals(N, T, 2, seed=99))
+
+
+def test_plain_model_mppi_kernel_equals_reference(rng):
+    """Plain MPPI (no barrier state): crash costs still come from the margins."""
+    model = double_integrator(obstacles=OBST, u_limit=5.0)
+    sp = navigation_costs(model, S=(10.0, 10.0, 1.0, 1.0))
+    lib = sampler_library(sp)
+    c = SamplerConstants(sigma=np.array([6.0, 4.0]), lam=1.0, nu_mix=0.0, u_min=model.u_min,
+                         u_max=model.u_max, crash_cost=1e6, p=np.array([4.0, 4.0, 0.0, 0.0]))
+    x0 = np.array([0.5, 0.5, 1.2, 1.2])  # grazes obstacle 0: some samples crash
+    U = rng.normal(0, 1.5, (T, 2))
+    out = lib.mppi(np.tile(np.r_[x0, 0, 0], (N, 1)), consts=c.kernel_consts(),
+                   time_in={"u": U}, seed=5, keep_noise=True)
+    Z = np.transpose(out.noise, (2, 0, 1))
+    for backend in ("numpy", "casadi"):
+        ref = mppi_reference(sp, np.tile(x0, (N, 1)), U, Z, c, backend)
+        np.testing.assert_array_equal(out.result[:, 1].astype(bool), ref["crashed"])
+        _close(out.result[:, 0], ref["S"])
+    assert 0 < ref["crashed"].sum() < N
