@@ -95,3 +95,20 @@ def test_plain_mppi_runs_on_the_physical_model(nav):
     ep = _run(nav, ctrl, 30)
     assert not ep.crashed and ep.U.shape == (30, 2)
     assert np.linalg.norm(ep.X[-1, :2] - nav.x0[:2]) > 0.05  # it moves towards the goal
+
+
+def test_savitzky_golay_smoothing_option(nav):
+    from dataclasses import replace
+
+    from scipy.signal import savgol_filter
+
+    rough = MPPI(nav.problem, nav.goal, nav.mppi)
+    smooth = MPPI(nav.problem, nav.goal, replace(nav.mppi, smoothing=(9, 2)))
+    a, ua, _ = rough.step(rough.initial_state(), nav.x0, np.random.default_rng(7))
+    b, ub, _ = smooth.step(smooth.initial_state(), nav.x0, np.random.default_rng(7))
+    # the same samples: the smoothed sequence is the filtered update (then shifted)
+    expected = savgol_filter(np.vstack([ua, a.U[:-1]]), 9, 2, axis=0)
+    np.testing.assert_allclose(ub, expected[0], atol=1e-12)
+    np.testing.assert_allclose(b.U[:-1], expected[1:], atol=1e-12)
+    with pytest.raises(ValueError, match="smoothing"):
+        replace(nav.mppi, smoothing=(8, 2))

@@ -48,9 +48,13 @@ def test_mppi_kernel_equals_reference_including_crashes(setup, rng, model_backen
     _close(np.transpose(out.lane_out[0], (2, 0, 1)), ref["v"], rtol=1e-12)
 
 
-@pytest.mark.parametrize("model_backend", ["numpy", "casadi"])
-def test_sais_kernel_equals_reference(setup, rng, model_backend):
+@pytest.mark.parametrize(("model_backend", "clip_in_cost"),
+                         [("numpy", True), ("casadi", True), ("numpy", False)])
+def test_sais_kernel_equals_reference(setup, rng, model_backend, clip_in_cost):
+    from dataclasses import replace
+
     model, sp, lib, c = setup
+    c = replace(c, clip_in_cost=clip_in_cost)
     x0 = model.lift([1.0, 1.0, 2.0, 2.0])
     xs0 = model.lift([0.9, 1.1, 1.8, 2.1])
     U = rng.normal(0, 1.5, (T, 2))

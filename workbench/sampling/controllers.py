@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from workbench.costs import quadratic_tracking
 from workbench.fastcall import FastFunction
@@ -40,6 +41,7 @@ class MPPIConfig:
     iterations: int = 1
     crash_cost: float = 1e6
     tail: Literal["hold", "zero"] = "hold"
+    smoothing: tuple[int, int] | None = None  # Savitzky-Golay (window, order), SPEC 8.1 [A] (9, 2)
     backend: Backend = "auto"
 
     def __post_init__(self) -> None:
@@ -58,6 +60,18 @@ class MPPIConfig:
             raise fail("MPPIConfig.nu_mix", self.nu_mix, "must lie in [0, 1)")
         positive("MPPIConfig.crash_cost", self.crash_cost, allow_zero=True)
         one_of("MPPIConfig.tail", self.tail, ("hold", "zero"))
+        if self.smoothing is not None:
+            w, o = self.smoothing
+            if not (isinstance(w, int) and isinstance(o, int) and w % 2 == 1
+                    and 0 <= o < w <= self.horizon):
+                raise fail("MPPIConfig.smoothing", self.smoothing,
+                           "need (window, order) with an odd window <= horizon and order < window")
+
+    def smooth(self, U: np.ndarray) -> np.ndarray:
+        """Savitzky-Golay smoothing of a control sequence along time (or U unchanged)."""
+        if self.smoothing is None:
+            return U
+        return savgol_filter(U, self.smoothing[0], self.smoothing[1], axis=0)
 
     @classmethod
     def with_covariance(cls, Sigma, **kw) -> MPPIConfig:
@@ -129,7 +143,7 @@ class MPPI:
                                       int(rng.integers(0, 2**63)))
             W = importance_weights(batch.S, self.cfg.lam)
             if W.valid:
-                U = weighted_controls(batch.v, W.w)
+                U = self.cfg.smooth(weighted_controls(batch.v, W.w))
         u = U[0].copy()
         info = MPPIInfo(W.free_energy, W.ess, int(batch.crashed.sum()), W.valid,
                         time.perf_counter() - t0)
@@ -150,6 +164,7 @@ class RMPPIConfig:
     q_beta_K: float = 1.0
     feedback_iterations: int = 3
     applied: Literal["nominal_feedback", "real"] = "nominal_feedback"
+    clip_in_cost: bool = True  # SPEC 10.1: clipped noise/feedback in the SAIS costs
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.alpha) or self.alpha == np.inf):
@@ -198,7 +213,8 @@ class RobustMPPI:
         self.mppi = MPPI(sp, goal, config)
         self.sp, self.cfg, self.rcfg = sp, config, robust
         self.sampler = self.mppi.sampler
-        self.consts = replace(self.mppi.consts, alpha=robust.alpha)
+        self.consts = replace(self.mppi.consts, alpha=robust.alpha,
+                              clip_in_cost=bool(robust.clip_in_cost))
         m = sp.model
         if robust.feedback == "bas_ilqg":  # K_safe: BaS-iLQG on the embedded model (SPEC 10.2)
             fb_model = m
@@ -286,7 +302,7 @@ class RobustMPPI:
             t3 = time.perf_counter()
             Wn = importance_weights(b.S_nom, self.cfg.lam)
             Wr = importance_weights(b.S_real, self.cfg.lam)
-            U_new = weighted_controls(b.v_nom, Wn.w) if Wn.valid else U
+            U_new = self.cfg.smooth(weighted_controls(b.v_nom, Wn.w)) if Wn.valid else U
             U_real = weighted_controls(b.v_real, Wr.w) if Wr.valid else U_real
             U = U_new
         if self.rcfg.applied == "nominal_feedback":

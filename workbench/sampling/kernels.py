@@ -99,11 +99,11 @@ def candidate_spec(sp: SamplingProblem) -> KernelSpec:
 
 
 def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:
-    """The SAIS dual rollout of Algorithm 1 (SPEC 10.1), clip_in_cost = True."""
+    """The SAIS dual rollout of Algorithm 1 (SPEC 10.1); clip_in_cost is a run-time input."""
     nx, nu, nh = sp.nx, sp.nu, sp.model.nh
     dyn, margins, q, phi = _model_parts(sp)
     c = _symbols(sp)
-    alpha = ca.SX.sym("alpha")
+    alpha, clip_cost = ca.SX.sym("alpha"), ca.SX.sym("clip_cost")
     carry = ca.SX.sym("carry", 2 * nx + 6)
     z, u, Kv = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("K", nu * nx)
     x, xs = carry[:nx], carry[nx : 2 * nx]
@@ -113,8 +113,10 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:
     kfb = ca.mtimes(K, x - xs)
     vr = _clip(u + eps + kfb, c["u_min"], c["u_max"])
     vn = _clip(u + eps, c["u_min"], c["u_max"])
-    et = vn - u
-    kt = vr - u - et
+    # clip_in_cost (SPEC 10.1): effective (clipped) noise and feedback in lines 8, 9 and 12
+    # when 1, the raw ones when 0 (exact 0/1 blends)
+    et = clip_cost * (vn - u) + (1.0 - clip_cost) * eps
+    kt = clip_cost * (vr - u - (vn - u)) + (1.0 - clip_cost) * kfb
     xn, xsn = dyn(x, vr), dyn(xs, vn)
     crn = ca.fmax(cr, _crashed(margins, xn, sp.eps_h, nh))
     cnn = ca.fmax(cn, _crashed(margins, xsn, sp.eps_h, nh))
@@ -126,7 +128,7 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:
     Sn = Sn + qn
     Sr = Sr + (qr + half * ca.dot((u + kt) * inv, u + 2.0 * et + kt))
     LR = LR + half * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, et))
-    ins = {"carry": carry, "z": z, "u": u, "K": Kv, **c, "alpha": alpha}
+    ins = {"carry": carry, "z": z, "u": u, "K": Kv, **c, "alpha": alpha, "clip_cost": clip_cost}
     step = ca.Function(name + "_step", list(ins.values()),
                        [ca.vertcat(xn, xsn, Sn, Sh, Sr, LR, crn, cnn), vn, vr],
                        list(ins), ["carry_next", "v_nom", "v_real"], _OPTS)
@@ -138,6 +140,7 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:
                                     carry[2 * nx + 5])],
                         ["carry", "p", "alpha"], ["result"], _OPTS)
     roles = {"carry": "carry", "z": "noise", "u": "time", "K": "time", "alpha": "const",
+             "clip_cost": "const",
              **{k: "const" for k in _CONSTS}}
     return KernelSpec(name, step, final, roles)
 

@@ -29,13 +29,15 @@ class SamplerConstants:
     crash_cost: float
     p: np.ndarray  # cost parameters (the goal state)
     alpha: float = np.inf  # RMPPI threshold (SAIS only)
+    clip_in_cost: bool = True  # SPEC 10.1: clipped noise and feedback in lines 8, 9, 12
 
     def kernel_consts(self) -> dict[str, np.ndarray]:
         return {"sigma": np.asarray(self.sigma, float),
                 "lr": np.array([self.lam * (1.0 - self.nu_mix)]),
                 "u_min": np.asarray(self.u_min, float), "u_max": np.asarray(self.u_max, float),
                 "crash": np.array([self.crash_cost]),
-                "p": np.asarray(self.p, float), "alpha": np.array([self.alpha])}
+                "p": np.asarray(self.p, float), "alpha": np.array([self.alpha]),
+                "clip_cost": np.array([float(self.clip_in_cost)])}
 
 
 def _model(sp: SamplingProblem, N: int, model_backend: str = "auto"):
@@ -135,8 +137,8 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
         kfb = (X[:, t] - Xs[:, t]) @ K[t].T  # line 5: K_k (x - x*)
         vr = np.clip(u + eps + kfb, c.u_min, c.u_max)  # line 6
         vn = np.clip(u + eps, c.u_min, c.u_max)  # line 7
-        eps_eff = vn - u
-        kfb_eff = vr - u - eps_eff
+        eps_eff = vn - u if c.clip_in_cost else eps
+        kfb_eff = vr - u - (vn - u) if c.clip_in_cost else kfb
         X[:, t + 1], Xs[:, t + 1] = m.step(X[:, t], vr), m.step(Xs[:, t], vn)
         cr |= m.crashed(X[:, t + 1], sp.eps_h)
         cn |= m.crashed(Xs[:, t + 1], sp.eps_h)
