@@ -79,11 +79,11 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
     if x.shape != (plant.nx,) or not np.all(np.isfinite(x)):
         raise fail("x0", x0, f"must be {plant.nx} finite numbers")
     f = FastFunction(ca.Function("plant", [plant.x, plant.u], [plant.x_next]))
-    margins = FastFunction(ca.Function("h", [plant.x], [plant.h])) if plant.nh else None
+    margins = plant.margins if plant.nh else None
     state = controller.initial_state(x)
     X, U, times, infos = [x.copy()], [], [], []
     crashed, crash_step = False, None
-    min_h = float(np.min(margins(x)[0])) if margins else np.inf
+    min_h = float(np.min(margins(x))) if margins else np.inf
     for k in range(steps):
         t0 = time.perf_counter()
         state, u, info = controller.step(state, x, rng_controller)
@@ -95,7 +95,7 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
         if keep_infos:
             infos.append(info)
         if margins is not None:
-            h = float(np.min(margins(x)[0]))
+            h = float(np.min(margins(x)))
             min_h = min(min_h, h)
             if h <= 0:
                 crashed, crash_step = True, k + 1

@@ -125,12 +125,12 @@ class CompiledPasses:
             self._a["K"], self._a["dV"])
         return status, self._b["k"].copy(), self._b["K"].copy(), self._b["dV"].copy()
 
-    def _policy(self, x0, X, U, k, K, P, umin, umax) -> list[int]:
+    def _policy(self, x0, X, U, k, K, P) -> list[int]:
         return [self._put("x0", x0), self._put("X", X), self._put("U", U), self._put("k", k),
                 self._put("K", K), self._put("P", P)]
 
     def forward(self, x0, X, U, k, K, P, alpha, umin, umax, use_policy=True):
-        ptrs = self._policy(x0, X, U, k, K, P, umin, umax)
+        ptrs = self._policy(x0, X, U, k, K, P)
         J = self._c.wb_forward(self.T, *ptrs, float(alpha), self._put("umin", umin),
                                self._put("umax", umax), int(use_policy), self._a["Xn"],
                                self._a["Un"])
@@ -155,7 +155,7 @@ class CompiledPasses:
                 int(stop), bool(conv), hist[: int(n_hist)].copy(), float(mu))
 
     def line_search(self, x0, X, U, k, K, P, J, dV, alphas, z_min, umin, umax):
-        ptrs = self._policy(x0, X, U, k, K, P, umin, umax)
+        ptrs = self._policy(x0, X, U, k, K, P)
         n = len(alphas)
         self._b["alphas"][:n] = alphas
         i = self._c.wb_line_search(self.T, *ptrs, float(J), self._put("dV", dV),

@@ -25,7 +25,7 @@ from workbench.problem import Problem
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import SamplerConstants
 from workbench.sampling.sampler import Backend, Sampler
-from workbench.sampling.weights import importance_weights, weighted_controls
+from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
 from workbench.validation import as_array, fail, one_of, positive
 
 
@@ -257,10 +257,9 @@ class RobustMPPI:
         S = self.sampler.candidates(np.repeat(starts, M, axis=0), state.U,
                                     np.repeat(np.array(strides, float), M), self.consts,
                                     int(rng.integers(0, 2**63)))
-        S = np.where(np.isfinite(S), S, np.inf).reshape(len(W), M)
-        rho = S.min()  # over all candidates' samples (SPEC 9.3)
-        with np.errstate(divide="ignore"):
-            F = -cfg.lam * np.log(np.mean(np.exp(-(S - rho) / cfg.lam), axis=1)) + rho
+        # per-candidate free energy; the shift (SPEC 9.3: min over all samples) cancels exactly,
+        # a per-candidate shift only avoids underflow
+        F = np.array([free_energy(S_i, cfg.lam) for S_i in S.reshape(len(W), M)])
         ok = np.flatnonzero(F < r.alpha)
         fallback = ok.size == 0
         if fallback:
@@ -288,7 +287,6 @@ class RobustMPPI:
         return K, bool(np.all(np.isfinite(K)))
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
-        timing = {}
         t0 = time.perf_counter()
         xb = _full_state(self.sp, x)
         x_nom, U, idx, F_cand, fallback = self.select_nominal(state, xb, rng)

@@ -185,11 +185,15 @@ class CompiledKernel:
             carry0 = np.vstack([carry0, np.repeat(carry0[-1:], Np - N, axis=0)])
         keep = []
 
-        def prep(a, pad_last=False):
+        def pad(a) -> np.ndarray:
+            """Lane-major (..., N) array padded to Np lanes by repeating the last one."""
             a = np.asarray(a, dtype=float)
-            if pad_last and Np != N:
+            if Np != N:
                 a = np.concatenate([a, np.repeat(a[..., -1:], Np - N, axis=-1)], axis=-1)
-            a = np.ascontiguousarray(a)
+            return np.ascontiguousarray(a)
+
+        def prep(a, pad_last=False):
+            a = pad(a) if pad_last else np.ascontiguousarray(a, dtype=float)
             keep.append(a)
             return _addr(a)
 
@@ -204,13 +208,12 @@ class CompiledKernel:
         gen = seed is not None
         if gen:
             noise_buf = np.empty((T, nz, Np)) if keep_noise else None
+        elif noise is not None:
+            noise_buf = pad(noise)
+        elif nz:
+            raise ValueError("noise = None is invalid: give a noise buffer or a seed")
         else:
-            noise_buf = (np.ascontiguousarray(np.concatenate(
-                [noise, np.repeat(noise[..., -1:], Np - N, axis=-1)], axis=-1))
-                if noise is not None and Np != N else
-                (np.ascontiguousarray(noise, dtype=float) if noise is not None else None))
-            if nz and noise_buf is None:
-                raise ValueError("noise = None is invalid: give a noise buffer or a seed")
+            noise_buf = None
 
         def arr(lst):
             return (ctypes.c_void_p * max(1, len(lst)))(*lst) if lst else None
