@@ -8,8 +8,9 @@ import time
 import numpy as np
 
 from workbench.navigation import navigation_setup
+from workbench.sampling.constants import SamplerConstants
 from workbench.sampling.controllers import RMPPIConfig, RobustMPPI
-from workbench.sampling.reference import SamplerConstants, sais_reference
+from workbench.sampling.reference import sais_reference
 from workbench.sampling.sampler import Sampler
 from workbench.sampling.weights import importance_weights, weighted_controls
 from workbench.sim import Disturbance, closed_loop

@@ -9,9 +9,10 @@ from scipy import stats
 from workbench.barrier import embed_barrier
 from workbench.models import double_integrator
 from workbench.obstacles import Circle
+from workbench.sampling.constants import SamplerConstants
 from workbench.sampling.kernels import sampler_library
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import SamplerConstants, mppi_reference, sais_reference
+from workbench.sampling.reference import mppi_reference, sais_reference
 
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6))
 N, T = 37, 40  # N not a multiple of the lane count: padding is exercised

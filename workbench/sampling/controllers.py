@@ -22,8 +22,8 @@ from workbench.fastcall import FastFunction
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.models import Model
 from workbench.problem import Problem
+from workbench.sampling.constants import SamplerConstants
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.reference import SamplerConstants
 from workbench.sampling.sampler import Backend, Sampler
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
 from workbench.validation import as_array, fail, one_of, positive

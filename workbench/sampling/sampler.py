@@ -13,13 +13,10 @@ from typing import Literal
 
 import numpy as np
 
+from workbench.sampling.constants import SamplerConstants
 from workbench.sampling.kernels import sampler_library
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.reference import (
-    SamplerConstants,
-    mppi_reference,
-    sais_reference,
-)
+from workbench.sampling.reference import mppi_reference, sais_reference
 from workbench.validation import fail, one_of
 
 Backend = Literal["auto", "compiled", "numpy"]
