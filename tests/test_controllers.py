@@ -27,20 +27,19 @@ def test_bas_mppi_reaches_goal_safely_undisturbed(nav):
 
 
 def test_sa_rmppi_reaches_goal_safely_undisturbed(nav):
-    alpha = nav.alpha_from_bas_mppi(np.random.default_rng(0))
-    ctrl = RobustMPPI(nav.problem, nav.goal, nav.mppi, RMPPIConfig(alpha=alpha))
+    ctrl = nav.controller("sa_rmppi")  # default calibrated alpha rule
     ep = _run(nav, ctrl, 1000)
     assert not ep.crashed and ep.min_margin > 0
     assert np.linalg.norm(ep.X[-1, :2] - nav.goal[:2]) < 0.1
     infos = ep.infos
     assert all(i.feedback_ok for i in infos)
-    assert infos[0].candidate == 0 and len(infos[1].candidate_free_energy) == 9
+    assert infos[0].candidate == 8 and len(infos[1].candidate_free_energy) == 9
     assert set(infos[-1].timing) == {"selection", "k_safe", "sais", "update", "total"}
 
 
 def test_rmppi_with_plain_ilqg_feedback_runs(nav):
-    ctrl = RobustMPPI(nav.problem, nav.goal, nav.mppi,
-                      RMPPIConfig(alpha=2e4, feedback="ilqg", applied="real"))
+    ctrl = RobustMPPI(nav.problem, nav.goal, nav.mppi, RMPPIConfig(alpha=2e4, applied="real"),
+                      nav.feedback("ilqg"))
     ep = _run(nav, ctrl, 20, level=10.0)
     assert ep.U.shape == (20, 2) and np.all(np.isfinite(ep.X))
 

@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from workbench.barrier import BarrierOptions, embed_barrier
 from workbench.models import Model, double_integrator
-from workbench.sampling.controllers import MPPI, MPPIConfig
+from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
+from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
 from workbench.sampling.problem import SamplingProblem, navigation_costs
+from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
 from workbench.scenes import NavigationScene
+from workbench.sim import closed_loop
+from workbench.validation import one_of
+
+CONTROLLERS = ("bas_mppi", "sa_rmppi", "rmppi", "mppi_crash")
 
 # [A] SPEC 8.2 starts from sigma = 2, lambda = 1, q_beta = 1 and asks to tune the undisturbed
 # BaS-MPPI to reach the goal. With q_beta = 1 the robot stalls in a local minimum of this map at
@@ -30,16 +36,55 @@ class NavigationSetup:
     x0: np.ndarray  # physical start state (4,)
     mppi: MPPIConfig
 
-    def alpha_from_bas_mppi(self, rng: np.random.Generator, calls: int = 5,
-                            factor: float = 1.5) -> float:
-        """SPEC 10.3 [A]: alpha = factor x the median nominal free energy of undisturbed
-        BaS-MPPI calls at the start state."""
-        ctrl = MPPI(self.problem, self.goal, self.mppi)
-        state, F = ctrl.initial_state(), []
-        for _ in range(calls):
-            state, _, info = ctrl.step(state, self.x0, rng)
-            F.append(info.free_energy)
-        return float(factor * np.median(F))
+    _traces: dict = field(default_factory=dict, repr=False)
+
+    def physical_problem(self) -> SamplingProblem:
+        """The same costs on the plant without a barrier state (crash cost only)."""
+        S = self.problem.weights["S"][: self.plant.nx]
+        return navigation_costs(self.plant, S=tuple(S), q_beta=0.0)
+
+    def feedback(self, kind: str, weights: FeedbackWeights = FeedbackWeights()) -> ILQGFeedback:
+        """K_safe ("bas_ilqg", on the embedded model) or plain tracking gains ("ilqg")."""
+        one_of("feedback", kind, ("bas_ilqg", "ilqg"))
+        model = self.problem.model if kind == "bas_ilqg" else physical_model(self.problem.model)
+        return ILQGFeedback(model, self.mppi.horizon, self.problem.nx, weights)
+
+    def calibration_trace(self, feedback: str = "bas_ilqg", robust: RMPPIConfig = RMPPIConfig(),
+                          steps: int = 600, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Undisturbed run of the robust controller with alpha = inf: visited states (n, 4)
+        and the real-state candidate free energies (n,), for threshold calibration."""
+        key = (feedback, robust, steps, seed)
+        if key not in self._traces:
+            ctrl = RobustMPPI(self.problem, self.goal, self.mppi, replace(robust, alpha=np.inf),
+                              self.feedback(feedback))
+            ep = closed_loop(ctrl, self.plant, self.x0, steps, np.random.default_rng(seed),
+                             np.random.default_rng(seed + 1))
+            F = np.array([i.candidate_free_energy[-1] if i.candidate_free_energy.size
+                          else np.nan for i in ep.infos])
+            self._traces[key] = (ep.X[: len(F)], F)
+        return self._traces[key]
+
+    def threshold(self, rule: AlphaRule = AlphaRule(), feedback: str = "bas_ilqg",
+                  robust: RMPPIConfig = RMPPIConfig(), seed: int = 0) -> Threshold:
+        """The selection threshold of a rule, calibrated on this map (SPEC 10.3)."""
+        if not rule.needs_calibration:
+            return make_threshold(rule)
+        X, F = self.calibration_trace(feedback, robust, rule.calibration_steps, seed)
+        return make_threshold(rule, X, F, self.goal, self.plant.position)
+
+    def controller(self, name: str, rule: AlphaRule = AlphaRule(),
+                   robust: RMPPIConfig = RMPPIConfig(),
+                   weights: FeedbackWeights = FeedbackWeights(), seed: int = 0):
+        """One of :data:`CONTROLLERS`: BaS-MPPI, SA-RMPPI, RMPPI (plain iLQG feedback, the same
+        alpha rule calibrated on RMPPI itself) or MPPI with a crash cost only."""
+        one_of("controller", name, CONTROLLERS)
+        if name == "bas_mppi":
+            return MPPI(self.problem, self.goal, self.mppi)
+        if name == "mppi_crash":
+            return MPPI(self.physical_problem(), self.goal, self.mppi)
+        kind = "bas_ilqg" if name == "sa_rmppi" else "ilqg"
+        return RobustMPPI(self.problem, self.goal, self.mppi, robust,
+                          self.feedback(kind, weights), self.threshold(rule, kind, robust, seed))
 
 
 def navigation_setup(scene: NavigationScene | None = None, *,

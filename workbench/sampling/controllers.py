@@ -1,8 +1,10 @@
 """Receding-horizon controllers with explicit state: ``state, u, info = ctrl.step(state, x, rng)``.
 
 * :class:`MPPI` — MPPI (SPEC 8.1); BaS-MPPI is MPPI on a barrier-embedded problem (SPEC 8.2).
-* :class:`RobustMPPI` — RMPPI (SPEC 9) with a plain iLQG tracking feedback, or SA-RMPPI
-  (SPEC 10.3) with K_safe from BaS-iLQG and the SAIS sampler of Algorithm 1.
+* :class:`RobustMPPI` — Robust MPPI with the SAIS sampler of Algorithm 1 and a feedback law
+  (:mod:`workbench.sampling.feedback`): K_safe from BaS-iLQG gives SA-RMPPI (SPEC 10.3), plain
+  iLQG tracking gains give RMPPI (SPEC 9.4). The selection threshold alpha comes from
+  :mod:`workbench.sampling.threshold`.
 
 Controllers hold only immutable configuration and external workspaces (compiled kernels, iLQG
 passes); everything that changes between steps lives in the returned state.
@@ -17,14 +19,13 @@ from typing import Literal
 import numpy as np
 from scipy.signal import savgol_filter
 
-from workbench.costs import quadratic_tracking
 from workbench.fastcall import FastFunction
-from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.models import Model
-from workbench.problem import Problem
 from workbench.sampling.constants import SamplerConstants
+from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.sampler import Backend, Sampler
+from workbench.sampling.threshold import ConstantThreshold, Threshold
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
 from workbench.validation import as_array, fail, one_of, positive
 
@@ -138,6 +139,7 @@ class MPPI:
         t0 = time.perf_counter()
         xb = _full_state(self.sp, x)
         U = state.U
+        _check_plan(U, self.cfg.horizon, self.sp.nu)
         for _ in range(self.cfg.iterations):
             batch = self.sampler.mppi(xb, U, self.cfg.n_samples, self.consts,
                                       int(rng.integers(0, 2**63)))
@@ -152,32 +154,33 @@ class MPPI:
 
 @dataclass(frozen=True)
 class RMPPIConfig:
-    """Robust MPPI settings (SPEC 9, 10; defaults [A] from SPEC 15)."""
+    """Robust MPPI settings (SPEC 9, 10; defaults [A] from SPEC 15).
 
-    alpha: float = 1e4
+    ``alpha`` is a fixed selection threshold, used when no calibrated
+    :class:`~workbench.sampling.threshold.Threshold` is given to :class:`RobustMPPI` (the
+    navigation set-up calibrates one by default, see ``NavigationSetup.controller``).
+    """
+
+    alpha: float = np.inf
     n_candidates: int = 9
     candidate_samples: int = 64
     fallback: Literal["propagated", "keep_previous"] = "propagated"
-    feedback: Literal["bas_ilqg", "ilqg"] = "bas_ilqg"
-    Q_K: tuple[float, ...] = (500.0, 500.0, 100.0, 100.0)
-    R_K: tuple[float, ...] = (1.0, 1.0)
-    q_beta_K: float = 1.0
-    feedback_iterations: int = 3
     applied: Literal["nominal_feedback", "real"] = "nominal_feedback"
     clip_in_cost: bool = True  # SPEC 10.1: clipped noise/feedback in the SAIS costs
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.alpha) or self.alpha == np.inf):
-            raise fail("RMPPIConfig.alpha", self.alpha, "must be a number")
-        if self.n_candidates < 3 or self.n_candidates % 2 == 0:
+        if isinstance(self.alpha, bool) or np.isnan(self.alpha) or self.alpha == -np.inf:
+            raise fail("RMPPIConfig.alpha", self.alpha, "must be a number or +inf")
+        for name, lo in (("n_candidates", 3), ("candidate_samples", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < lo:
+                raise fail(f"RMPPIConfig.{name}", v, f"must be an integer >= {lo}")
+        if self.n_candidates % 2 == 0:
             raise fail("RMPPIConfig.n_candidates", self.n_candidates, "must be odd and >= 3")
-        if self.candidate_samples < 1:
-            raise fail("RMPPIConfig.candidate_samples", self.candidate_samples, "must be >= 1")
         one_of("RMPPIConfig.fallback", self.fallback, ("propagated", "keep_previous"))
-        one_of("RMPPIConfig.feedback", self.feedback, ("bas_ilqg", "ilqg"))
         one_of("RMPPIConfig.applied", self.applied, ("nominal_feedback", "real"))
-        if self.feedback_iterations < 1:
-            raise fail("RMPPIConfig.feedback_iterations", self.feedback_iterations, "must be >= 1")
+        if not isinstance(self.clip_in_cost, bool | np.bool_):
+            raise fail("RMPPIConfig.clip_in_cost", self.clip_in_cost, "must be True or False")
 
 
 @dataclass(frozen=True)
@@ -185,29 +188,68 @@ class RMPPIState:
     U: np.ndarray  # (T, nu) nominal control sequence u*
     x_nom: np.ndarray | None  # nominal state x*_0 (full), None before the first call
     index: int  # previously chosen candidate
+    gains: Gains | None = None  # last feedback gains (shifted when a computation fails)
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Outcome of the nominal-state selection (SPEC 9.3)."""
+
+    x_nom: np.ndarray  # chosen nominal state x*_0 (full)
+    U: np.ndarray  # nominal controls slid by the chosen stride
+    index: int  # chosen candidate (n_candidates - 1 is the real state)
+    stride: int
+    free_energy: np.ndarray  # (n_candidates,) candidate free energies (empty on the first call)
+    alpha: np.ndarray  # (n_candidates,) thresholds at the candidates
+    fallback: bool  # no candidate was admissible
 
 
 @dataclass(frozen=True)
 class RMPPIInfo:
     candidate: int
     candidate_free_energy: np.ndarray
-    fallback_used: bool
+    candidate_alpha: np.ndarray
+    fallback_used: bool  # alpha fallback: no candidate admissible
+    nominal_differs: bool  # x*_0 != the measured state after selection
+    alpha: float  # threshold used in the SAIS clamp (at the chosen nominal state)
     free_energy_nom: float
     free_energy_real: float
     ess_nom: float
     ess_real: float
     n_crashed_real: int
     n_crashed_nom: int
-    feedback_ok: bool
+    ksafe_fallback: str | None  # feedback fallback reason (feedback.FALLBACK_REASONS) or None
+    nominal_unsafe: bool  # the nominal rollout used for the gains left the safe set
     timing: dict[str, float] = field(default_factory=dict)
     x_nom: np.ndarray | None = None
 
+    @property
+    def feedback_ok(self) -> bool:
+        return self.ksafe_fallback is None
+
+
+def strides(n_candidates: int, s: int = 1) -> np.ndarray:
+    """Candidate strides round(W_i1 s + W_i2 s), rounding half away from zero (SPEC 9.3)."""
+    hc = n_candidates // 2
+    w = np.array([i / hc for i in range(hc + 1)] + [1.0] * hc) * s
+    return np.floor(w + 0.5).astype(int)
+
+
+def candidate_weights(n_candidates: int) -> np.ndarray:
+    """(n_candidates, 3) weights on (old nominal, propagated nominal, real) (SPEC 9.3)."""
+    hc = n_candidates // 2
+    W = [(1 - i / hc, i / hc, 0.0) for i in range(hc + 1)]
+    W += [(0.0, 1 - i / hc, i / hc) for i in range(1, hc + 1)]
+    return np.array(W)
+
 
 class RobustMPPI:
-    """RMPPI / SA-RMPPI (``RMPPIConfig.feedback`` = "ilqg" / "bas_ilqg")."""
+    """Robust MPPI with the SAIS sampler: SA-RMPPI with K_safe (the default feedback, BaS-iLQG
+    gains on the embedded model), RMPPI with plain iLQG gains, or any :class:`FeedbackLaw`."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig(),
-                 robust: RMPPIConfig = RMPPIConfig()):
+                 robust: RMPPIConfig = RMPPIConfig(), feedback: FeedbackLaw | None = None,
+                 threshold: Threshold | None = None):
         if sp.nx == sp.model.n_physical:
             raise fail("sp.model", sp.model.name, "RMPPI here runs on a barrier-embedded model")
         self.mppi = MPPI(sp, goal, config)
@@ -215,87 +257,64 @@ class RobustMPPI:
         self.sampler = self.mppi.sampler
         self.consts = replace(self.mppi.consts, alpha=robust.alpha,
                               clip_in_cost=bool(robust.clip_in_cost))
-        m = sp.model
-        if robust.feedback == "bas_ilqg":  # K_safe: BaS-iLQG on the embedded model (SPEC 10.2)
-            fb_model = m
-            cost = quadratic_tracking(m, Q=robust.Q_K, R=robust.R_K, S=robust.Q_K,
-                                      q_beta=robust.q_beta_K, s_beta=robust.q_beta_K,
-                                      beta_cost="absolute")
-        else:  # RMPPI: plain iLQG tracking on the physical model (SPEC 9.4)
-            fb_model = _physical_model(m)
-            cost = quadratic_tracking(fb_model, Q=robust.Q_K, R=robust.R_K, S=robust.Q_K)
-        self.fb_problem = Problem.build(fb_model, cost)
-        self.fb_passes = make_passes(self.fb_problem, config.horizon)
-        self.fb_options = ILQGOptions(max_iter=robust.feedback_iterations, mu_init=1e-6)
+        self.feedback = feedback or ILQGFeedback(sp.model, config.horizon, sp.nx)
+        self.threshold = threshold or ConstantThreshold(robust.alpha)
         self._dyn = FastFunction(sp.functions()["dyn"])
         self._lift_all = FastFunction(sp.model.lift_function, robust.n_candidates)
-        self._P0 = np.zeros((config.horizon + 1, self.fb_problem.n_p))
+        self._W = candidate_weights(robust.n_candidates)
+        self._strides = strides(robust.n_candidates)
 
     def initial_state(self, x0=None) -> RMPPIState:
         return RMPPIState(np.zeros((self.cfg.horizon, self.sp.nu)), None, 0)
 
-    def select_nominal(self, state: RMPPIState, xb, rng) -> tuple[np.ndarray, np.ndarray, int,
-                                                                   np.ndarray, bool]:
+    def select_nominal(self, state: RMPPIState, xb, rng) -> Selection:
         """Nominal-state selection (SPEC 9.3) with s = 1 plant step since the last call."""
+        nc = self.rcfg.n_candidates
         if state.x_nom is None:
-            return xb, state.U, 0, np.zeros(0), False
+            return Selection(xb, state.U, nc - 1, 0, np.zeros(0), np.zeros(0), False)
         r, cfg, sp = self.rcfg, self.cfg, self.sp
-        hc = r.n_candidates // 2
         a0 = state.x_nom
         a1 = self._dyn(a0, state.U[0])[0]
-        a2 = xb
-        W = [(1 - i / hc, i / hc, 0.0) for i in range(hc + 1)]
-        W += [(0.0, 1 - i / hc, i / hc) for i in range(1, hc + 1)]
         n = sp.model.n_physical
-        Wm = np.array(W)
-        mixed = Wm @ np.stack([a0, a1, a2])
+        mixed = self._W @ np.stack([a0, a1, xb])
         # beta of an interpolated state is recomputed from its position (SPEC 4.4)
-        starts = self._lift_all(mixed[:, :n])[0].reshape(len(W), sp.nx)
-        strides = [round(w[1] + w[2]) for w in W]  # s = 1 plant step per call
+        starts = self._lift_all(mixed[:, :n])[0].reshape(nc, sp.nx)
+        starts[-1] = xb  # the real candidate is the measured state itself
         M = r.candidate_samples
         # controls u*_{min(t+s, T-1)}, no noise before the stride (MPPI-G)
         S = self.sampler.candidates(np.repeat(starts, M, axis=0), state.U,
-                                    np.repeat(np.array(strides, float), M), self.consts,
+                                    np.repeat(self._strides.astype(float), M), self.consts,
                                     int(rng.integers(0, 2**63)))
         # per-candidate free energy; the shift (SPEC 9.3: min over all samples) cancels exactly,
         # a per-candidate shift only avoids underflow
-        F = np.array([free_energy(S_i, cfg.lam) for S_i in S.reshape(len(W), M)])
-        ok = np.flatnonzero(F < r.alpha)
+        F = np.array([free_energy(S_i, cfg.lam) for S_i in S.reshape(nc, M)])
+        alpha = self.threshold(starts[:, :n])
+        ok = np.flatnonzero(F < alpha)
         fallback = ok.size == 0
         if fallback:
-            i_star = hc if r.fallback == "propagated" else state.index
+            i_star = nc // 2 if r.fallback == "propagated" else state.index
         else:
             i_star = int(ok.max())
-        return starts[i_star], _shift(state.U, strides[i_star], cfg.tail), i_star, F, fallback
-
-    def feedback_gains(self, x_nom, U) -> tuple[np.ndarray, bool]:
-        """K_safe (SPEC 10.2) about the nominal trajectory, (T, nu, nx_full)."""
-        T, n = self.cfg.horizon, self.sp.model.n_physical
-        x0 = x_nom[: self.fb_problem.nx]
-        nxf, nu = self.fb_problem.nx, self.sp.nu
-        Xs, _, _ = self.fb_passes.forward(x0, np.zeros((T + 1, nxf)), U, np.zeros((T, nu)),
-                                          np.zeros((T, nu, nxf)), self._P0, 0.0,
-                                          self.sp.model.u_min, self.sp.model.u_max,
-                                          use_policy=False)
-        P = self.fb_problem.cost.params(T, x_ref=Xs[:, :n], u_ref=np.vstack([U, U[-1:]]))
-        try:
-            res = ilqg(self.fb_problem, x0, U, P, self.fb_options, passes=self.fb_passes)
-        except ValueError:
-            return np.zeros((T, self.sp.nu, self.sp.nx)), False
-        K = np.zeros((T, self.sp.nu, self.sp.nx))
-        K[:, :, : res.K.shape[2]] = res.K
-        return K, bool(np.all(np.isfinite(K)))
+        s = int(self._strides[i_star])
+        return Selection(starts[i_star], _shift(state.U, s, cfg.tail), i_star, s, F, alpha,
+                         fallback)
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
         xb = _full_state(self.sp, x)
-        x_nom, U, idx, F_cand, fallback = self.select_nominal(state, xb, rng)
+        _check_plan(state.U, self.cfg.horizon, self.sp.nu)
+        sel = self.select_nominal(state, xb, rng)
+        x_nom, U = sel.x_nom, sel.U
         t1 = time.perf_counter()
-        K, fb_ok = self.feedback_gains(x_nom, U)
+        gains = self.feedback.gains(x_nom, U, state.gains, sel.stride)
+        K = gains.K
         t2 = time.perf_counter()
+        n = self.sp.model.n_physical
+        alpha = float(self.threshold(x_nom[None, :n])[0])
+        consts = replace(self.consts, alpha=alpha)
         U_real = U
         for _ in range(self.cfg.iterations):
-            b = self.sampler.sais(xb, x_nom, U, K, self.cfg.n_samples, self.consts,
+            b = self.sampler.sais(xb, x_nom, U, K, self.cfg.n_samples, consts,
                                   int(rng.integers(0, 2**63)))
             t3 = time.perf_counter()
             Wn = importance_weights(b.S_nom, self.cfg.lam)
@@ -310,13 +329,20 @@ class RobustMPPI:
         t4 = time.perf_counter()
         timing = {"selection": t1 - t0, "k_safe": t2 - t1, "sais": t3 - t2, "update": t4 - t3,
                   "total": t4 - t0}
-        info = RMPPIInfo(idx, F_cand, fallback, Wn.free_energy, Wr.free_energy, Wn.ess, Wr.ess,
-                         int(b.crashed_real.sum()), int(b.crashed_nom.sum()), fb_ok, timing,
-                         x_nom)
-        return RMPPIState(U, x_nom, idx), u, info
+        info = RMPPIInfo(sel.index, sel.free_energy, sel.alpha, sel.fallback,
+                         not np.array_equal(x_nom, xb), alpha, Wn.free_energy, Wr.free_energy,
+                         Wn.ess, Wr.ess, int(b.crashed_real.sum()), int(b.crashed_nom.sum()),
+                         gains.fallback, gains.nominal_unsafe, timing, x_nom)
+        return RMPPIState(U, x_nom, sel.index, gains), u, info
 
 
-def _physical_model(m: Model) -> Model:
+def _check_plan(U: np.ndarray, T: int, nu: int) -> None:
+    if not isinstance(U, np.ndarray) or U.shape != (T, nu) or not np.all(np.isfinite(U)):
+        raise fail("state.U", getattr(U, "shape", U),
+                   f"the plan must be a finite ({T}, {nu}) array")
+
+
+def physical_model(m: Model) -> Model:
     """The physical part of a barrier-embedded model, as a plain Model."""
     n = m.n_physical
     return Model.from_expressions(

@@ -5,7 +5,7 @@ Run-time constants (``const`` role, shared by all samples):
   sigma (nu) sampling std, lr (1) = lambda (1 - nu_mix), u_min, u_max (nu), crash (2) =
   (1) = C_crash, p (n_p) cost parameters, alpha (1) the RMPPI threshold (SAIS only).
 Per-time inputs: u (nu) the importance-sampling sequence; SAIS also K (nu*nx, row-major K_k).
-Carries and results are listed in :data:`MPPI_RESULTS` and :data:`SAIS_RESULTS`.
+Carries and results are named by :func:`layouts` (one :class:`Layout` per kernel and role).
 """
 
 from __future__ import annotations
@@ -19,10 +19,9 @@ import numpy as np
 from workbench.barrier import min_margin
 from workbench.codegen import build_library
 from workbench.sampling.emit import LANES, KernelSpec, emit_kernel, rng_source
+from workbench.sampling.layout import Layout
 from workbench.sampling.problem import SamplingProblem
 
-MPPI_RESULTS = ("S", "crashed")
-SAIS_RESULTS = ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "crashed_real", "crashed_nom")
 _OPTS = {"cse": True}
 # -fsched-pressure -fschedule-insns: register-pressure-aware scheduling of the long
 # straight-line step; measured 1.5x faster (fewer spills), results unchanged (no FP reordering).
@@ -53,6 +52,23 @@ def _crashed(margins, x, eps_h: float, nh: int):
     if nh == 0:
         return ca.SX(0)
     return min_margin(margins(x), range(nh)) <= eps_h
+
+
+def layouts(sp: SamplingProblem, kernel: str) -> tuple[Layout, Layout]:
+    """(carry, result) layouts of a kernel ("mppi", "sais" or "candidates"); the specs below
+    index their carries in this order."""
+    nx = sp.nx
+    if kernel == "sais":
+        carry = (("x", nx), ("x_nom", nx), ("S_state_nom", 1), ("S_hat", 1), ("S_real", 1),
+                 ("LR", 1), ("crashed_real", 1), ("crashed_nom", 1))
+        result = (("S_nom", 1), ("S_real", 1), ("S_state_nom", 1), ("S_hat", 1), ("LR", 1),
+                  ("crashed_real", 1), ("crashed_nom", 1))
+    else:
+        carry = (("x", nx), ("S", 1), ("crashed", 1))
+        if kernel == "candidates":
+            carry += (("delay", 1), ("stride", 1))
+        result = (("S", 1), ("crashed", 1))
+    return Layout(f"{kernel} carry", carry), Layout(f"{kernel} result", result)
 
 
 def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False) -> KernelSpec:
@@ -161,8 +177,11 @@ def _addr(a: np.ndarray) -> int:
 class CompiledKernel:
     """A loaded kernel: call with arrays, get :class:`KernelOutput`."""
 
-    def __init__(self, spec: KernelSpec, cdll: ctypes.CDLL):
-        self.spec = spec
+    def __init__(self, spec: KernelSpec, cdll: ctypes.CDLL, carry: Layout, result: Layout):
+        if (carry.size, result.size) != (spec.n_carry, spec.n_result):
+            raise ValueError(f"{spec.name}: layouts ({carry.size}, {result.size}) do not match "
+                             f"the kernel ({spec.n_carry}, {spec.n_result})")
+        self.spec, self.carry, self.result = spec, carry, result
         self._fn = getattr(cdll, spec.name)
         self._fn.restype = None
         self._fn.argtypes = [ctypes.c_int, ctypes.c_int] + [ctypes.c_void_p] * 7 + [
@@ -266,6 +285,7 @@ def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
             c.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
             c.wb_set_threads.argtypes = [ctypes.c_int]
             c.wb_get_threads.restype = ctypes.c_int
-            kernels = [CompiledKernel(s, c) for s in specs]
+            kernels = [CompiledKernel(s, c, *layouts(sp, k))
+                       for s, k in zip(specs, ("mppi", "sais", "candidates"), strict=True)]
             _LIBS[key] = SamplerLibrary(*kernels, cdll=c)
     return _LIBS[key]

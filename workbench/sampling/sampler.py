@@ -17,7 +17,7 @@ from workbench.sampling.constants import SamplerConstants
 from workbench.sampling.kernels import sampler_library
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import mppi_reference, sais_reference
-from workbench.validation import fail, one_of
+from workbench.validation import as_array, fail, one_of
 
 Backend = Literal["auto", "compiled", "numpy"]
 
@@ -56,26 +56,50 @@ class Sampler:
     def _noise(self, N: int, T: int, seed: int) -> np.ndarray:
         return np.random.default_rng(seed).standard_normal((N, T, self.sp.nu))
 
+    def _check(self, N: int, U, c: SamplerConstants, K=None) -> np.ndarray:
+        if isinstance(N, bool) or not isinstance(N, int | np.integer) or N < 1:
+            raise fail("N", N, "the sample count must be an integer >= 1")
+        U = np.asarray(U, dtype=float)
+        if U.ndim != 2 or U.shape[1] != self.sp.nu or U.shape[0] < 1:
+            raise fail("U", U.shape, f"the plan must have shape (T >= 1, {self.sp.nu})")
+        if not np.all(np.isfinite(U)):
+            raise fail("U", U, "the plan must be finite")
+        if K is not None:
+            as_array("K", K, (U.shape[0], self.sp.nu, self.sp.nx))
+        for name, val, n in (("sigma", c.sigma, self.sp.nu), ("u_min", c.u_min, self.sp.nu),
+                             ("u_max", c.u_max, self.sp.nu), ("p", c.p, self.sp.n_p)):
+            if np.shape(val) != (n,):
+                raise fail(f"SamplerConstants.{name}", np.shape(val), f"expected ({n},)")
+        return U
+
     def mppi(self, x0, U, N: int, c: SamplerConstants, seed: int) -> MPPIBatch:
+        U = self._check(N, U, c)
+        x0 = as_array("x0", x0, (self.sp.nx,))
         T = U.shape[0]
         if self.lib is not None:
-            carry = np.zeros((N, self.sp.nx + 2))
-            carry[:, : self.sp.nx] = x0
-            out = self.lib.mppi(carry, consts=c.kernel_consts(), time_in={"u": U}, seed=seed)
-            return MPPIBatch(out.result[:, 0], out.result[:, 1] > 0, out.lane_out[0])
+            k = self.lib.mppi
+            out = k(k.carry.pack(N, x=x0), consts=c.kernel_consts(), time_in={"u": U},
+                    seed=seed)
+            r = k.result.unpack(out.result)
+            return MPPIBatch(r["S"], r["crashed"] > 0, out.lane_out[0])
         ref = mppi_reference(self.sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), c)
         return MPPIBatch(ref["S"], ref["crashed"], np.transpose(ref["v"], (1, 2, 0)))
 
     def sais(self, x0, xs0, U, K, N: int, c: SamplerConstants, seed: int) -> SAISBatch:
-        T, nx = U.shape[0], self.sp.nx
+        U = self._check(N, U, c, K)
+        x0, xs0 = as_array("x0", x0, (self.sp.nx,)), as_array("xs0", xs0, (self.sp.nx,))
+        K = np.asarray(K, dtype=float)
+        if not np.all(np.isfinite(K)):
+            raise fail("K", K, "the gains must be finite")
+        T = U.shape[0]
         if self.lib is not None:
-            carry = np.zeros((N, 2 * nx + 6))
-            carry[:, :nx], carry[:, nx : 2 * nx] = x0, xs0
-            out = self.lib.sais(carry, consts=c.kernel_consts(),
-                                time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed)
-            r = out.result
-            return SAISBatch(r[:, 0], r[:, 1], r[:, 2], r[:, 3], r[:, 4], r[:, 5] > 0,
-                             r[:, 6] > 0, out.lane_out[0], out.lane_out[1])
+            k = self.lib.sais
+            out = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
+                    time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed)
+            r = k.result.unpack(out.result)
+            return SAISBatch(r["S_nom"], r["S_real"], r["S_state_nom"], r["S_hat"], r["LR"],
+                             r["crashed_real"] > 0, r["crashed_nom"] > 0, out.lane_out[0],
+                             out.lane_out[1])
         ref = sais_reference(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
                              self._noise(N, T, seed), c)
         return SAISBatch(ref["S_nom"], ref["S_real"], ref["S_state_nom"], ref["S_hat"],
@@ -86,16 +110,22 @@ class Sampler:
     def candidates(self, starts, U, stride, c: SamplerConstants, seed: int) -> np.ndarray:
         """Costs (N,) of rollouts from per-sample starts (N, nx) following U shifted by the
         per-sample stride s in {0, 1} (u_{min(t+s, T-1)}), with no noise for t < s."""
-        N, T = starts.shape[0], U.shape[0]
-        stride = np.asarray(stride, dtype=float)
+        starts = np.asarray(starts, dtype=float)
+        if starts.ndim != 2 or starts.shape[1] != self.sp.nx:
+            raise fail("starts", starts.shape, f"expected (N, {self.sp.nx})")
+        N = starts.shape[0]
+        U = self._check(N, U, c)
+        T = U.shape[0]
+        stride = as_array("stride", stride, (N,))
         if np.any((stride != 0) & (stride != 1)):
             raise fail("stride", stride, "candidate strides must be 0 or 1")
         U_next = np.vstack([U[1:], U[-1:]])
         if self.lib is not None:
-            carry = np.column_stack([starts, np.zeros((N, 2)), stride, stride])
-            out = self.lib.candidates(carry, consts=c.kernel_consts(),
-                                      time_in={"u": U, "u_next": U_next}, seed=seed)
-            return out.result[:, 0]
+            k = self.lib.candidates
+            carry = k.carry.pack(N, x=starts, delay=stride, stride=stride)
+            out = k(carry, consts=c.kernel_consts(), time_in={"u": U, "u_next": U_next},
+                    seed=seed)
+            return k.result.unpack(out.result)["S"]
         U_lane = np.where(stride[:, None, None] > 0, U_next[None], U[None])
         return mppi_reference(self.sp, starts, U_lane, self._noise(N, T, seed), c,
                               delay=stride)["S"]

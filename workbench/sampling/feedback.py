@@ -1,0 +1,193 @@
+"""Feedback laws for Robust MPPI: gains K_k (T, nu, nx) about the nominal trajectory.
+
+A :class:`FeedbackLaw` turns the nominal state x*_0 and the nominal control sequence u* into
+gains for the SAIS dual rollout (SPEC 9.2, 10.1) and for the applied control (SPEC 9.5):
+
+* :class:`ILQGFeedback` on the barrier-embedded model — K_safe of SA-RMPPI (SPEC 10.2);
+* :class:`ILQGFeedback` on the physical model — the plain iLQG tracking feedback of RMPPI
+  (SPEC 9.4); its gains on the barrier state are zero;
+* :class:`NoFeedback` — K = 0 (SAIS then reduces to MPPI sampling).
+
+The gains are one derivative evaluation and one backward pass along the nominal trajectory the
+sampler actually uses (the clipped open-loop rollout of u* from x*_0) with the tracking cost
+½|x-x*|²_Q + ½ q_beta β² + ½|u-u*|²_R. They are the unconstrained (no box QP) gains: the kernels
+clip every control, so a gain on a saturated input still acts once the input leaves the limit.
+A nominal rollout that leaves the safe set needs no special case: the barrier's crash rule
+(β = β_max, SPEC 4.6) keeps the derivatives finite. When the backward pass fails at every
+regularisation level, or the derivatives are not finite, the previous gains shifted by the
+stride are used and the reason is reported — the gains are never silently set to zero.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from workbench.costs import quadratic_tracking
+from workbench.fastcall import FastFunction
+from workbench.ilqg import make_passes
+from workbench.models import Model
+from workbench.problem import Problem
+from workbench.validation import as_array, fail
+
+FALLBACK_REASONS = ("backward_failed", "nonfinite_derivatives", "nonfinite_gains")
+
+
+@dataclass(frozen=True)
+class FeedbackWeights:
+    """Tracking weights of the feedback law (SPEC 9.4, 10.2 [A]); sized to the model."""
+
+    Q: tuple[float, ...] = (500.0, 500.0, 100.0, 100.0)
+    R: tuple[float, ...] = (1.0, 1.0)
+    q_beta: float = 1.0
+    mu: float = 1e-6  # first regularisation level of the backward pass
+    mu_max: float = 1e6
+
+    def __post_init__(self) -> None:
+        for name in ("Q", "R"):
+            w = np.asarray(getattr(self, name), dtype=float)
+            if w.ndim != 1 or not np.all(np.isfinite(w)) or np.any(w < 0):
+                raise fail(f"FeedbackWeights.{name}", getattr(self, name),
+                           "must be a sequence of finite numbers >= 0")
+            object.__setattr__(self, name, tuple(float(v) for v in w))
+        for name in ("q_beta", "mu", "mu_max"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not np.isfinite(v) or v < 0:
+                raise fail(f"FeedbackWeights.{name}", v, "must be a finite number >= 0")
+        if not self.mu_max > self.mu:
+            raise fail("FeedbackWeights.mu_max", self.mu_max, f"must exceed mu = {self.mu}")
+
+    @classmethod
+    def for_model(cls, model: Model, q: float = 100.0, r: float = 1.0, **kw) -> FeedbackWeights:
+        """Uniform weights sized to a model's physical state and control."""
+        return cls(Q=(q,) * model.n_physical, R=(r,) * model.nu, **kw)
+
+
+@dataclass(frozen=True)
+class Gains:
+    """Feedback gains and how they were obtained."""
+
+    K: np.ndarray  # (T, nu, nx) on the full (embedded) state
+    fallback: str | None = None  # one of FALLBACK_REASONS, or None when computed
+    nominal_unsafe: bool = False  # the nominal rollout left the safe set (crash-safe gains)
+    mu: float = 0.0  # regularisation used
+
+
+class FeedbackLaw(Protocol):
+    """Gains about the nominal trajectory of (x*_0, u*)."""
+
+    name: str
+
+    def gains(self, x_nom: np.ndarray, U: np.ndarray, previous: Gains | None,
+              stride: int) -> Gains: ...
+
+
+class NoFeedback:
+    """K = 0."""
+
+    name = "none"
+
+    def __init__(self, nx: int, nu: int):
+        self.nx, self.nu = nx, nu
+
+    def gains(self, x_nom, U, previous, stride) -> Gains:
+        return Gains(np.zeros((U.shape[0], self.nu, self.nx)))
+
+
+def shifted(K: np.ndarray, stride: int) -> np.ndarray:
+    """Gains slid by ``stride`` steps, the last one held."""
+    if stride <= 0:
+        return K
+    out = np.empty_like(K)
+    out[:-stride] = K[stride:]
+    out[-stride:] = K[-1]
+    return out
+
+
+class ILQGFeedback:
+    """Tracking gains from one iLQG derivative evaluation and backward pass.
+
+    ``model`` is the model whose state the gains act on: the barrier-embedded model gives
+    K_safe (the β cost shapes the gains through the barrier's curvature), the physical model
+    the plain tracking gains of RMPPI. ``nx_full`` is the sampler's state size (gains are
+    zero-padded to it).
+    """
+
+    def __init__(self, model: Model, horizon: int, nx_full: int,
+                 weights: FeedbackWeights = FeedbackWeights(), name: str | None = None):
+        n = model.n_physical
+        if len(weights.Q) != n:
+            raise fail("FeedbackWeights.Q", weights.Q, f"need {n} entries (the physical state "
+                       f"of {model.name}); FeedbackWeights.for_model sizes them")
+        if len(weights.R) != model.nu:
+            raise fail("FeedbackWeights.R", weights.R, f"need {model.nu} entries")
+        embedded = model.nx > n
+        cost = quadratic_tracking(model, Q=weights.Q, R=weights.R, S=weights.Q,
+                                  q_beta=weights.q_beta if embedded else 0.0,
+                                  s_beta=weights.q_beta if embedded else 0.0,
+                                  beta_cost="absolute")
+        self.problem = Problem.build(model, cost)
+        self.passes = make_passes(self.problem, horizon)
+        self.name = name or ("bas_ilqg" if embedded else "ilqg")
+        self.w, self.T, self.nx_full = weights, horizon, nx_full
+        nu, nxf = model.nu, model.nx
+        self._zk, self._zK = np.zeros((horizon, nu)), np.zeros((horizon, nu, nxf))
+        self._X0 = np.zeros((horizon + 1, nxf))
+        if model.nh:
+            self._margins = FastFunction(model.margins_function, horizon + 1)
+
+    def nominal(self, x_nom: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The clipped open-loop nominal trajectory (X (T+1, nx), U (T, nu))."""
+        m = self.problem.model
+        X, Uc, _ = self.passes.forward(x_nom[: self.problem.nx], self._X0, U, self._zk,
+                                       self._zK, self._params(None, U), 0.0, m.u_min, m.u_max,
+                                       use_policy=False)
+        return X, Uc
+
+    def _params(self, X, U) -> np.ndarray:
+        n = self.problem.model.n_physical
+        x_ref = np.zeros((self.T + 1, n)) if X is None else X[:, :n]
+        return self.problem.cost.params(self.T, x_ref=x_ref, u_ref=np.vstack([U, U[-1:]]))
+
+    def gains(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
+        U = as_array("U", U, (self.T, self.problem.nu))
+        X, Uc = self.nominal(x_nom, U)
+        m = self.problem.model
+        unsafe = bool(m.nh) and bool(np.min(self._margins(X[:, : m.n_physical])[0]) <= 0.0)
+        d = self.passes.derivatives(X, Uc, self._params(X, Uc))
+        reason = None
+        if not all(np.all(np.isfinite(a)) for a in _arrays(d)):
+            reason = "nonfinite_derivatives"
+        else:
+            mu = self.w.mu
+            while mu <= self.w.mu_max:
+                status, _, K, _ = self.passes.backward(d, Uc, m.u_min, m.u_max, mu, 0, False)
+                if status == 0:
+                    if not np.all(np.isfinite(K)):
+                        reason = "nonfinite_gains"
+                        break
+                    return Gains(self._pad(K), None, unsafe, mu)
+                mu = max(mu * 10.0, 1e-8)
+            else:
+                reason = "backward_failed"
+        if previous is None:
+            # no earlier gains to shift: the only honest finite choice left is K = 0, reported
+            return Gains(np.zeros((self.T, m.nu, self.nx_full)), reason, unsafe, np.nan)
+        return Gains(shifted(previous.K, stride), reason, unsafe, np.nan)
+
+    def _pad(self, K: np.ndarray) -> np.ndarray:
+        if K.shape[2] == self.nx_full:
+            return K
+        out = np.zeros((K.shape[0], K.shape[1], self.nx_full))
+        out[:, :, : K.shape[2]] = K
+        return out
+
+
+def _arrays(d):
+    if isinstance(d, dict):
+        return list(d.values())
+    if isinstance(d, tuple | list):
+        return list(d)
+    return [d]

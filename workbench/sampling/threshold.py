@@ -1,0 +1,138 @@
+"""The free-energy threshold alpha of RMPPI's nominal-state selection (SPEC 9.3, 10.3).
+
+A candidate nominal state c is admissible when its free energy F(c) is below alpha(c). The rule
+must bind: the free energy falls by three orders of magnitude from the start to the goal on the
+paper's map (≈ 15000 → ≈ 21 for undisturbed BaS-MPPI), so any constant calibrated at the start
+(SPEC 10.3's first rule, ``kind="start"``) is never reached later and SA-RMPPI degenerates to
+BaS-MPPI. Rules (:class:`AlphaRule`):
+
+* ``"progress"`` (default) — alpha(x) = (1 + kappa) F_und(d(x)): F_und(d) is the free energy an
+  undisturbed run has at the same distance d to the goal, measured with the selection's own
+  estimator (M_c samples, real-state candidate), smoothed and made non-decreasing in d;
+* ``"quantile"`` — a constant: the q-quantile of F_und over the undisturbed run;
+* ``"fixed"`` — a constant given by the user (MPPI-G style);
+* ``"start"`` — factor x F_und at the start (kept to show why it fails).
+
+The calibration run is SA-RMPPI itself with alpha = inf (always the real state), undisturbed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+
+from workbench.validation import fail, one_of
+
+AlphaKind = Literal["progress", "quantile", "fixed", "start"]
+
+
+@dataclass(frozen=True)
+class AlphaRule:
+    """How alpha is chosen (defaults [A], chosen from the activation study in NOTES.md)."""
+
+    kind: AlphaKind = "progress"
+    kappa: float = 1.0  # progress: alpha = (1 + kappa) F_und(d)
+    quantile: float = 0.5  # quantile: alpha = quantile of F_und
+    value: float = np.inf  # fixed
+    factor: float = 1.5  # start: alpha = factor x F_und(start)
+    calibration_steps: int = 600  # undisturbed steps (the paper map's run reaches the goal ~300)
+
+    def __post_init__(self) -> None:
+        one_of("AlphaRule.kind", self.kind, ("progress", "quantile", "fixed", "start"))
+        for name in ("kappa", "factor"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (np.isfinite(v) and v >= 0):
+                raise fail(f"AlphaRule.{name}", v, "must be a finite number >= 0")
+        if isinstance(self.quantile, bool) or not 0.0 <= self.quantile <= 1.0:
+            raise fail("AlphaRule.quantile", self.quantile, "must lie in [0, 1]")
+        if isinstance(self.value, bool) or np.isnan(self.value) or self.value == -np.inf:
+            raise fail("AlphaRule.value", self.value, "must be a number or +inf")
+        if (isinstance(self.calibration_steps, bool)
+                or not isinstance(self.calibration_steps, int | np.integer)
+                or self.calibration_steps < 10):
+            raise fail("AlphaRule.calibration_steps", self.calibration_steps,
+                       "must be an integer >= 10")
+
+    @property
+    def needs_calibration(self) -> bool:
+        return self.kind != "fixed"
+
+    def label(self) -> str:
+        return {"progress": f"progress(kappa={self.kappa:g})",
+                "quantile": f"quantile(q={self.quantile:g})",
+                "fixed": f"fixed({self.value:g})",
+                "start": f"start(x{self.factor:g})"}[self.kind]
+
+
+class Threshold(Protocol):
+    """alpha at each of n physical states (n, n_physical) -> (n,)."""
+
+    def __call__(self, X: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class ConstantThreshold:
+    value: float
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        return np.full(np.atleast_2d(X).shape[0], float(self.value))
+
+
+@dataclass(frozen=True, eq=False)
+class ProgressThreshold:
+    """alpha(x) = (1 + kappa) F(d(x)), F interpolated in log distance, clamped at the ends."""
+
+    log_d: np.ndarray  # increasing knots
+    F: np.ndarray  # non-decreasing values
+    kappa: float
+    goal: np.ndarray  # goal position
+    position: tuple[int, ...]
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        P = np.atleast_2d(X)[:, list(self.position)]
+        d = np.linalg.norm(P - self.goal, axis=1)
+        ld = np.log(np.maximum(d, 1e-12))
+        return (1.0 + self.kappa) * np.interp(ld, self.log_d, self.F)
+
+
+def progress_curve(d: np.ndarray, F: np.ndarray, bins: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Median free energy per log-distance bin, made non-decreasing in distance."""
+    d, F = np.asarray(d, float), np.asarray(F, float)
+    ok = np.isfinite(F) & np.isfinite(d) & (d > 0)
+    if ok.sum() < 2:
+        raise fail("F", F, "need at least two finite calibration points")
+    ld, F = np.log(d[ok]), F[ok]
+    edges = np.linspace(ld.min(), ld.max() + 1e-12, bins + 1)
+    idx = np.clip(np.digitize(ld, edges) - 1, 0, bins - 1)
+    knots, vals = [], []
+    for b in range(bins):
+        m = idx == b
+        if m.any():
+            knots.append(float(np.median(ld[m])))
+            vals.append(float(np.median(F[m])))
+    return np.array(knots), np.maximum.accumulate(np.array(vals))
+
+
+def make_threshold(rule: AlphaRule, X: np.ndarray | None = None, F: np.ndarray | None = None,
+                   goal=None, position: tuple[int, ...] = (0, 1)) -> Threshold:
+    """The threshold of a rule from an undisturbed trace: states X (n, n_physical) and the
+    real-state candidate free energies F (n,) (None for ``kind="fixed"``)."""
+    if rule.kind == "fixed":
+        return ConstantThreshold(rule.value)
+    if X is None or F is None or goal is None:
+        raise fail("calibration", None, f"alpha rule {rule.kind!r} needs an undisturbed trace "
+                   "(states, free energies) and the goal")
+    F = np.asarray(F, float)
+    finite = F[np.isfinite(F)]
+    if finite.size < 2:
+        raise fail("F", F, "need at least two finite calibration free energies")
+    if rule.kind == "start":
+        return ConstantThreshold(rule.factor * float(finite[0]))
+    if rule.kind == "quantile":
+        return ConstantThreshold(float(np.quantile(finite, rule.quantile)))
+    goal = np.asarray(goal, float)[: len(position)]
+    d = np.linalg.norm(np.asarray(X, float)[:, list(position)] - goal, axis=1)
+    log_d, vals = progress_curve(d, F)
+    return ProgressThreshold(log_d, vals, rule.kappa, goal, tuple(position))
