@@ -10,36 +10,47 @@ computation.
 
 from __future__ import annotations
 
-import hashlib
+import functools
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
+from workbench.costs import Cost
 from workbench.models import Model
+from workbench.problem import Problem
 from workbench.validation import as_array, fail
 
 
 @dataclass(frozen=True, eq=False)
 class SamplingProblem:
-    """Model (usually barrier-embedded) with state costs q(x, p) and phi(x, p)."""
+    """The sampler's view of a :class:`~workbench.problem.Problem` whose stage cost is a state
+    cost q(x, p) (no control term: MPPI's control cost is its likelihood ratio) and whose
+    terminal cost is phi(x, p). Dynamics, margins and costs are the Problem's own Functions."""
 
-    model: Model
-    q: ca.SX
-    phi: ca.SX
-    p: ca.SX
+    problem: Problem
     description: str = ""
     weights: dict[str, np.ndarray] | None = None  # set by navigation_costs (for the NumPy twin)
 
     def __post_init__(self) -> None:
-        known = {s.name() for s in ca.symvar(ca.vertcat(self.model.x, self.p))}
-        for name in ("q", "phi"):
-            expr = ca.SX(getattr(self, name))
-            if expr.shape != (1, 1):
-                raise fail(f"SamplingProblem.{name}", expr.shape, "must be a scalar")
-            extra = [s.name() for s in ca.symvar(expr) if s.name() not in known]
-            if extra:
-                raise fail(f"SamplingProblem.{name}", extra, "may depend only on x and p")
+        if ca.depends_on(self.problem.cost.stage, self.problem.model.u):
+            raise fail("cost.stage", "depends on u", "a sampling cost is a state cost q(x, p); "
+                       "MPPI adds the control cost through its likelihood ratio")
+
+    @classmethod
+    def from_costs(cls, model: Model, q, phi, p, description: str = "",
+                   weights: dict | None = None) -> SamplingProblem:
+        """Build from state-cost expressions q(x, p), phi(x, p) in the model's x and ``p``."""
+        for name, expr in (("q", q), ("phi", phi)):
+            if ca.SX(expr).shape != (1, 1):
+                raise fail(f"SamplingProblem.{name}", ca.SX(expr).shape, "must be a scalar")
+        cost = Cost(stage=ca.SX(q), terminal=ca.SX(phi), p=ca.SX(p),
+                    param_layout=(("p", int(ca.SX(p).numel())),), description=description)
+        return cls(Problem.build(model, cost), description, weights)
+
+    @property
+    def model(self) -> Model:
+        return self.problem.model
 
     @property
     def eps_h(self) -> float:
@@ -57,24 +68,23 @@ class SamplingProblem:
 
     @property
     def n_p(self) -> int:
-        return int(self.p.numel())
+        return self.problem.n_p
 
     def functions(self) -> dict[str, ca.Function]:
-        """dyn (x,u)->x_next, margins (x)->h, q (x,p)->q, phi (x,p)->phi (CasADi VM)."""
-        m = self.model
-        return {
-            "dyn": ca.Function("dyn", [m.x, m.u], [m.x_next]),
-            "margins": ca.Function("margins", [m.x], [m.h]),
-            "q": ca.Function("q", [m.x, self.p], [self.q]),
-            "phi": ca.Function("phi", [m.x, self.p], [self.phi]),
-        }
+        """dyn (x,u)->x_next, margins (x)->h, q (x,p)->q, phi (x,p)->phi: the Problem's."""
+        return self._functions
+
+    @functools.cached_property
+    def _functions(self) -> dict[str, ca.Function]:
+        f, m = self.problem.functions, self.model
+        x, p = ca.SX.sym("x", m.nx), ca.SX.sym("p", self.n_p)
+        q = f["stage"](x, ca.SX.zeros(m.nu), p)
+        return {"dyn": f["dyn"], "margins": f["margins"],
+                "q": ca.Function("q", [x, p], [q], ["x", "p"], ["q"]),
+                "phi": ca.Function("phi", [x, p], [f["term"](x, p)], ["x", "p"], ["phi"])}
 
     def fingerprint(self) -> str:
-        h = hashlib.sha256()
-        for f in self.functions().values():
-            h.update(f.serialize().encode())
-        h.update(np.ascontiguousarray([*self.model.u_min, *self.model.u_max]).tobytes())
-        return h.hexdigest()[:16]
+        return self.problem.fingerprint
 
 
 def navigation_costs(model: Model, *, Qp=(1.0, 1.0), Qv=(0.1, 0.1), q_beta: float = 1.0,
@@ -99,5 +109,5 @@ def navigation_costs(model: Model, *, Qp=(1.0, 1.0), Qv=(0.1, 0.1), q_beta: floa
         q += q_beta * ca.dot(eb, eb)
     e = x - g
     weights = {"Qp": Qp, "Qv": Qv, "q_beta": float(q_beta), "S": S}
-    return SamplingProblem(model, q, ca.dot(S * e, e), g, description="navigation (SPEC 8.2)",
-                           weights=weights)
+    return SamplingProblem.from_costs(model, q, ca.dot(S * e, e), g,
+                                      description="navigation (SPEC 8.2)", weights=weights)

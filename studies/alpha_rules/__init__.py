@@ -1,0 +1,1 @@
+"""Activation of SA-RMPPI's robust machinery under each alpha rule (issue: SA-RMPPI)."""
