@@ -9,7 +9,6 @@ import numpy as np
 
 from workbench.navigation import navigation_setup
 from workbench.sampling.constants import SamplerConstants
-from workbench.sampling.controllers import RMPPIConfig, RobustMPPI
 from workbench.sampling.reference import sais_reference
 from workbench.sampling.sampler import Sampler
 from workbench.sampling.weights import importance_weights, weighted_controls
@@ -67,7 +66,7 @@ def sais_batch_records(repeats: int) -> list[dict]:
 
 def sa_rmppi_step_record(steps: int = 80) -> dict:
     nav = navigation_setup()
-    ctrl = RobustMPPI(nav.problem, nav.goal, nav.mppi, RMPPIConfig(alpha=2e4))
+    ctrl = nav.controller("sa_rmppi")  # default calibrated alpha rule
     closed_loop(ctrl, nav.plant, nav.x0, 5, np.random.default_rng(0), np.random.default_rng(1))
     ep = closed_loop(ctrl, nav.plant, nav.x0, steps, np.random.default_rng(2),
                      np.random.default_rng(3), Disturbance(10.0))
@@ -77,7 +76,8 @@ def sa_rmppi_step_record(steps: int = 80) -> dict:
             "unit": "ms", "baseline": "goal_ms", "baseline_value": 5.0,
             "ratio": 5.0 / (1e3 * statistics.median(ep.step_time_s)),
             "params": {"split_median_ms": split, "steps": steps, "N": 1024, "T": 100,
-                       "candidates": "9 x 64", "K_safe_iterations": 3,
+                       "candidates": "9 x 64",
+                       "K_safe": "one derivative evaluation + one backward pass",
                        "disturbance_variance": 10.0}}
 
 
