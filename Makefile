@@ -7,7 +7,7 @@ PROFILE ?= quick
 export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
-.PHONY: venv test study study-tracking-demo study-tracking bench lint clean-cache clean
+.PHONY: venv test study study-tracking-demo study-tracking study-alpha-rules bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -30,6 +30,10 @@ study-tracking-demo: $(STAMP)
 
 study-tracking: $(STAMP)
 	$(PY) -m studies.tracking_comparison --profile $(PROFILE) --out reports/tracking_comparison
+
+# SA-RMPPI activation per alpha rule (issue 8): 20 episodes per cell at variance 10 and 100
+study-alpha-rules: $(STAMP)
+	$(PY) -m studies.alpha_rules --episodes $(or $(EPISODES),20) --out reports/alpha_rules
 
 bench: $(STAMP)
 	$(PY) -m benchmarks --out reports/bench/bench.json

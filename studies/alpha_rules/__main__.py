@@ -24,8 +24,9 @@ def main(argv=None) -> None:
     if a.episodes < 1 or a.steps < 1 or a.workers < 1:
         ap.error("--episodes, --steps and --workers must be >= 1")
     t0 = time.time()
-    rows = run(a.episodes, a.seed, a.steps, a.workers, tuple(a.variances))
-    write_report(pd.DataFrame(rows), a.out, vars(a) | {"wall_s": time.time() - t0})
+    rows = pd.DataFrame(run(a.episodes, a.seed, a.steps, a.workers, tuple(a.variances)))
+    config = {k: str(v) if isinstance(v, Path) else v for k, v in vars(a).items()}
+    write_report(rows.drop(columns=["path"]), a.out, config | {"wall_s": time.time() - t0})
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ import pandas as pd
 
 from studies.alpha_rules.run import DEFAULT_RULE, RULES
 from workbench.io import atomic_write_json, atomic_write_text, manifest
-from workbench.stats import wilson_interval
+from workbench.stats import mcnemar_exact, paired_difference_interval, wilson_interval
 
 
 def summarise(df: pd.DataFrame) -> pd.DataFrame:
@@ -41,7 +41,7 @@ def write_report(df: pd.DataFrame, out: Path, config: dict) -> None:
     out = Path(out)
     s = summarise(df)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "episodes.csv", df.drop(columns=["path"]).to_csv(index=False))
+    atomic_write_text(out / "episodes.csv", df.to_csv(index=False))
     atomic_write_json(out / "summary.json", {"manifest": manifest(), "config": config,
                                              "rules": {k: repr(v) for k, v in RULES.items()},
                                              "cells": s.to_dict(orient="records")})
@@ -60,6 +60,32 @@ def write_report(df: pd.DataFrame, out: Path, config: dict) -> None:
             f"{_fmt(r.nominal_differs_fraction)} | {_fmt(r.alpha_fallback_fraction)} | "
             f"{_fmt(r.ksafe_fallback_rate, 4)} ({r.ksafe_fallback_reasons}) | "
             f"{_fmt(r.nominal_unsafe_fraction)} | {_fmt(r.rmse_safe)} | {r.mean_step_ms:.1f} |")
+    lines += ["", "## Criterion for the default (issue 8, SPEC 10.3)", "",
+              "A rule qualifies when the nominal state differs from the real state on 10–90% "
+              "of steps at every variance >= 10, and K_safe falls back on < 1% of steps.", ""]
+    for rule, g in s[s.controller == "sa_rmppi"].groupby("rule", sort=False):
+        band = g[g.variance >= 10]
+        ok = bool(((band.nominal_differs_fraction >= 0.1)
+                   & (band.nominal_differs_fraction <= 0.9)).all()
+                  and (g.ksafe_fallback_rate < 0.01).all())
+        frac = ", ".join(f"{v:g}: {f:.2f}" for v, f in zip(band.variance,
+                                                             band.nominal_differs_fraction,
+                                                             strict=True))
+        lines.append(f"- `{rule}`: {'qualifies' if ok else 'does not qualify'} "
+                     f"(nominal ≠ real by variance: {frac})")
+    lines += ["", "## Paired comparison with BaS-MPPI (same realisations)", "",
+              "| rule | variance | both safe | only SA-RMPPI safe | only BaS-MPPI safe | both "
+              "crashed | safety difference [95% CI] | exact McNemar p |", "|" + "---|" * 8]
+    for (rule, var), g in df[df.controller == "sa_rmppi"].groupby(["rule", "variance"],
+                                                                  sort=False):
+        base = df[(df.controller == "bas_mppi") & (df.variance == var)]
+        pair = g.merge(base, on="episode", suffixes=("", "_b"))
+        sa, ba = ~pair.crashed.astype(bool), ~pair.crashed_b.astype(bool)
+        a, b = int((sa & ba).sum()), int((sa & ~ba).sum())
+        c, d = int((~sa & ba).sum()), int((~sa & ~ba).sum())
+        diff, lo, hi = paired_difference_interval(a, b, c, d)
+        lines.append(f"| {rule} | {var:g} | {a} | {b} | {c} | {d} | {diff:+.2f} "
+                     f"[{lo:+.2f}, {hi:+.2f}] | {mcnemar_exact(b, c):.3f} |")
     lines += ["", "Rates of steps are pooled over all steps of all episodes of a cell. "
               "'nominal ≠ real': the nominal state after selection differs from the measured "
               "state. 'alpha fallback': no candidate was below alpha. 'K_safe fallback': the "
