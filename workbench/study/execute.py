@@ -228,20 +228,21 @@ def run_study(study: Study, out: Path | str, *, workers: int = 2, scheduler: Any
     store = RunStore(Path(out))
     backend = ({"scheduler": scheduler if isinstance(scheduler, str) else repr(scheduler)}
                if scheduler is not None else {"workers": workers})
-    store.write_manifest(study, backend)
     ids = study.task_ids()
-    done = store.finished(ids)
     threads = 1 if (workers or scheduler is not None) else max(1, os.cpu_count() or 1)
-    pending = [(t, study.context(t, threads)) for t, i in zip(study.tasks, ids, strict=True)
-               if i not in done]
     errors: list[TaskError] = []
-    bar = tqdm(total=len(ids), initial=len(done), desc=study.name, unit="task",
-               file=sys.stderr, disable=not progress, smoothing=0.05, dynamic_ncols=True)
-    computed, records = 0, None
+    computed, records, bar = 0, None, None
     with _stop_on_signals():
         try:
+            store.write_manifest(study, backend)
+            done = store.finished(ids)
+            pending = [(t, study.context(t, threads))
+                       for t, i in zip(study.tasks, ids, strict=True) if i not in done]
+            bar = tqdm(total=len(ids), initial=len(done), desc=study.name, unit="task",
+                       file=sys.stderr, disable=not progress, smoothing=0.05,
+                       dynamic_ncols=True)
             if not pending:
-                records: Iterator = iter(())
+                records = (r for r in ())
             elif scheduler is not None:
                 from workbench.study.cluster import dask_records
                 records = dask_records(study, pending, scheduler, _execute)
@@ -259,21 +260,25 @@ def run_study(study: Study, out: Path | str, *, workers: int = 2, scheduler: Any
                     errors.append(store.save_error(task, rec))
                     bar.set_postfix(errors=len(errors))
                 bar.update()
+            records.close()
+            bar.close()
+            store.write_errors(errors)
+            for e in errors:
+                print(f"{study.name}: ERROR {e.headline()}", file=sys.stderr)
+            if not errors:
+                store.write_tables(store.build_tables(study))
         except KeyboardInterrupt:
             _STOP.set()
-            bar.close()
+            if records is not None:
+                records.close()  # stops the workers at once
+            if bar is not None:
+                bar.close()
             n = len(store.finished(ids))
             print(f"\n{study.name}: interrupted; {n} of {len(ids)} tasks finished and stored in "
                   f"{store.root}; rerun the same command to continue", file=sys.stderr)
             raise StudyInterrupted from None
         finally:
-            if records is not None and hasattr(records, "close"):
-                records.close()  # stops the workers (hard if interrupted)
-            bar.close()
-    store.write_errors(errors)
-    for e in errors:
-        print(f"{study.name}: ERROR {e.headline()}", file=sys.stderr)
-    if not errors:
-        store.write_tables(store.build_tables(study))
+            if records is not None:
+                records.close()
     return RunResult(store.root, len(ids), computed, len(done), tuple(errors),
                      time.perf_counter() - t0)
