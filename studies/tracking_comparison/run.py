@@ -58,9 +58,11 @@ def run(config: StudyConfig, out: Path, *, workers: int = 2, scheduler: str | No
     run_line = (f"Wall time {wall:.1f} s ({result.computed} of {result.n_tasks} tasks computed, "
                 f"the rest resumed from `tasks/`; {where}).")
     assumed = assumed_values(config, setup)
+    # summary.json depends only on the results (byte-identical across runs); run.json does not
     atomic_write_json(Path(out) / "summary.json",
-                      {"study": decl.name, **to_jsonable(summary), "assumed": assumed,
-                       "tasks": {"total": result.n_tasks, "computed": result.computed,
-                                 "loaded": result.loaded}, "wall_time_s": wall})
+                      {"study": decl.name, **to_jsonable(summary), "assumed": assumed})
+    atomic_write_json(Path(out) / "run.json",
+                      {"tasks": {"total": result.n_tasks, "computed": result.computed,
+                                 "loaded": result.loaded}, "wall_time_s": wall, "backend": where})
     report = write_report(summary, store, main, setup.scene, assumed, run_line)
     return Outcome(summary, result, report)

@@ -141,6 +141,8 @@ def summarise(config: StudyConfig, plan: Plan, store: RunStore, ids: dict) -> Tr
         rows = _rows(table, after["ecbf"], ids)
         radius += [RadiusPoint("ecbf_noise_after", "ecbf", r, Rate.of(failure(rows, r)))
                    for r in config.radii]
-    nominal = tuple(NominalOutcome(m, store.meta(ids[t]), ids[t]) for m, t in plan.nominal.items())
+    nominal = tuple(NominalOutcome(m, {k: v for k, v in store.meta(ids[t]).items()
+                                       if k != "solve_time_s"}, ids[t])  # timing: not a result
+                    for m, t in plan.nominal.items())
     return TrackingSummary(config.as_dict(), methods, nominal, sweep, tuple(radius),
                            {m: ids[ts[0]] for m, ts in plan.main.items()})
