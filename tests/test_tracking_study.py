@@ -244,3 +244,43 @@ def test_same_bytes_in_process_with_two_workers_and_on_a_dask_cluster(tiny_run, 
         ref = (out / name).read_bytes()
         assert (tmp_path / "two" / name).read_bytes() == ref, name
         assert (tmp_path / "dask" / name).read_bytes() == ref, name
+
+
+def test_sigint_during_ecbf_tasks_then_rerun_equals_an_uninterrupted_run(tmp_path):
+    """Issue 9, class 1: a real SIGINT while ECBF tasks run in the study's own process (where
+    the QP solver may swallow the interrupt) stops the run within seconds; the rerun gives the
+    same bytes as an uninterrupted run, so no silently altered task was recorded."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    overrides = dict(methods=("ecbf",), n_rollouts=40, n_seeds=4, sweep=False, radii=(0.5,))
+    cfg = StudyConfig.for_profile("quick", **overrides)
+    run(cfg, tmp_path / "ref", workers=0, progress=False)
+    out = tmp_path / "run"
+    code = ("import sys; from pathlib import Path\n"
+            "from studies.tracking_comparison.config import StudyConfig\n"
+            "from studies.tracking_comparison.run import run\n"
+            "from workbench.study import StudyInterrupted\n"
+            f"cfg = StudyConfig.for_profile('quick', **{overrides!r})\n"
+            f"try:\n    run(cfg, Path({str(out)!r}), workers=0, progress=False)\n"
+            "except StudyInterrupted:\n    sys.exit(130)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE,
+                            cwd=Path(__file__).parents[1])
+    t_end = time.monotonic() + 60
+    while len(list((out / "tasks").glob("*.npz")) if (out / "tasks").exists() else []) < 2:
+        assert time.monotonic() < t_end and proc.poll() is None
+        time.sleep(0.01)
+    time.sleep(0.05)  # inside the next ECBF batch
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err.decode()
+    assert time.monotonic() - t0 < 3.0
+    done = len(list((out / "tasks").glob("*.npz")))
+    rerun = run(cfg, out, workers=0, progress=False)
+    assert rerun.run.loaded == done and rerun.run.computed == 5 - done
+    for name in ("rollouts.parquet", "summary.json"):
+        assert (out / name).read_bytes() == (tmp_path / "ref" / name).read_bytes(), name

@@ -6,7 +6,7 @@ import traceback
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from distributed import Client, as_completed
+from distributed import Client, wait
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from workbench.study.store import TaskRecord
@@ -39,13 +39,19 @@ def dask_records(study: Study, pending: list, scheduler: Any,
         for item in pending:
             task, ctx = item
             futures[client.submit(execute, study.run_task, task, ctx, pure=False)] = item
-        for fut in as_completed(futures):
-            item = futures[fut]
+        remaining = set(futures)
+        while remaining:  # short waits, so that an interrupt acts within a second
             try:
-                rec = fut.result()
-            except Exception:  # the worker died or the result could not be transferred
-                rec = TaskRecord(item[1].task_id, error=traceback.format_exc())
-            yield item, rec
+                finished, remaining = wait(remaining, timeout=0.5, return_when="FIRST_COMPLETED")
+            except TimeoutError:
+                continue
+            for fut in sorted(finished, key=lambda f: f.key):
+                item = futures[fut]
+                try:
+                    rec = fut.result()
+                except Exception:  # the worker died or the result could not be transferred
+                    rec = TaskRecord(item[1].task_id, error=traceback.format_exc())
+                yield item, rec
     finally:
         if futures:
             client.cancel(list(futures))

@@ -9,6 +9,7 @@ stop flag is set is discarded, whatever it returns (a task may swallow KeyboardI
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import os
 import signal
@@ -84,7 +85,13 @@ def limit_threads() -> None:
 
 # ---------------------------------------------------------------------- local worker processes
 def _worker_main(conn, run_task: Callable, init: Callable | None) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the coordinator decides when to stop
+    # Only the coordinator decides when to stop: SIGINT stays ignored and blocked (a solver's
+    # own handler cannot catch it), the worker leaves the terminal's process group, and SIGTERM
+    # (sent by the coordinator) ends it at once.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.setpgrp()
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
     limit_threads()
     init_error = None
     try:
@@ -194,9 +201,22 @@ def _in_process(study: Study, pending: list) -> Iterator[tuple[Any, TaskRecord]]
 
 
 # ---------------------------------------------------------------------- signals and the run
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 def _on_signal(signum, frame) -> None:
     _STOP.set()
     raise StudyInterrupted
+
+
+def _watch(done: threading.Event) -> None:
+    """Take SIGINT/SIGTERM off the process with sigtimedwait (they are blocked in every thread
+    the run starts), set the stop flag and interrupt the main thread once. A C library that
+    installs its own SIGINT handler (OSQP does, and then swallows the signal) never sees it."""
+    while not done.is_set():
+        if signal.sigtimedwait(STOP_SIGNALS, 0.1) is not None and not _STOP.is_set():
+            _STOP.set()
+            _thread.interrupt_main(signal.SIGINT)
 
 
 @contextlib.contextmanager
@@ -205,10 +225,17 @@ def _stop_on_signals():
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {s: signal.signal(s, _on_signal) for s in STOP_SIGNALS}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    done = threading.Event()
+    watcher = threading.Thread(target=_watch, args=(done,), name="study-signals", daemon=True)
+    watcher.start()
     try:
         yield
     finally:
+        done.set()
+        watcher.join()
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         for s, h in old.items():
             signal.signal(s, h)
 
