@@ -18,7 +18,16 @@ import numpy as np
 import pytest
 import study_toy  # tests/study_toy.py (importable by worker processes)
 
-from workbench.study import Claim, Rate, RunStore, Study, md_table, run_study, supported
+from workbench.study import (
+    Claim,
+    Rate,
+    RunStore,
+    Study,
+    TaskOutput,
+    md_table,
+    run_study,
+    supported,
+)
 from workbench.study.tasks import stream_key
 
 TESTS = Path(__file__).parent
@@ -196,6 +205,10 @@ def test_invalid_declarations_name_the_field(tmp_path):
         Study("s", study.tasks, study.run_task, -1)
     with pytest.raises(ValueError, match=r"^workers"):
         run_study(study, tmp_path, workers=-1)
+    with pytest.raises(ValueError, match=r"^tables\['t'\]\['c'\] .*object"):
+        TaskOutput(tables={"t": {"c": np.array([[1], "a"], dtype=object)}})
+    with pytest.raises(ValueError, match=r"^tables\['t'\] .*equal length"):
+        TaskOutput(tables={"t": {"a": np.zeros(2), "b": np.zeros(3)}})
     (tmp_path / "file").write_text("x")
     with pytest.raises(ValueError, match=r"^out .*file"):
         run_study(study, tmp_path / "file")

@@ -168,7 +168,8 @@ def _local(study: Study, pending: list, workers: int) -> Iterator[tuple[Any, Tas
             for w in pool:
                 if w.item is None and queue:
                     w.item = queue.popleft()
-                    w.conn.send(w.item)
+                    with contextlib.suppress(OSError):  # a dead worker is handled below
+                        w.conn.send(w.item)
             busy = [w for w in pool if w.item is not None]
             connection.wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], 0.5)
             for i, w in enumerate(pool):

@@ -118,8 +118,14 @@ class TaskOutput:
     def __post_init__(self) -> None:
         for name, cols in self.tables.items():
             lengths = {c: np.asarray(v).shape for c, v in cols.items()}
-            if any(len(s) != 1 for s in lengths.values()) or len({s for s in lengths.values()}) > 1:
+            if any(len(s) != 1 for s in lengths.values()) or len(set(lengths.values())) > 1:
                 raise fail(f"tables[{name!r}]", lengths, "columns must be 1-D of equal length")
+        named = [(f"tables[{t!r}][{c!r}]", v) for t, cols in self.tables.items()
+                 for c, v in cols.items()] + [(f"arrays[{a!r}]", v) for a, v in self.arrays.items()]
+        for name, v in named:
+            if np.asarray(v).dtype.kind not in "biufcUS":
+                raise fail(name, np.asarray(v).dtype, "must be numbers, booleans or strings "
+                           "(object arrays cannot be stored without pickle)")
 
 
 @dataclass(frozen=True)
@@ -163,11 +169,11 @@ class Study:
             dup = next(t for t, i in zip(self.tasks, ids, strict=True)
                        if i in seen or seen.add(i))
             raise fail("tasks", dup, "declared twice; each task must be unique")
-        try:
-            json.dumps(self.fingerprint, sort_keys=True)
-            json.dumps(self.config, sort_keys=True, default=str)
-        except (TypeError, ValueError) as exc:
-            raise fail("fingerprint", self.fingerprint, "must be JSON-serialisable") from exc
+        for name in ("fingerprint", "config"):
+            try:
+                json.dumps(getattr(self, name), sort_keys=True)
+            except (TypeError, ValueError) as exc:
+                raise fail(name, getattr(self, name), "must be JSON-serialisable") from exc
 
     def task_id(self, task: Any) -> str:
         """16 hex digits naming a task's result: study, version, seed, fingerprint, task."""
