@@ -4,7 +4,7 @@ main study and each sweep point."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache
 
 import numpy as np
@@ -51,9 +51,14 @@ class NominalLoop:
         return len(METHODS), METHODS.index(self.method)  # draws nothing
 
 
-@cache
 def nominal(method: str, variant: Variant, setup: Setup) -> Nominal:
-    """A method's nominal solution, solved once per process (a few ms)."""
+    """A method's nominal solution, solved once per process (a few ms); the noise level and
+    placement do not enter the plan."""
+    return _nominal(method, replace(variant, ecbf_noise="before", noise_std=0.0), setup)
+
+
+@cache
+def _nominal(method: str, variant: Variant, setup: Setup) -> Nominal:
     return solve_nominal(method, variant, setup)
 
 
