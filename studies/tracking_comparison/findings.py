@@ -99,14 +99,15 @@ def al_claims(s: TrackingSummary) -> list[Claim]:
                  f"min h = {h:.1e} m², |min h| < {TOUCH_TOLERANCE:g} m²); under noise "
                  f"{fmt_rate(al.unsafe)} of its rollouts are unsafe.", abs(h) < TOUCH_TOLERANCE)]
     paper = PAPER_BY_METHOD["al"].value
-    assumed = [p for p in PARAM_NAMES if p != "noise_std"]  # the noise level is the paper's
+    assumed = [p for p in RELEVANT["al"] if p != "noise_std"]  # the noise level is the paper's
     pts = [(p, v, o) for p in assumed for v, o in _sweep_rates(s, "al", p)]
     if pts:
         p, v, best = min(pts, key=lambda t: t[2].unsafe.value)
         out.append(Claim(
-            f"No swept value brings the AL unsafe rate down to the paper's ≈{100 * paper:.0f}%: "
-            f"its lowest point, {fmt_rate(best.unsafe)} at {PARAM_NAMES[p]} = {v}, has its 95% "
-            "interval above it, so the gap is not explained by the swept assumed values.",
+            "No swept assumed value brings the AL unsafe rate down to the paper's "
+            f"≈{100 * paper:.0f}%: its lowest point, {fmt_rate(best.unsafe)} at "
+            f"{PARAM_NAMES[p]} = {v}, has its 95% interval above it, so the gap is not "
+            "explained by the swept assumed values.",
             best.unsafe.low > paper))
     return out
 
