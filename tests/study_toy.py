@@ -6,6 +6,7 @@ Run as ``main([out, workers, n_tasks, sleep])`` from a subprocess (exit code 130
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -24,6 +25,14 @@ from workbench.study import (
     run_study,
     to_jsonable,
 )
+
+INITIALISED = False
+
+
+def init_toy() -> None:
+    """A worker initialiser: marks the process (a study would set sampler threads here)."""
+    global INITIALISED
+    INITIALISED = True
 
 
 @dataclass(frozen=True)
@@ -48,14 +57,18 @@ def run_toy(task: ToyTask, ctx: TaskContext, sleep: float = 0.0,
     x = ctx.rng().standard_normal(task.n)
     return TaskOutput(tables={"draws": {"i": np.arange(task.n), "x": x,
                                         "interrupted": np.full(task.n, interrupted)}},
-                      arrays={"path": np.cumsum(x)}, meta={"mean": float(x.mean())})
+                      arrays={"path": np.cumsum(x)},
+                      meta={"mean": float(x.mean()), "initialised": INITIALISED,
+                            "omp": os.environ.get("OMP_NUM_THREADS"), "threads": ctx.threads,
+                            "pid": os.getpid()})
 
 
 def toy_study(n_tasks: int = 8, sleep: float = 0.0, fail_seed: int | None = None,
-              cells: tuple[str, ...] = ("a", "b")) -> Study:
+              cells: tuple[str, ...] = ("a", "b"), init: bool = False) -> Study:
     tasks = [ToyTask(c, s) for s in range(n_tasks // len(cells)) for c in cells]
     return Study("toy", tuple(tasks), partial(run_toy, sleep=sleep, fail_seed=fail_seed),
-                 seed=7, config={"n_tasks": n_tasks}, fingerprint={"fail_seed": fail_seed})
+                 seed=7, config={"n_tasks": n_tasks}, fingerprint={"fail_seed": fail_seed},
+                 worker_init=init_toy if init else None)
 
 
 def summary_json(out: Path) -> str:

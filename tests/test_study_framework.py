@@ -107,6 +107,24 @@ def test_tidy_data_byte_identical_across_workers_and_a_dask_cluster(tmp_path, re
     assert manifest["versions"]["pyarrow"] and manifest["machine"]["cpu_count"] >= 1
 
 
+def test_workers_run_the_initialiser_with_one_thread(tmp_path):
+    from distributed import LocalCluster
+
+    study = study_toy.toy_study(4, init=True)
+    run_study(study, tmp_path / "local", workers=2, progress=False)
+    store = RunStore(tmp_path / "local")
+    metas = [store.meta(i) for i in study.task_ids()]
+    assert all(m["initialised"] and m["omp"] == "1" and m["threads"] == 1 for m in metas)
+    assert os.getpid() not in {m["pid"] for m in metas}
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                      host="127.0.0.1", dashboard_address=None) as cluster:
+        run_study(study, tmp_path / "dask", scheduler=cluster.scheduler_address,
+                  progress=False)
+    store = RunStore(tmp_path / "dask")
+    assert all(store.meta(i)["initialised"] and store.meta(i)["threads"] == 1
+               for i in study.task_ids())
+
+
 @pytest.mark.parametrize("workers", [0, 2])
 def test_a_task_that_raises_is_recorded_with_its_traceback_and_reported(tmp_path, capsys,
                                                                         workers):

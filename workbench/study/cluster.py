@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import traceback
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -18,11 +19,13 @@ class WorkerInit(WorkerPlugin):
 
     def __init__(self, init: Callable[[], None] | None):
         self.init = init
+        self.client_pid = os.getpid()
 
     def setup(self, worker) -> None:
         from workbench.study.execute import limit_threads
 
-        limit_threads()
+        if os.getpid() != self.client_pid:  # not the caller's own process (processes=False)
+            limit_threads()
         if self.init is not None:
             self.init()
 
