@@ -12,6 +12,7 @@ from functools import partial
 from pathlib import Path
 
 from studies.tracking_comparison.config import RESULT_VERSION, StudyConfig
+from studies.tracking_comparison.findings import all_claims
 from studies.tracking_comparison.methods import Setup
 from studies.tracking_comparison.paper import assumed_values
 from studies.tracking_comparison.report import write_report
@@ -60,7 +61,8 @@ def run(config: StudyConfig, out: Path, *, workers: int = 2, scheduler: str | No
     assumed = assumed_values(config, setup)
     # summary.json depends only on the results (byte-identical across runs); run.json does not
     atomic_write_json(Path(out) / "summary.json",
-                      {"study": decl.name, **to_jsonable(summary), "assumed": assumed})
+                      {"study": decl.name, **to_jsonable(summary), "assumed": assumed,
+                       "claims": to_jsonable(all_claims(summary))})  # printed iff holds
     atomic_write_json(Path(out) / "run.json",
                       {"tasks": {"total": result.n_tasks, "computed": result.computed,
                                  "loaded": result.loaded}, "wall_time_s": wall, "backend": where})
