@@ -2,9 +2,11 @@
 
 Only the coordinating process writes results, one finished task at a time (atomically), so an
 interrupted or killed run keeps every task it finished and nothing else; a rerun computes only
-the rest. SIGINT/SIGTERM set a stop flag and stop the run within about a second: local workers
-ignore SIGINT and are terminated, Dask futures are cancelled. A task that finishes after the
-stop flag is set is discarded, whatever it returns (a task may swallow KeyboardInterrupt).
+the rest. During a run SIGINT/SIGTERM are blocked and taken by a watcher thread, so a C library
+with its own SIGINT handler (OSQP) cannot swallow them; the watcher sets a stop flag and
+interrupts the main thread. Local workers never see SIGINT (own process group, blocked) and are
+terminated; Dask futures are cancelled. A task that finishes after the stop flag is set is
+discarded, whatever it returns (a task may swallow KeyboardInterrupt).
 """
 
 from __future__ import annotations
