@@ -13,7 +13,13 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from studies.tracking_comparison.findings import NAMES, PARAM_NAMES, all_claims, drivers
+from studies.tracking_comparison.findings import (
+    NAMES,
+    PARAM_NAMES,
+    Ranking,
+    all_claims,
+    drivers,
+)
 from studies.tracking_comparison.paper import PAPER_BY_METHOD
 from studies.tracking_comparison.summary import Outcome, TrackingSummary
 from workbench.io import atomic_write_bytes, atomic_write_text
@@ -225,11 +231,15 @@ def _radius_table(s: TrackingSummary) -> list[str]:
 
 def _sweep_table(s: TrackingSummary) -> list[str]:
     methods = [o.method for o in s.methods]
+    def order(p) -> str:
+        r = Ranking.of(p.outcomes, "failure")
+        return "-" if r is None else r.text() + (" (paper's)" if r.paper_order else "")
+
     rows = [[PARAM_NAMES.get(p.parameter, p.parameter), _fmt(p.value)] +
             [f"{100 * p.get(m).unsafe.value:.1f} / {100 * p.get(m).failure.value:.1f}"
-             for m in methods] for p in s.sweep]
-    return md_table(["parameter", "value"] + [f"{NAMES[m]} unsafe / failure %" for m in methods],
-                    rows)
+             for m in methods] + [order(p)] for p in s.sweep]
+    return md_table(["parameter", "value"] + [f"{NAMES[m]} unsafe / failure %" for m in methods]
+                    + ["order by failure"], rows)
 
 
 def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene: TrackingScene,
@@ -271,9 +281,9 @@ def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene:
         "![min h](min_h_hist.png)", "", "![final distance](final_distance_hist.png)", "",
         "## Trajectories (paper Figs. 1-3)", "",
         *[f"![{NAMES[m]}](trajectories_{m}.png)" for m in s.mc_paths], "",
-        "## Sensitivity sweep over assumed values", ""]
+        "## Sensitivity sweep over assumed values and the noise level", ""]
     if s.sweep:
-        lines += [f"{cfg['sweep_seeds']} seeds x {cfg['sweep_rollouts']} rollouts per method and "
+        lines += [f"{cfg['sweep_seeds']} seed(s) x {cfg['sweep_rollouts']} rollouts per method and "
                   "point, one value changed at a time (others at base), the same noise draws "
                   "at every point.", "", *_sweep_table(s), "",
                   "Range of each rate over each swept parameter (largest first):", "",
