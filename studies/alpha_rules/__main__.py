@@ -6,10 +6,9 @@ import argparse
 import time
 from pathlib import Path
 
-import pandas as pd
-
 from studies.alpha_rules.report import write_report
-from studies.alpha_rules.run import run
+from studies.alpha_rules.run import study
+from workbench.study import RunStore, run_study
 
 
 def main(argv=None) -> None:
@@ -18,15 +17,18 @@ def main(argv=None) -> None:
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--scheduler", default=None, help="Dask scheduler address")
     ap.add_argument("--variances", type=float, nargs="+", default=[10.0, 100.0])
     ap.add_argument("--out", type=Path, default=Path("reports/alpha_rules"))
     a = ap.parse_args(argv)
-    if a.episodes < 1 or a.steps < 1 or a.workers < 1:
-        ap.error("--episodes, --steps and --workers must be >= 1")
+    if a.episodes < 1 or a.steps < 1 or a.workers < 0 or min(a.variances) < 0:
+        ap.error("--episodes and --steps must be >= 1, --workers >= 0, variances >= 0")
     t0 = time.time()
-    rows = pd.DataFrame(run(a.episodes, a.seed, a.steps, a.workers, tuple(a.variances)))
-    config = {k: str(v) if isinstance(v, Path) else v for k, v in vars(a).items()}
-    write_report(rows.drop(columns=["path"]), a.out, config | {"wall_s": time.time() - t0})
+    decl = study(a.episodes, a.steps, a.seed, tuple(a.variances))
+    run_study(decl, a.out, workers=a.workers, scheduler=a.scheduler).raise_for_errors()
+    config = {"episodes": a.episodes, "steps": a.steps, "seed": a.seed,
+              "wall_s": time.time() - t0}
+    write_report(RunStore(a.out).table("episodes"), a.out, config)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ from pathlib import Path
 import pandas as pd
 
 from studies.alpha_rules.run import DEFAULT_RULE, RULES
-from workbench.io import atomic_write_json, atomic_write_text, manifest
+from workbench.io import atomic_write_json, atomic_write_text
 from workbench.stats import mcnemar_exact, paired_difference_interval, wilson_interval
 
 
@@ -16,7 +16,7 @@ def summarise(df: pd.DataFrame) -> pd.DataFrame:
     for (ctrl, rule, var), g in df.groupby(["controller", "rule", "variance"], sort=False):
         n, crashes = len(g), int(g.crashed.sum())
         lo, hi = wilson_interval(crashes, n)
-        steps = int(g.steps.sum())
+        steps = int(g.n_steps.sum())
         safe = g[~g.crashed]
         rows.append({
             "controller": ctrl, "rule": rule, "variance": var, "n": n,
@@ -28,7 +28,7 @@ def summarise(df: pd.DataFrame) -> pd.DataFrame:
                                                        s.split(",") if r})) or "-",
             "nominal_unsafe_fraction": g.nominal_unsafe.sum() / steps,
             "rmse_safe": float((safe.final_error ** 2).mean() ** 0.5) if len(safe) else None,
-            "steps": steps, "mean_step_ms": float(g.step_ms.mean()),
+            "n_steps": steps, "mean_step_ms": float(g.step_ms.mean()),
         })
     return pd.DataFrame(rows)
 
@@ -41,14 +41,14 @@ def write_report(df: pd.DataFrame, out: Path, config: dict) -> None:
     out = Path(out)
     s = summarise(df)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "episodes.csv", df.to_csv(index=False))
-    atomic_write_json(out / "summary.json", {"manifest": manifest(), "config": config,
+    atomic_write_json(out / "summary.json", {"config": config,
                                              "rules": {k: repr(v) for k, v in RULES.items()},
                                              "cells": s.to_dict(orient="records")})
     lines = ["# SA-RMPPI alpha rules: does the robust machinery act?", "",
              f"{config['episodes']} episodes per cell, {config['steps']} steps, seed "
-             f"{config['seed']}, common random numbers across controllers; wall "
-             f"{config['wall_s']:.0f} s. Default rule: `{DEFAULT_RULE}` = "
+             f"{config['seed']}, common random numbers across controllers; tidy data in "
+             f"`episodes.parquet`, manifest in `manifest.json`; wall {config['wall_s']:.0f} s. "
+             f"Default rule: `{DEFAULT_RULE}` = "
              f"{RULES[DEFAULT_RULE].label()}.", "",
              "| controller | rule | variance | n | crash rate [95% CI] | nominal ≠ real | "
              "alpha fallback | K_safe fallback (reasons) | nominal rollout unsafe | "

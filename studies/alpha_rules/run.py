@@ -1,13 +1,12 @@
-"""Episodes on the paper map for each (controller, alpha rule, variance), common random numbers.
+"""Episodes on the paper map per (controller, alpha rule, variance), on the study framework.
 
-Episode j at variance v uses the plant-noise stream SeedSequence((seed, round(v*1000), j)) and
-the controller stream SeedSequence((seed, j)) for every controller, so controllers are compared
-on the same disturbance realisations.
+Common random numbers: a task's streams are keyed by (variance, realisation) only, so
+realisation j at variance v sees the same plant disturbance and controller noise seeds for every
+controller and rule.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +14,7 @@ import numpy as np
 from workbench.navigation import navigation_setup
 from workbench.sampling.threshold import AlphaRule
 from workbench.sim import Disturbance, closed_loop
+from workbench.study import Study, TaskContext, TaskOutput
 
 RULES = {
     "progress_k0.1": AlphaRule(kappa=0.1),
@@ -27,53 +27,55 @@ DEFAULT_RULE = "progress_k0.1"
 
 
 @dataclass(frozen=True)
-class Cell:
+class Episode:
     controller: str
     rule: str  # key of RULES ("-" for BaS-MPPI)
     variance: float
+    episode: int
+    steps: int
+
+    def stream_key(self) -> tuple[int, ...]:
+        return (round(self.variance * 1000), self.episode)
 
 
-def cells(variances=(10.0, 100.0)) -> list[Cell]:
+def tasks(episodes: int, steps: int, variances) -> tuple[Episode, ...]:
     out = []
     for v in variances:
-        out += [Cell("sa_rmppi", r, v) for r in RULES]
-        out += [Cell("rmppi", DEFAULT_RULE, v), Cell("bas_mppi", "-", v)]
-    return out
+        cells = [("sa_rmppi", r) for r in RULES] + [("rmppi", DEFAULT_RULE), ("bas_mppi", "-")]
+        out += [Episode(c, r, float(v), j, steps) for c, r in cells for j in range(episodes)]
+    return tuple(out)
 
 
-_NAV = None
+_NAV = {}
 
 
-def _episode(args) -> dict:
-    cell, j, seed, steps = args
-    global _NAV
-    if _NAV is None:
-        _NAV = navigation_setup()
-    nav = _NAV
-    rule = RULES.get(cell.rule, AlphaRule())
-    ctrl = nav.controller(cell.controller, rule)
-    ctrl.sampler.lib.set_threads(1)
-    rng_c = np.random.default_rng(np.random.SeedSequence((seed, j)))
-    rng_w = np.random.default_rng(np.random.SeedSequence((seed, round(cell.variance * 1000), j)))
-    ep = closed_loop(ctrl, nav.plant, nav.x0, steps, rng_c, rng_w, Disturbance(cell.variance))
+def run_episode(task: Episode, ctx: TaskContext) -> TaskOutput:
+    if "nav" not in _NAV:
+        _NAV["nav"] = navigation_setup()
+    nav = _NAV["nav"]
+    ctrl = nav.controller(task.controller, RULES.get(task.rule, AlphaRule()))
+    if ctrl.sampler.lib is not None:
+        ctrl.sampler.lib.set_threads(ctx.threads)
+    ep = closed_loop(ctrl, nav.plant, nav.x0, task.steps, ctx.rng(0), ctx.rng(1),
+                     Disturbance(task.variance))
     inf = ep.infos
-    robust = cell.controller != "bas_mppi"
-    reasons = [i.ksafe_fallback for i in inf if robust and i.ksafe_fallback]
-    return {
-        "controller": cell.controller, "rule": cell.rule, "variance": cell.variance,
-        "episode": j, "crashed": bool(ep.crashed), "steps": len(inf),
-        "final_error": float(np.linalg.norm(ep.X[-1, :2] - nav.goal[:2])),
-        "nominal_differs": int(sum(i.nominal_differs for i in inf)) if robust else 0,
-        "alpha_fallback": int(sum(i.fallback_used for i in inf)) if robust else 0,
-        "ksafe_fallback": len(reasons),
-        "ksafe_reasons": ",".join(sorted(set(reasons))),
-        "nominal_unsafe": int(sum(i.nominal_unsafe for i in inf)) if robust else 0,
-        "step_ms": float(1e3 * np.mean(ep.step_time_s)),
-        "path": ep.X[:, :2],
-    }
+    robust = task.controller != "bas_mppi"
+
+    def count(attr):
+        return int(sum(bool(getattr(i, attr)) for i in inf)) if robust else 0
+
+    reasons = sorted({i.ksafe_fallback for i in inf if robust and i.ksafe_fallback})
+    row = {"crashed": ep.crashed, "n_steps": len(inf),
+           "final_error": float(np.linalg.norm(ep.X[-1, :2] - nav.goal[:2])),
+           "nominal_differs": count("nominal_differs"), "alpha_fallback": count("fallback_used"),
+           "ksafe_fallback": count("ksafe_fallback"), "ksafe_reasons": ",".join(reasons),
+           "nominal_unsafe": count("nominal_unsafe"),
+           "step_ms": float(1e3 * np.mean(ep.step_time_s))}
+    return TaskOutput(tables={"episodes": {k: np.array([v]) for k, v in row.items()}},
+                      arrays={"path": ep.X[:, :2]})
 
 
-def run(episodes: int, seed: int, steps: int, workers: int, variances) -> list[dict]:
-    jobs = [(c, j, seed, steps) for c in cells(variances) for j in range(episodes)]
-    with ProcessPoolExecutor(workers) as pool:
-        return list(pool.map(_episode, jobs, chunksize=1))
+def study(episodes: int, steps: int, seed: int, variances) -> Study:
+    return Study("alpha_rules", tasks(episodes, steps, variances), run_episode, seed=seed,
+                 config={"episodes": episodes, "steps": steps, "variances": list(variances)},
+                 fingerprint={"rules": {k: repr(v) for k, v in RULES.items()}})
