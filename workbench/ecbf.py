@@ -4,9 +4,13 @@ The discrete model is read as the continuous-time control-affine system
 ``f(x) + g(x) u = (F(x, u) - x) / dt`` (exact for Euler; validated affine in u). For every margin
 h_i the filter uses exact Lie derivatives from CasADi:
 
-* relative degree 1 (L_g h_i not identically 0):  L_g h u >= -gamma h            (SPEC 7.3)
-* relative degree 2 (L_g h_i = 0, L_g L_f h_i not): L_f^2 h + L_g L_f h u + k1 L_f h + k0 h >= 0
+* relative degree 1:  L_f h + L_g h u >= -gamma h                                   (SPEC 7.3)
+* relative degree 2:  L_f^2 h + (L_g L_f h + k1 L_g h) u + k1 L_f h + k0 h >= 0
   with s^2 + k1 s + k0 = (s + p1)(s + p2)                                           (SPEC 7.1)
+
+The relative degree of each margin is read from the discrete model (:func:`relative_degrees`):
+a zero-order-hold double integrator is degree 2 although u enters its first difference at
+O(dt^2).
 
 Each row reads ``a_i^T u >= b_i``. The QP ``min ||u - u_ref||^2`` subject to these rows and the
 control box is solved by OSQP, set up once with a fixed sparsity pattern; each step updates only
@@ -39,7 +43,8 @@ class ECBFOptions:
 
     poles: (p1, p2) > 0 for relative degree 2, so k1 = p1 + p2 and k0 = p1 p2 ([A] 5, 5).
     gamma: class-K gain for relative degree 1 ([A] 5).
-    relative_degree: "auto" (symbolic, per margin), or 1 / 2 for every margin (checked).
+    relative_degree: "auto" (per margin, from the discrete model: :func:`relative_degrees`),
+    or 1 / 2 for every margin (checked against the detected degree).
     mode: "soft" (slacks delta >= 0) or "hard" (fall back to clip(u_ref) when OSQP fails).
     slack_linear, slack_quadratic: soft-mode slack cost sum(slack_linear delta + slack_quadratic
     delta^2), on rows normalised to ||a_i|| = 1 (delta in control units). [A], not SPEC 7.2's
@@ -152,8 +157,55 @@ def _identically_zero(e: ca.SX) -> bool:
     return e.nnz() == 0 or e.is_zero()
 
 
+DEGREE_POINTS = 32  # random states of the relative-degree order test
+_ORDER_SPLIT = 1.5  # log2 sensitivity ratio: ~1 for relative degree 1, ~2 for degree 2
+
+
+def relative_degrees(model: Model) -> tuple[int, ...]:
+    """Relative degree (1 or 2) of every margin, read from the discrete model itself.
+
+    Margin i has degree 2 when its first difference h_i(F(x, u)) - h_i(x) does not depend on u
+    (Euler double integrator), and degree 1 when it does at first order in dt. A zero-order-hold
+    double integrator's first difference does depend on u, but only through the
+    1/2 dt^2 u position term: the effect of u on h after one step is O(dt^2), the signature of
+    degree 2 (a degree-1 margin responds at O(dt)). The order is measured on the model: with
+    the control held, F(F(x, u), u) is the model over 2 dt, so the sensitivity
+    d h(F(F(x,u),u))/du over d h(F(x,u))/du is about 2^r for a margin of degree r; the median
+    over seeded random states decides (log2 ratio above 1.5: degree 2).
+    """
+    x, u = model.x, model.u
+    h1 = ca.substitute(model.h, x, model.x_next)
+    x2 = ca.substitute(model.x_next, x, model.x_next)
+    h2 = ca.substitute(model.h, x, x2)
+    s1, s2 = ca.jacobian(h1, u), ca.jacobian(h2, u)
+    sens = ca.Function("sens", [x, u], [s1, s2])
+    rng = np.random.default_rng(20261123)
+    X = rng.normal(0.0, 2.0, (DEGREE_POINTS, model.nx))
+    u0 = np.clip(np.zeros(model.nu), model.u_min, model.u_max)
+    pairs = [tuple(np.asarray(v) for v in sens(xk, u0)) for xk in X]
+    degrees = []
+    for i in range(model.nh):
+        if _identically_zero(s1[i, :]):
+            degrees.append(2)
+            continue
+        ratios = []
+        for a, b in pairs:
+            na, nb = np.linalg.norm(a[i]), np.linalg.norm(b[i])
+            if np.isfinite(na) and np.isfinite(nb) and na > 0 and nb > 0:
+                ratios.append(np.log2(nb / na))
+        degrees.append(2 if ratios and np.median(ratios) > _ORDER_SPLIT else 1)
+    return tuple(degrees)
+
+
 def ecbf_rows(model: Model, options: ECBFOptions = ECBFOptions()) -> ECBFRows:
-    """Exact ECBF rows for every margin of ``model`` (relative degree 1 or 2)."""
+    """Exact ECBF rows for every margin of ``model`` (relative degree 1 or 2, detected by
+    :func:`relative_degrees`).
+
+    Degree 1: L_g h u >= -gamma h - L_f h (the CBF condition h_dot >= -gamma h).
+    Degree 2: (L_g L_f h + k1 L_g h) u >= -L_f^2 h - k1 L_f h - k0 h, the ECBF condition
+    h_ddot + k1 h_dot + k0 h >= 0 with h_dot = L_f h + L_g h u; L_g h is zero for an Euler
+    double integrator and the O(dt) discretisation term for a zero-order-hold one.
+    """
     if model.nh == 0:
         raise fail("model.h", model.name, "the ECBF filter needs at least one safety margin")
     x = model.x
@@ -163,31 +215,26 @@ def ecbf_rows(model: Model, options: ECBFOptions = ECBFOptions()) -> ECBFRows:
     lgh = ca.mtimes(ca.jacobian(h, x), g)
     lf2h = ca.mtimes(ca.jacobian(lfh, x), f)
     lglfh = ca.mtimes(ca.jacobian(lfh, x), g)
-    a_rows, b_rows, degrees = [], [], []
-    for i in range(model.nh):
-        deg1 = not _identically_zero(lgh[i, :])
-        if options.relative_degree == 2 and deg1:
-            raise fail("ECBFOptions.relative_degree", 2,
-                       f"margin {i} has L_g h != 0 (relative degree 1)")
-        if not deg1 and _identically_zero(lglfh[i, :]):
+    detected = relative_degrees(model)
+    a_rows, b_rows = [], []
+    for i, deg in enumerate(detected):
+        if deg == 2 and _identically_zero(lglfh[i, :]) and _identically_zero(lgh[i, :]):
             raise fail("model.h", i, "relative degree above 2 is not supported")
-        if options.relative_degree == 1 and not deg1:
-            raise fail("ECBFOptions.relative_degree", 1,
-                       f"margin {i} does not depend on u through L_g h (relative degree 2)")
-        if deg1:
-            degrees.append(1)
+        if options.relative_degree != "auto" and options.relative_degree != deg:
+            raise fail("ECBFOptions.relative_degree", options.relative_degree,
+                       f"margin {i} has relative degree {deg} in the discrete model")
+        if deg == 1:
             a_rows.append(lgh[i, :])
-            b_rows.append(-options.gamma * h[i])
+            b_rows.append(-options.gamma * h[i] - lfh[i])
         else:
-            degrees.append(2)
-            a_rows.append(lglfh[i, :])
+            a_rows.append(lglfh[i, :] + options.k1 * lgh[i, :])
             b_rows.append(-lf2h[i] - options.k1 * lfh[i] - options.k0 * h[i])
     d = ca.densify
     rows = ca.Function("ecbf_rows", [x], [d(ca.vertcat(*a_rows)), d(ca.vertcat(*b_rows))],
                        ["x"], ["a", "b"], {"cse": True})
     lie = ca.Function("ecbf_lie", [x], [d(h), d(lfh), d(lf2h), d(lgh), d(lglfh)],
                       ["x"], ["h", "Lfh", "Lf2h", "Lgh", "LgLfh"], {"cse": True})
-    return ECBFRows(rows=rows, lie=lie, relative_degrees=tuple(degrees))
+    return ECBFRows(rows=rows, lie=lie, relative_degrees=detected)
 
 
 class ECBFFilter:
