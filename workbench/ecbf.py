@@ -334,6 +334,11 @@ class ECBFFilter:
         self._solver.update(q=self._q, l=self._l, Ax=self._Ax)
         res = self._solver.solve(raise_error=False)
         status = res.info.status
+        if res.info.status_val == osqp.SolverStatus.OSQP_SIGINT or status == "interrupted":
+            # OSQP catches SIGINT inside its solve and returns "interrupted"; falling back would
+            # turn a Ctrl-C into a normal-looking step. Leave a fresh workspace and re-raise.
+            self._setup()
+            raise KeyboardInterrupt("ECBF filter: the QP solve was interrupted (SIGINT)")
         u = res.x[:nu]
         fallback = status not in _USABLE or u.shape != (nu,) or not np.isfinite(u).all()
         if fallback:
