@@ -89,3 +89,60 @@ def test_class1_interrupted_status_is_never_a_fallback(monkeypatch):
     filt._solver = Interrupted()
     with pytest.raises(KeyboardInterrupt):
         filt(X_ACTIVE, U_TOWARDS)
+
+
+# ---------------------------------------------------------------------------------------------
+# class 2: a NaN state must not poison the OSQP workspace
+
+
+@pytest.mark.parametrize("bad", [
+    [np.nan, 0.1, 3.0, 0.0], [-1.7, np.inf, 3.0, 0.0], [-1.7, 0.1, 3.0, -np.inf]])
+def test_class2_non_finite_state_is_rejected_before_the_solver(bad):
+    filt = _filter()
+    with pytest.raises(ValueError, match=r"^x = .* finite"):
+        filt(np.array(bad), U_TOWARDS)
+    res = filt(X_ACTIVE, U_TOWARDS)  # the next normal step is solved, not a fallback
+    assert res.status == "solved" and not res.fallback_used
+
+
+def test_class2_non_finite_batch_state_names_the_row():
+    X = np.array([X_ACTIVE, [np.nan, 0.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"(?s)^X = .*row 1"):
+        _filter().filter_batch(X, np.array([U_TOWARDS] * 2))
+
+
+@pytest.mark.parametrize("field", ["a", "b"])
+def test_class2_non_finite_rows_are_rejected(field):
+    filt = _filter()
+    a, b = filt.rows(X_ACTIVE)
+    (a if field == "a" else b)[0] = np.nan
+    with pytest.raises(ValueError, match=rf"(?s)^{field} = .*finite"):
+        filt.solve_rows(a, b, U_TOWARDS)
+    assert filt(X_ACTIVE, U_TOWARDS).status == "solved"
+
+
+def test_class2_broken_workspace_is_reset_and_the_step_solved(capfd):
+    """A workspace left broken (non-quasidefinite KKT after NaN data reached OSQP) is set up
+    afresh on the error status: the step is solved, and so are the later ones."""
+    filt = _filter()
+    expected = _filter()(X_ACTIVE, U_TOWARDS).u
+    filt._solver.update(Ax=np.full_like(filt._Ax, np.nan))
+    for _ in range(3):
+        res = filt(X_ACTIVE, U_TOWARDS)
+        assert res.status == "solved" and not res.fallback_used
+        np.testing.assert_allclose(res.u, expected, atol=1e-9)
+    capfd.readouterr()
+
+
+# class 7 (ECBF part): a state of the wrong length names the state, not numpy broadcasting
+
+
+@pytest.mark.parametrize("x", [[1.0, 2.0], [1.0, 2.0, 3.0, 4.0, 5.0], [[-1.7, 0.1, 3.0, 0.0]]])
+def test_class7_ecbf_state_of_wrong_shape_names_x(x):
+    with pytest.raises(ValueError, match=r"^x = .*shape \(4,\)"):
+        _filter()(x, U_TOWARDS)
+
+
+def test_class7_ecbf_batch_of_wrong_width_names_X():
+    with pytest.raises(ValueError, match=r"(?s)^X = .*shape \(N, 4\)"):
+        _filter().filter_batch(np.zeros((3, 2)), np.zeros((3, 2)))

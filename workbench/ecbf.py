@@ -35,6 +35,7 @@ from workbench.validation import fail, one_of, positive
 Mode = Literal["soft", "hard"]
 RelativeDegree = Literal["auto", 1, 2]
 _USABLE = ("solved", "solved inaccurate")
+_ANSWERS = ("primal infeasible", "primal infeasible inaccurate")  # a valid verdict, not an error
 
 
 @dataclass(frozen=True)
@@ -299,9 +300,22 @@ class ECBFFilter:
         """Filter u_ref at state x."""
         return self.solve_rows(*self.rows(x), u_ref)
 
+    def _state(self, x) -> np.ndarray:
+        """x as (nx,) finite floats, or ValueError naming x (before anything reaches OSQP)."""
+        nx = self._x.size
+        try:
+            xa = np.asarray(x, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise fail("x", x, f"the state must be {nx} finite numbers") from exc
+        if xa.shape != (nx,):
+            raise fail("x", x, f"the state must have shape ({nx},), got {xa.shape}")
+        if not np.isfinite(xa).all():
+            raise fail("x", x, f"the state must be {nx} finite numbers (NaN/inf given)")
+        return xa
+
     def rows(self, x) -> tuple[np.ndarray, np.ndarray]:
         """ECBF rows a (nh, nu), b (nh,) at x (same values as ``self.ecbf(x)``)."""
-        self._x[:] = x
+        self._x[:] = self._state(x)
         self._eval()
         return self._a_t.T.copy(), self._b.copy()
 
@@ -310,6 +324,11 @@ class ECBFFilter:
         u_ref = np.asarray(u_ref, dtype=float).ravel()
         if u_ref.shape != (self.nu,) or not np.isfinite(u_ref).all():
             raise fail("u_ref", u_ref, f"expected {self.nu} finite entries")
+        a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float).ravel()
+        if a.shape != (self.nh, self.nu) or not np.isfinite(a).all():
+            raise fail("a", a, f"ECBF rows must be ({self.nh}, {self.nu}) finite numbers")
+        if b.shape != (self.nh,) or not np.isfinite(b).all():
+            raise fail("b", b, f"ECBF bounds must be {self.nh} finite numbers")
         u_box = np.minimum(np.maximum(u_ref, self.u_min), self.u_max)
         norms = np.maximum(np.sqrt((a * a).sum(axis=1)), 1e-12)
         violation = (b - a @ u_box) / norms
@@ -326,11 +345,31 @@ class ECBFFilter:
                             fallback)
 
     def _qp(self, an: np.ndarray, bn: np.ndarray, u_ref: np.ndarray) -> tuple:
-        """OSQP on normalised rows: (u in the box, status, fallback used)."""
+        """OSQP on normalised rows: (u in the box, status, fallback used).
+
+        A status other than solved or (hard mode) primal infeasible is a solver error that may
+        leave the workspace unusable (e.g. a non-quasidefinite KKT matrix after bad data, a
+        diverged warm start): the workspace is set up afresh and the QP solved once more, so
+        no step can poison the steps after it. An interrupt raises KeyboardInterrupt.
+        """
         nu = self.nu
         self._q[:nu] = -2.0 * u_ref
         self._l[: self.nh] = bn
         self._Ax[self._a_pos] = an
+        q, lo, Ax = self._q.copy(), self._l.copy(), self._Ax.copy()
+        u, status = self._solve_once()
+        if status not in _USABLE and status not in _ANSWERS:
+            self._setup()
+            self._q[:], self._l[:], self._Ax[:] = q, lo, Ax
+            u, status = self._solve_once()
+            if status not in _USABLE and status not in _ANSWERS:
+                self._setup()  # leave a clean workspace for the next step
+        fallback = status not in _USABLE or u.shape != (nu,) or not np.isfinite(u).all()
+        if fallback:
+            u, status = u_ref, f"fallback: {status}"
+        return np.minimum(np.maximum(u, self.u_min), self.u_max), status, fallback
+
+    def _solve_once(self) -> tuple[np.ndarray, str]:
         self._solver.update(q=self._q, l=self._l, Ax=self._Ax)
         res = self._solver.solve(raise_error=False)
         status = res.info.status
@@ -339,16 +378,21 @@ class ECBFFilter:
             # turn a Ctrl-C into a normal-looking step. Leave a fresh workspace and re-raise.
             self._setup()
             raise KeyboardInterrupt("ECBF filter: the QP solve was interrupted (SIGINT)")
-        u = res.x[:nu]
-        fallback = status not in _USABLE or u.shape != (nu,) or not np.isfinite(u).all()
-        if fallback:
-            u, status = u_ref, f"fallback: {status}"
-        return np.minimum(np.maximum(u, self.u_min), self.u_max), status, fallback
+        u = np.asarray(res.x, dtype=float)[: self.nu]
+        if u.shape == (self.nu,) and not np.isfinite(u).all() and status in _USABLE:
+            status = "solved with non-finite x"
+        return u, status
 
     def filter_batch(self, X, U_ref) -> BatchFilterResult:
         """Filter N (state, reference) pairs; identical to calling the filter on each in order
         (same shortcut, same OSQP calls in the same order), with less per-step overhead."""
         X, U_ref = np.asarray(X, dtype=float), np.asarray(U_ref, dtype=float)
+        nx = self._x.size
+        if X.ndim != 2 or X.shape[1] != nx:
+            raise fail("X", X, f"states must have shape (N, {nx}), got {X.shape}")
+        if not np.isfinite(X).all():
+            bad = int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0])
+            raise fail("X", X, f"states must be finite (row {bad} is not)")
         if U_ref.shape != (X.shape[0], self.nu) or not np.all(np.isfinite(U_ref)):
             raise fail("U_ref", U_ref, f"expected ({X.shape[0]}, {self.nu}) finite entries")
         a, b = self.ecbf.batch(X)
