@@ -146,3 +146,47 @@ def test_class7_ecbf_state_of_wrong_shape_names_x(x):
 def test_class7_ecbf_batch_of_wrong_width_names_X():
     with pytest.raises(ValueError, match=r"(?s)^X = .*shape \(N, 4\)"):
         _filter().filter_batch(np.zeros((3, 2)), np.zeros((3, 2)))
+
+
+# ---------------------------------------------------------------------------------------------
+# class 6: environment overrides that break or weaken the build
+
+
+def _tiny_function():
+    import casadi as ca
+
+    x = ca.SX.sym("x", 2)
+    return ca.Function("wbrel_tiny", [x], [ca.vertcat(x[0] * x[1], ca.exp(x[0]))], ["x"], ["y"])
+
+
+def test_class6_extra_cflags_are_appended_to_the_required_ones(monkeypatch, tmp_path):
+    from workbench.codegen import build_library, find_toolchain
+    from workbench.codegen.toolchain import DEFAULT_FLAGS
+
+    monkeypatch.setenv("WORKBENCH_CFLAGS", "-O2")
+    tc = find_toolchain()
+    assert tc.flags == (*DEFAULT_FLAGS, "-O2")
+    assert {"-shared", "-fPIC"} <= set(tc.flags)
+    lib = build_library("wbrel_cflags", [_tiny_function()], root=tmp_path)
+    np.testing.assert_allclose(np.asarray(lib.functions["wbrel_tiny"]([0.5, 2.0])).ravel(),
+                               [1.0, np.exp(0.5)])
+
+
+@pytest.mark.parametrize("flag", ["-ffast-math", "-Ofast", "-funsafe-math-optimizations",
+                                  "-ffinite-math-only", "-ffp-contract=fast", "-fno-honor-nans"])
+def test_class6_flags_changing_floating_point_semantics_are_refused(monkeypatch, flag):
+    from workbench.codegen import find_toolchain
+
+    monkeypatch.setenv("WORKBENCH_CFLAGS", f"-O2 {flag}")
+    with pytest.raises(ValueError, match=rf"^WORKBENCH_CFLAGS = .*{flag} changes floating-point"):
+        find_toolchain()
+
+
+def test_class6_missing_workbench_cc_is_named_with_the_compiler_used(monkeypatch):
+    from workbench.codegen import find_toolchain
+
+    monkeypatch.delenv("WORKBENCH_CFLAGS", raising=False)
+    monkeypatch.setenv("WORKBENCH_CC", "/nonexistent/wbrel-cc")
+    with pytest.warns(RuntimeWarning, match=r"WORKBENCH_CC = '/nonexistent/wbrel-cc'.*using /"):
+        tc = find_toolchain()
+    assert tc is not None and tc.cc != "/nonexistent/wbrel-cc"
