@@ -190,3 +190,145 @@ def test_class6_missing_workbench_cc_is_named_with_the_compiler_used(monkeypatch
     with pytest.warns(RuntimeWarning, match=r"WORKBENCH_CC = '/nonexistent/wbrel-cc'.*using /"):
         tc = find_toolchain()
     assert tc is not None and tc.cc != "/nonexistent/wbrel-cc"
+
+
+# ---------------------------------------------------------------------------------------------
+# class 4: operations the C back ends cannot compile: a clear error or a correct fallback
+
+_ERFINV_BUILD = """
+import sys, pathlib
+import casadi as ca
+from workbench.codegen import cache as cg
+x = ca.SX.sym("x", 2)
+f = ca.Function("wbrel_erfinv", [x], [ca.erfinv(0.5 * ca.tanh(x[0])) + x[1]])
+root = pathlib.Path(sys.argv[1])
+if sys.argv[2] == "stale":  # a library published by a build without the link check
+    import subprocess
+    saved = {n: getattr(cg, n) for n in ("_run_compiler", "_verify", "_load_now")
+             if hasattr(cg, n)}
+    cg._run_compiler = lambda tc, src, out, extra: subprocess.run(
+        [tc.cc, *tc.flags, *extra, str(src), "-o", str(out), "-lm"], check=True,
+        capture_output=True)
+    cg._verify = lambda lib, fns: {}
+    cg._load_now = lambda lib: (None, lib)
+    try:
+        cg.build_library("wbrel_erfinv", [f], root=root)
+    except Exception:
+        pass
+    for n, v in saved.items():
+        setattr(cg, n, v)
+    print("SO", sorted(p.name for p in root.rglob("*.so")))
+try:
+    lib = cg.build_library("wbrel_erfinv", [f], root=root)
+    print("LOADED", lib.functions["wbrel_erfinv"]([0.1, 0.2]))
+except cg.CompileError as exc:
+    print("COMPILE_ERROR", str(exc).splitlines()[0])
+print("CACHED", sorted(p.name for p in root.rglob("*.so")))
+"""
+
+
+@pytest.mark.parametrize("cache", ["empty", "stale"])
+def test_class4_unlinkable_operation_is_a_clear_error_and_nothing_is_cached(tmp_path, cache):
+    """erfinv compiles (implicit declaration) but libm has no erfinv: before the fix the
+    library was published and the process died with 'undefined symbol' on first call (run in a
+    subprocess so that the old behaviour cannot take the test run down)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", _ERFINV_BUILD, str(tmp_path), cache],
+                          capture_output=True, text=True, timeout=300,
+                          cwd=os.path.dirname(os.path.dirname(__file__)))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.splitlines()
+    if cache == "stale":
+        assert lines[0] == "SO ['libwbrel_erfinv.so']"  # the broken library was in the cache
+    error = [ln for ln in lines if ln.startswith("COMPILE_ERROR")]
+    assert error and "erfinv" in error[0] and "nothing was cached" in error[0]
+    assert lines[-1] == "CACHED []"
+
+
+def _tiny_spec(expr_of):
+    """A one-state kernel whose step applies ``expr_of(x)`` (SX) to the carry."""
+    import casadi as ca
+
+    from workbench.sampling.emit import KernelSpec
+
+    c, z, w, s = (ca.SX.sym(n, 1) for n in ("carry", "z", "w", "s"))
+    step = ca.Function("wbrel_k_step", [c, z, w, s],
+                       [ca.vertcat(expr_of(0.3 * c + 0.1 * z + w)), s * c],
+                       ["carry", "z", "w", "s"], ["carry_next", "y"])
+    final = ca.Function("wbrel_k_final", [c, s], [c * s], ["carry", "s"], ["result"])
+    return KernelSpec("wbrel_k", step, final,
+                      {"carry": "carry", "z": "noise", "w": "time", "s": "const"})
+
+
+_LIBM_OPS = {
+    "asin": lambda v: __import__("casadi").asin(v), "acos": lambda v: __import__("casadi").acos(v),
+    "sinh": lambda v: __import__("casadi").sinh(v), "cosh": lambda v: __import__("casadi").cosh(v),
+    "erf": lambda v: __import__("casadi").erf(v), "asinh": lambda v: __import__("casadi").asinh(v),
+    "acosh": lambda v: __import__("casadi").acosh(1.5 + v * v),
+    "atanh": lambda v: __import__("casadi").atanh(0.5 * v),
+    "remainder": lambda v: __import__("casadi").remainder(3.0 * v, 0.7),
+}
+
+
+@pytest.mark.parametrize("op", sorted(_LIBM_OPS))
+def test_class4_emitter_writes_libm_operations_equal_to_casadi(op, tmp_path):
+    from workbench.codegen import build_library
+    from workbench.sampling.emit import emit_kernel, rng_source
+    from workbench.sampling.kernels import CompiledKernel
+    from workbench.sampling.verify import verify_kernel
+
+    spec = _tiny_spec(_LIBM_OPS[op])
+    lib = build_library("wbrel_ops", [], rng_source() + emit_kernel(spec), root=tmp_path,
+                        extra_flags=("-fopenmp",))
+    verify_kernel(CompiledKernel(spec, lib.cdll))  # raises on any difference
+
+
+def test_class4_unsupported_operation_is_named_with_the_supported_list():
+    import casadi as ca
+
+    from workbench.sampling.emit import EmitError, emit_kernel
+
+    with pytest.raises(EmitError, match=r"operation erfinv, which .* supported: acos, acosh"):
+        emit_kernel(_tiny_spec(lambda v: ca.erfinv(0.5 * ca.tanh(v))))
+
+
+def _erfinv_sampling_problem():
+    import casadi as ca
+
+    from workbench.models import Model
+    from workbench.sampling.problem import SamplingProblem
+
+    x, u, g = ca.SX.sym("x", 2), ca.SX.sym("u", 2), ca.SX.sym("g", 2)
+    x_next = x + 0.05 * (u + 0.1 * ca.erfinv(0.5 * ca.tanh(x)))
+    model = Model.from_expressions("wbrel_erfinv_plane", x, u, x_next, dt=0.05,
+                                   u_min=[-2, -2], u_max=[2, 2], h=ca.vertcat(4.0 - x[0]))
+    e = x - g
+    return SamplingProblem(model, ca.dot(e, e), 10 * ca.dot(e, e), g)
+
+
+def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
+    import warnings
+
+    from workbench.sampling import kernels
+    from workbench.sampling.constants import SamplerConstants
+    from workbench.sampling.reference import mppi_reference
+    from workbench.sampling.sampler import Sampler
+
+    monkeypatch.setattr(kernels, "_LIBS", {})
+    sp = _erfinv_sampling_problem()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        first, second = Sampler(sp), Sampler(sp)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert len(msgs) == 1 and "erfinv" in msgs[0] and "NumPy/CasADi" in msgs[0]
+    assert first.backend == second.backend == "numpy"
+    c = SamplerConstants(sigma=np.ones(2), lam=1.0, nu_mix=0.0, u_min=-2 * np.ones(2),
+                         u_max=2 * np.ones(2), crash_cost=1e3, p=np.array([1.0, 1.0]))
+    U = np.full((4, 2), 0.5)
+    out = first.mppi(np.zeros(2), U, 6, c, seed=3)
+    ref = mppi_reference(sp, np.zeros((6, 2)), U,
+                         np.random.default_rng(3).standard_normal((6, 4, 2)), c)
+    np.testing.assert_allclose(out.S, ref["S"], rtol=1e-12)
+    assert np.all(np.isfinite(out.S))

@@ -14,7 +14,9 @@ import hashlib
 import json
 import os
 import platform
+import re
 import subprocess
+import sys
 import tempfile
 import warnings
 from dataclasses import dataclass, field
@@ -80,14 +82,40 @@ def _atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+# Link so that every symbol must resolve now (libm linked): a library calling a function no
+# linked library provides (CasADi emits erfinv(...) for OP_ERFINV, which libm lacks) fails at
+# build time with the symbol's name, instead of killing the interpreter when it is first called.
+LINK_CHECK_FLAGS = ("-Wl,--no-undefined",) if sys.platform.startswith("linux") else ()
+_UNDEFINED = re.compile(r"undefined (?:reference|symbol)[^`'\"]*[`'\"]([A-Za-z_][A-Za-z0-9_]*)")
+
+
+def _undefined_message(output: str) -> str | None:
+    names = sorted(set(_UNDEFINED.findall(output)))
+    if not names:
+        return None
+    return (f"the generated code calls {', '.join(names)}, which no linked library provides: "
+            f"the CasADi operation{'s' if len(names) > 1 else ''} {', '.join(names)} cannot be "
+            "compiled by the C back end (rewrite the model without it, or set "
+            "WORKBENCH_NO_CODEGEN=1 to evaluate with the CasADi virtual machine); nothing was "
+            "cached")
+
+
 def _run_compiler(tc: Toolchain, src: Path, out: Path, extra_flags: tuple[str, ...]) -> None:
-    cmd = [tc.cc, *tc.flags, *extra_flags, str(src), "-o", str(out), "-lm"]
+    cmd = [tc.cc, *tc.flags, *extra_flags, str(src), "-o", str(out), *LINK_CHECK_FLAGS, "-lm"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
-        raise CompileError(
-            f"C compiler failed (exit {proc.returncode}): {' '.join(cmd)}\n"
-            f"{proc.stderr.strip() or proc.stdout.strip()}"
-        )
+        output = proc.stderr.strip() or proc.stdout.strip()
+        undefined = _undefined_message(output)
+        if undefined:
+            raise CompileError(f"{undefined}\ncompiler command: {' '.join(cmd)}\n{output}")
+        raise CompileError(f"C compiler failed (exit {proc.returncode}): {' '.join(cmd)}\n{output}")
+
+
+def _load_now(lib: Path) -> tuple[ctypes.CDLL, Path]:
+    """dlopen with every symbol resolved now (ctypes uses RTLD_NOW): a library with undefined
+    symbols raises OSError here instead of aborting the process on its first call (CasADi's
+    external() binds lazily). Returns the handle and the path it was loaded from."""
+    return ctypes.CDLL(str(lib)), lib
 
 
 def _verify(lib_path: Path, functions: list[ca.Function]) -> dict[str, ca.Function]:
@@ -122,7 +150,9 @@ def build_library(
     """Build (or fetch from the cache) the shared library of ``functions`` + ``extra_source``.
 
     Returns None, with a one-line warning, when no compiler is available: callers then use the
-    CasADi virtual machine. Raises :class:`CompileError` with the compiler's message on failure.
+    CasADi virtual machine. Raises :class:`CompileError` with the compiler's message on failure
+    (naming the operation when the code calls a function no library provides; nothing is then
+    cached).
     """
     tc = toolchain or find_toolchain()
     if tc is None:
@@ -138,16 +168,37 @@ def build_library(
     lib, manifest = folder / f"lib{stem}.so", folder / "manifest.json"
     hit = _published(lib, manifest)
     if not hit:
+        _unpublish(lib, manifest)
         _compile_and_publish(tc, source, folder, stem, extra_flags)
     try:
-        loaded = _verify(lib, functions)
-    except RuntimeError:
+        cdll, loaded = _load_and_verify(lib, functions)
+    except (RuntimeError, OSError) as exc:
         if not hit:
+            _unpublish(lib, manifest)
+            if isinstance(exc, OSError):
+                raise CompileError(_undefined_message(str(exc)) or
+                                   f"the freshly built {lib} cannot be loaded: {exc}") from exc
             raise
-        _compile_and_publish(tc, source, folder, stem, extra_flags)  # stale or corrupted cache
+        # stale or corrupted cache (e.g. a library with undefined symbols from an older build)
+        _unpublish(lib, manifest)
+        _compile_and_publish(tc, source, folder, stem, extra_flags)
         hit = False
-        loaded = _verify(lib, functions)
-    return Library(lib, key, ctypes.CDLL(str(lib)), loaded, hit)
+        cdll, loaded = _load_and_verify(lib, functions)
+    return Library(lib, key, cdll, loaded, hit)
+
+
+def _load_and_verify(lib: Path, functions: list[ca.Function]):
+    cdll, path = _load_now(lib)
+    return cdll, _verify(path, functions)
+
+
+def _unpublish(lib: Path, manifest: Path) -> None:
+    """Remove a library that failed its checks, so no later run loads it."""
+    for p in (manifest, lib):
+        try:
+            p.unlink()
+        except FileNotFoundError:
+            pass
 
 
 def _published(lib: Path, manifest: Path) -> bool:

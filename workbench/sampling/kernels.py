@@ -11,14 +11,15 @@ Carries and results are listed in :data:`MPPI_RESULTS` and :data:`SAIS_RESULTS`.
 from __future__ import annotations
 
 import ctypes
+import warnings
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from workbench.barrier import min_margin
-from workbench.codegen import build_library
-from workbench.sampling.emit import LANES, KernelSpec, emit_kernel, rng_source
+from workbench.codegen import CompileError, build_library
+from workbench.sampling.emit import LANES, EmitError, KernelSpec, emit_kernel, rng_source
 from workbench.sampling.problem import SamplingProblem
 
 MPPI_RESULTS = ("S", "crashed")
@@ -248,24 +249,45 @@ class SamplerLibrary:
 
 
 _LIBS: dict[str, SamplerLibrary | None] = {}
+_FALLBACK_WARNED: set[str] = set()
+
+
+def _load(specs, source: str, stem: str) -> SamplerLibrary | None:
+    lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS)
+    if lib is None:
+        return None
+    c = lib.cdll
+    c.wb_normals.restype = None
+    c.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
+    c.wb_set_threads.argtypes = [ctypes.c_int]
+    c.wb_get_threads.restype = ctypes.c_int
+    kernels = [CompiledKernel(s, c) for s in specs]
+    return SamplerLibrary(*kernels, cdll=c)
+
+
+def library_sources(sp: SamplingProblem) -> tuple[str, list[KernelSpec], str]:
+    """(cache stem, kernel specs, C source) of a sampling problem's library."""
+    specs = [mppi_spec(sp), sais_spec(sp), candidate_spec(sp)]
+    source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
+    return f"sampler_{sp.model.name.replace('+', '_')}", specs, source
 
 
 def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
-    """Build (or load from the cache) the kernels of a sampling problem; None without compiler."""
+    """Build (or load from the cache) the kernels of a sampling problem; None without
+    a compiler, or, with one warning, when the model uses an operation the emitter or the C
+    back end cannot compile (the sampler then uses the NumPy/CasADi twin: correct, slower)."""
     key = sp.fingerprint()
     if key not in _LIBS:
-        specs = [mppi_spec(sp), sais_spec(sp), candidate_spec(sp)]
-        source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
-        lib = build_library(f"sampler_{sp.model.name.replace('+', '_')}", [], source,
-                            extra_flags=KERNEL_FLAGS)
-        if lib is None:
+        try:
+            stem, specs, source = library_sources(sp)
+            _LIBS[key] = _load(specs, source, stem)
+        except (EmitError, CompileError) as exc:
+            if isinstance(exc, CompileError) and "no linked library provides" not in str(exc):
+                raise
+            if key not in _FALLBACK_WARNED:
+                _FALLBACK_WARNED.add(key)
+                warnings.warn(f"workbench: no compiled sampler kernels for {sp.model.name}: "
+                              f"{str(exc).splitlines()[0]}; using the NumPy/CasADi evaluation "
+                              "(correct, slower)", RuntimeWarning, stacklevel=2)
             _LIBS[key] = None
-        else:
-            c = lib.cdll
-            c.wb_normals.restype = None
-            c.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
-            c.wb_set_threads.argtypes = [ctypes.c_int]
-            c.wb_get_threads.restype = ctypes.c_int
-            kernels = [CompiledKernel(s, c) for s in specs]
-            _LIBS[key] = SamplerLibrary(*kernels, cdll=c)
     return _LIBS[key]
