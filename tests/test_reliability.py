@@ -332,3 +332,113 @@ def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
                          np.random.default_rng(3).standard_normal((6, 4, 2)), c)
     np.testing.assert_allclose(out.S, ref["S"], rtol=1e-12)
     assert np.all(np.isfinite(out.S))
+
+
+# ---------------------------------------------------------------------------------------------
+# class 5: every loaded library is checked against CasADi's evaluation before first use
+
+
+def _small_navigation(center):
+    from workbench.barrier import embed_barrier
+    from workbench.obstacles import Circle
+    from workbench.sampling.problem import navigation_costs
+
+    return navigation_costs(embed_barrier(double_integrator(
+        obstacles=(Circle(center, 0.5),), u_limit=5.0)))
+
+
+def _swap(victim, donor) -> None:
+    """Put donor's library bytes in victim's place and update victim's manifest hash."""
+    import hashlib
+    import json
+
+    data = donor.path.read_bytes()
+    tmp = victim.path.with_suffix(".swap")
+    tmp.write_bytes(data)
+    os.replace(tmp, victim.path)  # never rewrite a mapped library in place
+    manifest = victim.path.parent / "manifest.json"
+    meta = json.loads(manifest.read_text())
+    meta["sha256"] = hashlib.sha256(data).hexdigest()
+    manifest.write_text(json.dumps(meta))
+
+
+def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkeypatch):
+    """Issue 9 acceptance: a sampler library swapped with another problem's (hash updated in
+    the manifest) is detected and rebuilt; the rebuilt kernels equal the twin."""
+    import shutil
+
+    from workbench.codegen import build_library
+    from workbench.sampling import kernels
+    from workbench.sampling.constants import SamplerConstants
+    from workbench.sampling.reference import mppi_reference
+
+    sp_a, sp_b = _small_navigation((2.0, 2.0)), _small_navigation((1.0, 3.0))
+    built, cache = {}, tmp_path / "cache"
+    for name, sp in (("a", sp_a), ("b", sp_b)):
+        stem, _, source = kernels.library_sources(sp)
+        lib = build_library(stem, [], source, extra_flags=kernels.KERNEL_FLAGS,
+                            root=tmp_path / "build")
+        # the cache under test holds copies this process has never loaded (as a cache left
+        # by an earlier run would)
+        shutil.copytree(lib.path.parent, cache / lib.path.parent.name)
+        built[name] = type(lib)(cache / lib.path.parent.name / lib.path.name, lib.key,
+                                lib.cdll, {}, True)
+    assert built["a"].path != built["b"].path and built["a"].path.name == built["b"].path.name
+    _swap(built["a"], built["b"])
+    monkeypatch.setenv("WORKBENCH_CACHE_DIR", str(cache))
+    monkeypatch.setattr(kernels, "_LIBS", {})
+    with pytest.warns(RuntimeWarning, match=r"wb_mppi: .*differs.*rebuilding"):
+        lib = kernels.sampler_library(sp_a)
+    assert built["a"].path.read_bytes() != built["b"].path.read_bytes()
+    m = sp_a.model
+    c = SamplerConstants(sigma=np.array([2.0, 2.0]), lam=1.0, nu_mix=0.0, u_min=m.u_min,
+                         u_max=m.u_max, crash_cost=1e6, p=m.lift([3.0, 3.0, 0.0, 0.0]))
+    x0 = m.lift([0.5, 0.5, 1.0, 1.0])
+    U = np.full((6, 2), 0.5)
+    out = lib.mppi(np.tile(np.r_[x0, 0, 0], (9, 1)), consts=c.kernel_consts(),
+                   time_in={"u": U}, seed=5, keep_noise=True)
+    ref = mppi_reference(sp_a, np.tile(x0, (9, 1)), U, np.transpose(out.noise, (2, 0, 1)), c)
+    np.testing.assert_allclose(out.result[:, 0], ref["S"], rtol=1e-9)
+
+
+def test_class5_kernel_check_rejects_another_problems_kernel():
+    from workbench.sampling import kernels
+    from workbench.sampling.verify import KernelMismatch, verify_kernel
+
+    lib_b = kernels.sampler_library(_small_navigation((1.0, 3.0)))
+    spec_a = kernels.mppi_spec(_small_navigation((2.0, 2.0)))
+    verify_kernel(lib_b.mppi)  # its own spec: fine
+    with pytest.raises(KernelMismatch, match="wb_mppi"):
+        verify_kernel(kernels.CompiledKernel(spec_a, lib_b.cdll))
+
+
+def test_class5_swapped_ilqg_library_is_detected_and_rebuilt(tmp_path):
+    """The iLQG library's Functions are compared with CasADi on load; a swapped library must
+    be rebuilt and the rebuilt one actually loaded (the dynamic loader would hand back the
+    swapped one already open at that path)."""
+    import casadi as ca
+
+    from workbench.codegen import build_library
+
+    x = ca.SX.sym("x", 2)
+
+    def fns(k):
+        return [ca.Function("wbrel_swap", [x], [ca.vertcat(k * x[0] + x[1], ca.sin(x[1]))],
+                            ["x"], ["y"])]
+
+    a = build_library("wbrel_swap", fns(2.0), root=tmp_path)
+    b = build_library("wbrel_swap", fns(3.0), root=tmp_path)
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    # first loads of the victim happen below, in this process, after the swap
+    import shutil
+
+    for lib in (a, b):
+        shutil.copytree(lib.path.parent, fresh / lib.path.parent.name)
+    victim = type(a)(fresh / a.path.parent.name / a.path.name, a.key, a.cdll, {}, True)
+    donor = type(b)(fresh / b.path.parent.name / b.path.name, b.key, b.cdll, {}, True)
+    _swap(victim, donor)
+    again = build_library("wbrel_swap", fns(2.0), root=fresh)
+    assert not again.cache_hit
+    np.testing.assert_allclose(np.asarray(again.functions["wbrel_swap"]([1.0, 0.5])).ravel(),
+                               [2.5, np.sin(0.5)], rtol=1e-15)

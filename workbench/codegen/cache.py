@@ -4,7 +4,11 @@ Cache key: sha256 of the generated C text, the compiler path, version and flags,
 version and the platform. A build writes the source, compiles to a temporary name in the cache
 directory, checks the exit status, and publishes the library with ``os.replace`` followed by a
 manifest holding the library's sha256. Loading checks that digest (a corrupted library is rebuilt)
-and compares every exported Function with its symbolic twin at seeded points.
+and compares every exported Function with its symbolic twin at seeded points; a mismatch rebuilds
+the library and loads the rebuilt file (through a private copy when this process already has the
+old one open at that path). Libraries are linked with every symbol resolved
+(``-Wl,--no-undefined``) and loaded with RTLD_NOW. Generated code without Functions (the sampler
+kernels) is checked by its caller (:mod:`workbench.sampling.verify`), which asks for a rebuild.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import json
 import os
 import platform
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -111,11 +116,42 @@ def _run_compiler(tc: Toolchain, src: Path, out: Path, extra_flags: tuple[str, .
         raise CompileError(f"C compiler failed (exit {proc.returncode}): {' '.join(cmd)}\n{output}")
 
 
+_LOADED: dict[str, str] = {}  # path -> sha256 of the file this process dlopened there
+_PRIVATE = [0]
+
+
 def _load_now(lib: Path) -> tuple[ctypes.CDLL, Path]:
     """dlopen with every symbol resolved now (ctypes uses RTLD_NOW): a library with undefined
     symbols raises OSError here instead of aborting the process on its first call (CasADi's
-    external() binds lazily). Returns the handle and the path it was loaded from."""
-    return ctypes.CDLL(str(lib)), lib
+    external() binds lazily). Returns the handle and the path it was loaded from.
+
+    The dynamic loader returns the handle it already has for a path it has loaded before, even
+    when the file was replaced since (a rebuilt library would silently stay the old one). A
+    path this process has loaded with other contents is therefore loaded through a private copy
+    (unlinked by :func:`_release_private` once every handle is open).
+    """
+    digest = _sha256_file(lib)
+    known = _LOADED.get(str(lib))
+    path = lib
+    if known is not None and known != digest:
+        _PRIVATE[0] += 1
+        path = lib.with_name(f".{lib.stem}.load-{os.getpid()}-{_PRIVATE[0]}{lib.suffix}")
+        shutil.copyfile(lib, path)
+    try:
+        cdll = ctypes.CDLL(str(path))
+    except OSError:
+        _release_private(lib, path)
+        raise
+    _LOADED[str(path)] = digest
+    return cdll, path
+
+
+def _release_private(lib: Path, path: Path) -> None:
+    if path != lib:
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            pass
 
 
 def _verify(lib_path: Path, functions: list[ca.Function]) -> dict[str, ca.Function]:
@@ -146,13 +182,14 @@ def build_library(
     toolchain: Toolchain | None = None,
     extra_flags: tuple[str, ...] = (),
     root: Path | None = None,
+    rebuild: bool = False,
 ) -> Library | None:
     """Build (or fetch from the cache) the shared library of ``functions`` + ``extra_source``.
 
     Returns None, with a one-line warning, when no compiler is available: callers then use the
     CasADi virtual machine. Raises :class:`CompileError` with the compiler's message on failure
     (naming the operation when the code calls a function no library provides; nothing is then
-    cached).
+    cached). ``rebuild`` ignores a cached library (a caller whose own check of it failed).
     """
     tc = toolchain or find_toolchain()
     if tc is None:
@@ -166,7 +203,7 @@ def build_library(
     folder = (root or cache_dir()) / f"{stem}-{key}"
     folder.mkdir(parents=True, exist_ok=True)
     lib, manifest = folder / f"lib{stem}.so", folder / "manifest.json"
-    hit = _published(lib, manifest)
+    hit = _published(lib, manifest) and not rebuild
     if not hit:
         _unpublish(lib, manifest)
         _compile_and_publish(tc, source, folder, stem, extra_flags)
@@ -189,7 +226,10 @@ def build_library(
 
 def _load_and_verify(lib: Path, functions: list[ca.Function]):
     cdll, path = _load_now(lib)
-    return cdll, _verify(path, functions)
+    try:
+        return cdll, _verify(path, functions)
+    finally:
+        _release_private(lib, path)
 
 
 def _unpublish(lib: Path, manifest: Path) -> None:

@@ -21,6 +21,7 @@ from workbench.barrier import min_margin
 from workbench.codegen import CompileError, build_library
 from workbench.sampling.emit import LANES, EmitError, KernelSpec, emit_kernel, rng_source
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.verify import KernelMismatch, verify_kernel
 
 MPPI_RESULTS = ("S", "crashed")
 SAIS_RESULTS = ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "crashed_real", "crashed_nom")
@@ -252,8 +253,8 @@ _LIBS: dict[str, SamplerLibrary | None] = {}
 _FALLBACK_WARNED: set[str] = set()
 
 
-def _load(specs, source: str, stem: str) -> SamplerLibrary | None:
-    lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS)
+def _load(specs, source: str, stem: str, rebuild: bool) -> SamplerLibrary | None:
+    lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS, rebuild=rebuild)
     if lib is None:
         return None
     c = lib.cdll
@@ -265,6 +266,25 @@ def _load(specs, source: str, stem: str) -> SamplerLibrary | None:
     return SamplerLibrary(*kernels, cdll=c)
 
 
+def _verified(specs, source: str, stem: str) -> SamplerLibrary | None:
+    """Load the library and check every kernel against CasADi's evaluation of its step
+    (:mod:`workbench.sampling.verify`) before first use; a mismatch (e.g. a cached library
+    swapped with another problem's) rebuilds it once, a second mismatch raises."""
+    lib = _load(specs, source, stem, rebuild=False)
+    if lib is None:
+        return None
+    try:
+        for k in (lib.mppi, lib.sais, lib.candidates):
+            verify_kernel(k)
+    except KernelMismatch as exc:
+        warnings.warn(f"workbench: {exc}; rebuilding the sampler library", RuntimeWarning,
+                      stacklevel=3)
+        lib = _load(specs, source, stem, rebuild=True)
+        for k in (lib.mppi, lib.sais, lib.candidates):
+            verify_kernel(k)
+    return lib
+
+
 def library_sources(sp: SamplingProblem) -> tuple[str, list[KernelSpec], str]:
     """(cache stem, kernel specs, C source) of a sampling problem's library."""
     specs = [mppi_spec(sp), sais_spec(sp), candidate_spec(sp)]
@@ -273,14 +293,14 @@ def library_sources(sp: SamplingProblem) -> tuple[str, list[KernelSpec], str]:
 
 
 def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
-    """Build (or load from the cache) the kernels of a sampling problem; None without
+    """Build (or load from the cache) the kernels of a sampling problem, verified; None without
     a compiler, or, with one warning, when the model uses an operation the emitter or the C
     back end cannot compile (the sampler then uses the NumPy/CasADi twin: correct, slower)."""
     key = sp.fingerprint()
     if key not in _LIBS:
         try:
             stem, specs, source = library_sources(sp)
-            _LIBS[key] = _load(specs, source, stem)
+            _LIBS[key] = _verified(specs, source, stem)
         except (EmitError, CompileError) as exc:
             if isinstance(exc, CompileError) and "no linked library provides" not in str(exc):
                 raise
