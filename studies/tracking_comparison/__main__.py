@@ -12,6 +12,7 @@ from pathlib import Path
 from studies.tracking_comparison.config import METHODS, PROFILES, StudyConfig
 from studies.tracking_comparison.report import write_report
 from studies.tracking_comparison.run import run
+from workbench.validation import writable_dir
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -29,6 +30,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.no_sweep:
         overrides["sweep"] = False
     config = StudyConfig.for_profile(args.profile, **overrides)  # fails fast on bad values
+    try:
+        writable_dir("--out", args.out)
+    except ValueError as exc:
+        ap.error(str(exc))  # exits with status 2 and the message
     summary = run(config, args.out)
     path = write_report(args.out)
     for m, s in summary["methods"].items():

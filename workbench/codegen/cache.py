@@ -31,6 +31,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.codegen.toolchain import Toolchain, find_toolchain
+from workbench.validation import fail
 
 VERIFY_RTOL = 1e-12
 VERIFY_POINTS = 3
@@ -55,7 +56,11 @@ def cache_dir() -> Path:
     """``$WORKBENCH_CACHE_DIR`` or ``~/.cache/sais-workbench/codegen``."""
     env = os.environ.get("WORKBENCH_CACHE_DIR")
     root = Path(env) if env else Path.home() / ".cache" / "sais-workbench" / "codegen"
-    return root.expanduser().resolve()
+    root = root.expanduser().resolve()
+    if root.exists() and not root.is_dir():
+        raise fail("WORKBENCH_CACHE_DIR" if env else "cache directory", str(root),
+                   "is an existing file, not a directory (point WORKBENCH_CACHE_DIR elsewhere)")
+    return root
 
 
 def generate_source(functions: list[ca.Function], extra_source: str = "") -> str:
@@ -200,8 +205,14 @@ def build_library(
     ident = "\n".join([source, tc.key(), *extra_flags, ca.__version__, platform.platform(),
                        _cpu_signature() if any("native" in f for f in extra_flags) else ""])
     key = hashlib.sha256(ident.encode()).hexdigest()[:20]
-    folder = (root or cache_dir()) / f"{stem}-{key}"
-    folder.mkdir(parents=True, exist_ok=True)
+    base = root or cache_dir()
+    folder = base / f"{stem}-{key}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        field = "root" if root is not None else "WORKBENCH_CACHE_DIR"
+        raise fail(field, str(base), "cannot hold the code-generation cache: "
+                   f"{exc.strerror or exc} ({folder})") from exc
     lib, manifest = folder / f"lib{stem}.so", folder / "manifest.json"
     hit = _published(lib, manifest) and not rebuild
     if not hit:
