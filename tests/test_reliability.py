@@ -569,3 +569,43 @@ def test_class7_cache_directory_that_is_a_file_names_the_variable(tmp_path, monk
     monkeypatch.setenv("WORKBENCH_CACHE_DIR", str(a_file))
     with pytest.raises(ValueError, match=r"^WORKBENCH_CACHE_DIR = .*not a directory"):
         build_library("wbrel_cachefile", [_tiny_function()])
+
+
+# ---------------------------------------------------------------------------------------------
+# class 3 (scene part): accepted, then silently wrong
+
+
+@pytest.mark.parametrize("n", [0, 1, -3, 2.5, True])
+def test_class3_n_obstacles_below_two_or_not_an_integer_is_rejected(n):
+    from workbench.scenes import NavigationScene
+
+    with pytest.raises(ValueError, match=r"^NavigationScene.n_obstacles = .*two gate circles"):
+        NavigationScene(n_obstacles=n)
+
+
+def test_class3_two_obstacles_gives_exactly_the_gates():
+    from workbench.scenes import NavigationScene
+
+    obs = NavigationScene(n_obstacles=2).obstacles()
+    assert len(obs) == 2 and {o.radius for o in obs} == {1.0}
+
+
+@pytest.mark.parametrize(("field", "point"), [("start", (3.6, 5.0)), ("goal", (6.9, 5.2))])
+def test_class3_start_or_goal_inside_an_obstacle_is_rejected(field, point):
+    from workbench.scenes import NavigationScene
+
+    with pytest.raises(ValueError, match=rf"^NavigationScene.{field} = .*inside obstacle"):
+        NavigationScene(**{field: point})
+
+
+def test_class3_navigation_setup_rejects_a_start_inside_a_custom_map_obstacle():
+    from workbench.navigation import navigation_setup
+    from workbench.obstacles import Circle
+    from workbench.scenes import NavigationScene
+
+    class OneCircle(NavigationScene):
+        def obstacles(self):
+            return (Circle((1.0, 1.0), 0.8),)
+
+    with pytest.raises(ValueError, match=r"^scene.start = .*inside obstacle 0"):
+        navigation_setup(OneCircle())

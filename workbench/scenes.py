@@ -46,7 +46,10 @@ class TrackingScene:
 
 @dataclass(frozen=True)
 class NavigationScene:
-    """SPEC 3.2 [A]: 30 circles in [0,10]^2 with a central vertical corridor, fixed seed."""
+    """SPEC 3.2 [A]: 30 circles in [0,10]^2 with a central vertical corridor, fixed seed.
+
+    ``n_obstacles`` counts every circle, the two gate circles of the corridor included.
+    """
 
     start: tuple[float, float] = (0.5, 0.5)
     goal: tuple[float, float] = (9.5, 9.5)
@@ -64,6 +67,10 @@ class NavigationScene:
     def __post_init__(self) -> None:
         for name in ("start", "goal"):
             as_array(f"NavigationScene.{name}", getattr(self, name), (2,))
+        n = self.n_obstacles
+        if not isinstance(n, int | np.integer) or isinstance(n, bool) or n < 2:
+            raise fail("NavigationScene.n_obstacles", n,
+                       "must be an integer >= 2 (it counts the two gate circles of the corridor)")
         if not isinstance(self.seed, int | np.integer) or isinstance(self.seed, bool) \
                 or self.seed < 0:
             raise fail("NavigationScene.seed", self.seed, "must be an integer >= 0")
@@ -78,6 +85,7 @@ class NavigationScene:
             positive(f"NavigationScene.{name}", getattr(self, name))
         for name in ("endpoint_clearance", "edge_gap"):
             positive(f"NavigationScene.{name}", getattr(self, name), allow_zero=True)
+        self._check_endpoints(self._gates())
 
     def obstacles(self) -> tuple[Circle, ...]:
         """The map: two gate circles, then random circles (deterministic in seed).
@@ -89,9 +97,7 @@ class NavigationScene:
         when no strategy fits even the smallest radius is the map infeasible, and the error
         says what (density, radius range, clearances).
         """
-        off = self.gate_radius + self.corridor_width / 2
-        circles = [Circle((5.0 - off, 5.0), self.gate_radius),
-                   Circle((5.0 + off, 5.0), self.gate_radius)]
+        circles = self._gates()
         rng = np.random.default_rng(self.seed)
         ends = (np.array(self.start), np.array(self.goal))
         for _ in range(_DRAWS):
@@ -108,6 +114,22 @@ class NavigationScene:
         if len(circles) < self.n_obstacles:
             circles = self._complete(circles, rng)
         return tuple(circles)
+
+    def _gates(self) -> list[Circle]:
+        off = self.gate_radius + self.corridor_width / 2
+        return [Circle((5.0 - off, 5.0), self.gate_radius),
+                Circle((5.0 + off, 5.0), self.gate_radius)]
+
+    def _check_endpoints(self, circles) -> None:
+        """Start and goal outside the gate circles (the random circles keep
+        endpoint_clearance from both by construction)."""
+        for name in ("start", "goal"):
+            p = np.array(getattr(self, name), dtype=float)
+            for i, o in enumerate(circles):
+                if np.linalg.norm(p - np.array(o.center)) <= o.radius:
+                    raise fail(f"NavigationScene.{name}", getattr(self, name),
+                               f"lies inside obstacle {i} (centre {o.center}, radius "
+                               f"{o.radius:g}); start and goal must be in free space")
 
     def _infeasible(self, placed: int) -> str:
         lo, hi = self.center_range
