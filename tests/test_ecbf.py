@@ -198,3 +198,69 @@ def test_filter_batch_equals_stepwise_calls(rng):
     np.testing.assert_array_equal(batch.qp_solved,
                                   [r.status not in ("unconstrained", "box") for r in results])
     assert batch.qp_solved.any() and not batch.qp_solved.all()
+
+
+def _rotating_plane(obstacle: Circle, w: float = 0.7, dt: float = 0.05) -> Model:
+    """p+ = p + dt (Omega p + u), Omega a rotation rate w: a drift, and u acting on p directly,
+    so the margin is truly relative degree 1 and L_f h = 2 (p - c)^T Omega p is nonzero."""
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 2)
+    drift = ca.vertcat(-w * x[1], w * x[0])
+    return Model.from_expressions("rotating_plane", x, u, x + dt * (drift + u), dt=dt,
+                                  u_min=[-5, -5], u_max=[5, 5],
+                                  h=circle_margins(x, (obstacle,)), obstacles=(obstacle,))
+
+
+def test_degree_one_row_includes_lf_h_closed_form(rng):
+    """Issue 8 item 4: a degree-1 row is L_g h u >= -gamma h - L_f h. On the rotating plane
+    L_f h = 2 d^T Omega p, L_g h = 2 d (d = p - c): checked against that closed form."""
+    c, w = Circle((1.0, -0.5), 0.8), 0.7
+    model = _rotating_plane(c, w)
+    rows = ecbf_rows(model, ECBFOptions(gamma=3.0))
+    assert rows.relative_degrees == (1,)
+    omega = np.array([[0.0, -w], [w, 0.0]])
+    for _ in range(10):
+        p = rng.uniform(-4, 4, 2)
+        d = p - np.array(c.center)
+        h = d @ d - c.radius**2
+        a, b = rows(p)
+        np.testing.assert_allclose(a[0], 2 * d, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(b[0], -3.0 * h - 2 * d @ (omega @ p), rtol=1e-12, atol=1e-12)
+        lfh = float(np.asarray(rows.lie(p)[1]).ravel()[0])
+        assert abs(lfh) > 0 or abs(d @ (omega @ p)) == 0
+
+
+def test_zoh_double_integrator_is_relative_degree_two_closed_form(rng):
+    """Issue 8 item 4: u enters the ZOH double integrator's first difference only through the
+    1/2 dt^2 u term, so the margin is degree 2. Read as xdot = (F - x)/dt: f = [v, 0],
+    g = [dt/2 I, I], so L_f h = 2 d.v, L_g h = dt d, L_f^2 h = 2|v|^2, L_g L_f h = dt v + 2 d,
+    and the row is (L_g L_f h + k1 L_g h) u >= -L_f^2 h - k1 L_f h - k0 h."""
+    dt = 0.02
+    model = double_integrator(obstacles=OBSTACLES, integrator="zoh", dt=dt)
+    opts = ECBFOptions(poles=(3.0, 7.0))
+    rows = ecbf_rows(model, opts)
+    assert rows.relative_degrees == (2, 2)
+    k0, k1 = 21.0, 10.0
+    for x in _random_states(rng, 10):
+        p, v = x[:2], x[2:]
+        a, b = rows(x)
+        for i, c in enumerate(OBSTACLES):
+            d = p - np.array(c.center)
+            h = d @ d - c.radius**2
+            np.testing.assert_allclose(a[i], dt * v + 2 * d + k1 * dt * d, rtol=1e-12,
+                                       atol=1e-12)
+            np.testing.assert_allclose(b[i], -2 * v @ v - 2 * k1 * d @ v - k0 * h,
+                                       rtol=1e-12, atol=1e-9)
+    with pytest.raises(ValueError, match=r"ECBFOptions.relative_degree = 1.*relative degree 2"):
+        ecbf_rows(model, ECBFOptions(relative_degree=1))
+    assert ecbf_rows(model, ECBFOptions(relative_degree=2)).relative_degrees == (2, 2)
+
+
+@pytest.mark.parametrize("dt", [0.01, 0.05, 0.2])
+def test_relative_degree_is_detected_from_the_discrete_model(dt):
+    from workbench.ecbf import relative_degrees
+
+    c = Circle((1.0, 0.5), 0.6)
+    assert relative_degrees(double_integrator(obstacles=(c,), dt=dt)) == (2,)
+    assert relative_degrees(double_integrator(obstacles=(c,), dt=dt, integrator="zoh")) == (2,)
+    assert relative_degrees(single_integrator(obstacles=(c,), dt=dt)) == (1,)
+    assert relative_degrees(_rotating_plane(c, dt=dt)) == (1,)

@@ -65,7 +65,8 @@ def _disturbed_state(nav, ctrl, steps=15, level=50.0):
     dyn = ca.Function("plant", [nav.plant.x, nav.plant.u], [nav.plant.x_next])
     for _ in range(steps):
         state, u, _ = ctrl.step(state, x, rng_c)
-        x = np.asarray(dyn(x, u)).ravel() + Disturbance(level).sample(4, nav.plant.dt, rng_w)
+        x = np.asarray(dyn(x, u)).ravel() + Disturbance(level, velocity_index=(2, 3)).sample(
+            4, nav.plant.dt, rng_w)
     return state, x
 
 

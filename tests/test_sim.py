@@ -17,7 +17,7 @@ from workbench.sim import Disturbance, closed_loop
     ("kick", np.sqrt(10.0)),
 ])
 def test_disturbance_models_have_their_stated_spread(model, std, rng):
-    d = Disturbance(10.0, model)
+    d = Disturbance(10.0, model, velocity_index=(2, 3))
     W = np.array([d.sample(4, 0.02, rng) for _ in range(20000)])
     np.testing.assert_array_equal(W[:, :2], 0.0)  # velocities only
     np.testing.assert_allclose(W[:, 2:].std(axis=0), std, rtol=0.03)

@@ -4,9 +4,13 @@ The discrete model is read as the continuous-time control-affine system
 ``f(x) + g(x) u = (F(x, u) - x) / dt`` (exact for Euler; validated affine in u). For every margin
 h_i the filter uses exact Lie derivatives from CasADi:
 
-* relative degree 1 (L_g h_i not identically 0):  L_g h u >= -gamma h            (SPEC 7.3)
-* relative degree 2 (L_g h_i = 0, L_g L_f h_i not): L_f^2 h + L_g L_f h u + k1 L_f h + k0 h >= 0
+* relative degree 1:  L_f h + L_g h u >= -gamma h                                   (SPEC 7.3)
+* relative degree 2:  L_f^2 h + (L_g L_f h + k1 L_g h) u + k1 L_f h + k0 h >= 0
   with s^2 + k1 s + k0 = (s + p1)(s + p2)                                           (SPEC 7.1)
+
+The relative degree of each margin is read from the discrete model (:func:`relative_degrees`):
+a zero-order-hold double integrator is degree 2 although u enters its first difference at
+O(dt^2).
 
 Each row reads ``a_i^T u >= b_i``. The QP ``min ||u - u_ref||^2`` subject to these rows and the
 control box is solved by OSQP, set up once with a fixed sparsity pattern; each step updates only
@@ -31,6 +35,7 @@ from workbench.validation import fail, one_of, positive
 Mode = Literal["soft", "hard"]
 RelativeDegree = Literal["auto", 1, 2]
 _USABLE = ("solved", "solved inaccurate")
+_ANSWERS = ("primal infeasible", "primal infeasible inaccurate")  # a valid verdict, not an error
 
 
 @dataclass(frozen=True)
@@ -39,7 +44,8 @@ class ECBFOptions:
 
     poles: (p1, p2) > 0 for relative degree 2, so k1 = p1 + p2 and k0 = p1 p2 ([A] 5, 5).
     gamma: class-K gain for relative degree 1 ([A] 5).
-    relative_degree: "auto" (symbolic, per margin), or 1 / 2 for every margin (checked).
+    relative_degree: "auto" (per margin, from the discrete model: :func:`relative_degrees`),
+    or 1 / 2 for every margin (checked against the detected degree).
     mode: "soft" (slacks delta >= 0) or "hard" (fall back to clip(u_ref) when OSQP fails).
     slack_linear, slack_quadratic: soft-mode slack cost sum(slack_linear delta + slack_quadratic
     delta^2), on rows normalised to ||a_i|| = 1 (delta in control units). [A], not SPEC 7.2's
@@ -152,8 +158,55 @@ def _identically_zero(e: ca.SX) -> bool:
     return e.nnz() == 0 or e.is_zero()
 
 
+DEGREE_POINTS = 32  # random states of the relative-degree order test
+_ORDER_SPLIT = 1.5  # log2 sensitivity ratio: ~1 for relative degree 1, ~2 for degree 2
+
+
+def relative_degrees(model: Model) -> tuple[int, ...]:
+    """Relative degree (1 or 2) of every margin, read from the discrete model itself.
+
+    Margin i has degree 2 when its first difference h_i(F(x, u)) - h_i(x) does not depend on u
+    (Euler double integrator), and degree 1 when it does at first order in dt. A zero-order-hold
+    double integrator's first difference does depend on u, but only through the
+    1/2 dt^2 u position term: the effect of u on h after one step is O(dt^2), the signature of
+    degree 2 (a degree-1 margin responds at O(dt)). The order is measured on the model: with
+    the control held, F(F(x, u), u) is the model over 2 dt, so the sensitivity
+    d h(F(F(x,u),u))/du over d h(F(x,u))/du is about 2^r for a margin of degree r; the median
+    over seeded random states decides (log2 ratio above 1.5: degree 2).
+    """
+    x, u = model.x, model.u
+    h1 = ca.substitute(model.h, x, model.x_next)
+    x2 = ca.substitute(model.x_next, x, model.x_next)
+    h2 = ca.substitute(model.h, x, x2)
+    s1, s2 = ca.jacobian(h1, u), ca.jacobian(h2, u)
+    sens = ca.Function("sens", [x, u], [s1, s2])
+    rng = np.random.default_rng(20261123)
+    X = rng.normal(0.0, 2.0, (DEGREE_POINTS, model.nx))
+    u0 = np.clip(np.zeros(model.nu), model.u_min, model.u_max)
+    pairs = [tuple(np.asarray(v) for v in sens(xk, u0)) for xk in X]
+    degrees = []
+    for i in range(model.nh):
+        if _identically_zero(s1[i, :]):
+            degrees.append(2)
+            continue
+        ratios = []
+        for a, b in pairs:
+            na, nb = np.linalg.norm(a[i]), np.linalg.norm(b[i])
+            if np.isfinite(na) and np.isfinite(nb) and na > 0 and nb > 0:
+                ratios.append(np.log2(nb / na))
+        degrees.append(2 if ratios and np.median(ratios) > _ORDER_SPLIT else 1)
+    return tuple(degrees)
+
+
 def ecbf_rows(model: Model, options: ECBFOptions = ECBFOptions()) -> ECBFRows:
-    """Exact ECBF rows for every margin of ``model`` (relative degree 1 or 2)."""
+    """Exact ECBF rows for every margin of ``model`` (relative degree 1 or 2, detected by
+    :func:`relative_degrees`).
+
+    Degree 1: L_g h u >= -gamma h - L_f h (the CBF condition h_dot >= -gamma h).
+    Degree 2: (L_g L_f h + k1 L_g h) u >= -L_f^2 h - k1 L_f h - k0 h, the ECBF condition
+    h_ddot + k1 h_dot + k0 h >= 0 with h_dot = L_f h + L_g h u; L_g h is zero for an Euler
+    double integrator and the O(dt) discretisation term for a zero-order-hold one.
+    """
     if model.nh == 0:
         raise fail("model.h", model.name, "the ECBF filter needs at least one safety margin")
     x = model.x
@@ -163,31 +216,26 @@ def ecbf_rows(model: Model, options: ECBFOptions = ECBFOptions()) -> ECBFRows:
     lgh = ca.mtimes(ca.jacobian(h, x), g)
     lf2h = ca.mtimes(ca.jacobian(lfh, x), f)
     lglfh = ca.mtimes(ca.jacobian(lfh, x), g)
-    a_rows, b_rows, degrees = [], [], []
-    for i in range(model.nh):
-        deg1 = not _identically_zero(lgh[i, :])
-        if options.relative_degree == 2 and deg1:
-            raise fail("ECBFOptions.relative_degree", 2,
-                       f"margin {i} has L_g h != 0 (relative degree 1)")
-        if not deg1 and _identically_zero(lglfh[i, :]):
+    detected = relative_degrees(model)
+    a_rows, b_rows = [], []
+    for i, deg in enumerate(detected):
+        if deg == 2 and _identically_zero(lglfh[i, :]) and _identically_zero(lgh[i, :]):
             raise fail("model.h", i, "relative degree above 2 is not supported")
-        if options.relative_degree == 1 and not deg1:
-            raise fail("ECBFOptions.relative_degree", 1,
-                       f"margin {i} does not depend on u through L_g h (relative degree 2)")
-        if deg1:
-            degrees.append(1)
+        if options.relative_degree != "auto" and options.relative_degree != deg:
+            raise fail("ECBFOptions.relative_degree", options.relative_degree,
+                       f"margin {i} has relative degree {deg} in the discrete model")
+        if deg == 1:
             a_rows.append(lgh[i, :])
-            b_rows.append(-options.gamma * h[i])
+            b_rows.append(-options.gamma * h[i] - lfh[i])
         else:
-            degrees.append(2)
-            a_rows.append(lglfh[i, :])
+            a_rows.append(lglfh[i, :] + options.k1 * lgh[i, :])
             b_rows.append(-lf2h[i] - options.k1 * lfh[i] - options.k0 * h[i])
     d = ca.densify
     rows = ca.Function("ecbf_rows", [x], [d(ca.vertcat(*a_rows)), d(ca.vertcat(*b_rows))],
                        ["x"], ["a", "b"], {"cse": True})
     lie = ca.Function("ecbf_lie", [x], [d(h), d(lfh), d(lf2h), d(lgh), d(lglfh)],
                       ["x"], ["h", "Lfh", "Lf2h", "Lgh", "LgLfh"], {"cse": True})
-    return ECBFRows(rows=rows, lie=lie, relative_degrees=tuple(degrees))
+    return ECBFRows(rows=rows, lie=lie, relative_degrees=detected)
 
 
 class ECBFFilter:
@@ -252,9 +300,22 @@ class ECBFFilter:
         """Filter u_ref at state x."""
         return self.solve_rows(*self.rows(x), u_ref)
 
+    def _state(self, x) -> np.ndarray:
+        """x as (nx,) finite floats, or ValueError naming x (before anything reaches OSQP)."""
+        nx = self._x.size
+        try:
+            xa = np.asarray(x, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise fail("x", x, f"the state must be {nx} finite numbers") from exc
+        if xa.shape != (nx,):
+            raise fail("x", x, f"the state must have shape ({nx},), got {xa.shape}")
+        if not np.isfinite(xa).all():
+            raise fail("x", x, f"the state must be {nx} finite numbers (NaN/inf given)")
+        return xa
+
     def rows(self, x) -> tuple[np.ndarray, np.ndarray]:
         """ECBF rows a (nh, nu), b (nh,) at x (same values as ``self.ecbf(x)``)."""
-        self._x[:] = x
+        self._x[:] = self._state(x)
         self._eval()
         return self._a_t.T.copy(), self._b.copy()
 
@@ -263,6 +324,11 @@ class ECBFFilter:
         u_ref = np.asarray(u_ref, dtype=float).ravel()
         if u_ref.shape != (self.nu,) or not np.isfinite(u_ref).all():
             raise fail("u_ref", u_ref, f"expected {self.nu} finite entries")
+        a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float).ravel()
+        if a.shape != (self.nh, self.nu) or not np.isfinite(a).all():
+            raise fail("a", a, f"ECBF rows must be ({self.nh}, {self.nu}) finite numbers")
+        if b.shape != (self.nh,) or not np.isfinite(b).all():
+            raise fail("b", b, f"ECBF bounds must be {self.nh} finite numbers")
         u_box = np.minimum(np.maximum(u_ref, self.u_min), self.u_max)
         norms = np.maximum(np.sqrt((a * a).sum(axis=1)), 1e-12)
         violation = (b - a @ u_box) / norms
@@ -279,24 +345,54 @@ class ECBFFilter:
                             fallback)
 
     def _qp(self, an: np.ndarray, bn: np.ndarray, u_ref: np.ndarray) -> tuple:
-        """OSQP on normalised rows: (u in the box, status, fallback used)."""
+        """OSQP on normalised rows: (u in the box, status, fallback used).
+
+        A status other than solved or (hard mode) primal infeasible is a solver error that may
+        leave the workspace unusable (e.g. a non-quasidefinite KKT matrix after bad data, a
+        diverged warm start): the workspace is set up afresh and the QP solved once more, so
+        no step can poison the steps after it. An interrupt raises KeyboardInterrupt.
+        """
         nu = self.nu
         self._q[:nu] = -2.0 * u_ref
         self._l[: self.nh] = bn
         self._Ax[self._a_pos] = an
-        self._solver.update(q=self._q, l=self._l, Ax=self._Ax)
-        res = self._solver.solve(raise_error=False)
-        status = res.info.status
-        u = res.x[:nu]
+        q, lo, Ax = self._q.copy(), self._l.copy(), self._Ax.copy()
+        u, status = self._solve_once()
+        if status not in _USABLE and status not in _ANSWERS:
+            self._setup()
+            self._q[:], self._l[:], self._Ax[:] = q, lo, Ax
+            u, status = self._solve_once()
+            if status not in _USABLE and status not in _ANSWERS:
+                self._setup()  # leave a clean workspace for the next step
         fallback = status not in _USABLE or u.shape != (nu,) or not np.isfinite(u).all()
         if fallback:
             u, status = u_ref, f"fallback: {status}"
         return np.minimum(np.maximum(u, self.u_min), self.u_max), status, fallback
 
+    def _solve_once(self) -> tuple[np.ndarray, str]:
+        self._solver.update(q=self._q, l=self._l, Ax=self._Ax)
+        res = self._solver.solve(raise_error=False)
+        status = res.info.status
+        if res.info.status_val == osqp.SolverStatus.OSQP_SIGINT or status == "interrupted":
+            # OSQP catches SIGINT inside its solve and returns "interrupted"; falling back would
+            # turn a Ctrl-C into a normal-looking step. Leave a fresh workspace and re-raise.
+            self._setup()
+            raise KeyboardInterrupt("ECBF filter: the QP solve was interrupted (SIGINT)")
+        u = np.asarray(res.x, dtype=float)[: self.nu]
+        if u.shape == (self.nu,) and not np.isfinite(u).all() and status in _USABLE:
+            status = "solved with non-finite x"
+        return u, status
+
     def filter_batch(self, X, U_ref) -> BatchFilterResult:
         """Filter N (state, reference) pairs; identical to calling the filter on each in order
         (same shortcut, same OSQP calls in the same order), with less per-step overhead."""
         X, U_ref = np.asarray(X, dtype=float), np.asarray(U_ref, dtype=float)
+        nx = self._x.size
+        if X.ndim != 2 or X.shape[1] != nx:
+            raise fail("X", X, f"states must have shape (N, {nx}), got {X.shape}")
+        if not np.isfinite(X).all():
+            bad = int(np.flatnonzero(~np.isfinite(X).all(axis=1))[0])
+            raise fail("X", X, f"states must be finite (row {bad} is not)")
         if U_ref.shape != (X.shape[0], self.nu) or not np.all(np.isfinite(U_ref)):
             raise fail("U_ref", U_ref, f"expected ({X.shape[0]}, {self.nu}) finite entries")
         a, b = self.ecbf.batch(X)

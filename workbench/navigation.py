@@ -14,7 +14,7 @@ from workbench.sampling.problem import SamplingProblem, navigation_costs
 from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
 from workbench.scenes import NavigationScene
 from workbench.sim import closed_loop
-from workbench.validation import one_of
+from workbench.validation import fail, one_of
 
 CONTROLLERS = ("bas_mppi", "sa_rmppi", "rmppi", "mppi_crash")
 
@@ -93,6 +93,12 @@ def navigation_setup(scene: NavigationScene | None = None, *,
     """Plant, barrier-embedded sampling problem and MPPI settings of the navigation study."""
     scene = scene or NavigationScene()
     plant = double_integrator(obstacles=scene.obstacles(), u_limit=scene.u_limit, dt=scene.dt)
+    for name in ("start", "goal"):  # also for scenes that bring their own obstacles
+        h = plant.margins(np.array([*getattr(scene, name), 0.0, 0.0]))
+        if h.size and h.min() <= 0:
+            raise fail(f"scene.{name}", getattr(scene, name),
+                       f"lies inside obstacle {int(np.argmin(h))}; start and goal must be in "
+                       "free space (h > 0)")
     problem = navigation_costs(embed_barrier(plant, barrier or BarrierOptions()), q_beta=q_beta)
     cfg = mppi or MPPIConfig(sigma=TUNED_SIGMA, lam=TUNED_LAMBDA)
     return NavigationSetup(scene, plant, problem, np.array([*scene.goal, 0.0, 0.0]),

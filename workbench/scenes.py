@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from workbench.obstacles import Circle
+from workbench.validation import as_array, fail, positive
 
 
 @dataclass(frozen=True)
@@ -19,6 +20,15 @@ class TrackingScene:
     horizon: int = 150  # [A] N, DBaS-code DI example
     dt: float = 0.02  # [A]
     u_limit: float = 15.0  # [P]
+
+    def __post_init__(self) -> None:
+        for name in ("start", "target"):
+            as_array(f"TrackingScene.{name}", getattr(self, name), (4,))
+        if not isinstance(self.horizon, int | np.integer) or isinstance(self.horizon, bool) \
+                or self.horizon < 1:
+            raise fail("TrackingScene.horizon", self.horizon, "must be an integer >= 1")
+        positive("TrackingScene.dt", self.dt)
+        positive("TrackingScene.u_limit", self.u_limit)
 
     def reference(self) -> np.ndarray:
         """Straight line start -> target at constant speed over the horizon, (T+1, 4)."""
@@ -36,7 +46,10 @@ class TrackingScene:
 
 @dataclass(frozen=True)
 class NavigationScene:
-    """SPEC 3.2 [A]: 30 circles in [0,10]^2 with a central vertical corridor, fixed seed."""
+    """SPEC 3.2 [A]: 30 circles in [0,10]^2 with a central vertical corridor, fixed seed.
+
+    ``n_obstacles`` counts every circle, the two gate circles of the corridor included.
+    """
 
     start: tuple[float, float] = (0.5, 0.5)
     goal: tuple[float, float] = (9.5, 9.5)
@@ -51,14 +64,43 @@ class NavigationScene:
     dt: float = 0.02
     u_limit: float = 5.0  # [P]
 
+    def __post_init__(self) -> None:
+        for name in ("start", "goal"):
+            as_array(f"NavigationScene.{name}", getattr(self, name), (2,))
+        n = self.n_obstacles
+        if not isinstance(n, int | np.integer) or isinstance(n, bool) or n < 2:
+            raise fail("NavigationScene.n_obstacles", n,
+                       "must be an integer >= 2 (it counts the two gate circles of the corridor)")
+        if not isinstance(self.seed, int | np.integer) or isinstance(self.seed, bool) \
+                or self.seed < 0:
+            raise fail("NavigationScene.seed", self.seed, "must be an integer >= 0")
+        for name in ("radius_range", "center_range"):
+            lo, hi = as_array(f"NavigationScene.{name}", getattr(self, name), (2,))
+            if not lo <= hi:
+                raise fail(f"NavigationScene.{name}", getattr(self, name),
+                           "must be (low, high) with low <= high")
+        if self.radius_range[0] <= 0:
+            raise fail("NavigationScene.radius_range", self.radius_range, "radii must be > 0")
+        for name in ("gate_radius", "corridor_width", "dt", "u_limit"):
+            positive(f"NavigationScene.{name}", getattr(self, name))
+        for name in ("endpoint_clearance", "edge_gap"):
+            positive(f"NavigationScene.{name}", getattr(self, name), allow_zero=True)
+        self._check_endpoints(self._gates())
+
     def obstacles(self) -> tuple[Circle, ...]:
-        """The map: two gate circles, then rejection-sampled circles (deterministic in seed)."""
-        off = self.gate_radius + self.corridor_width / 2
-        circles = [Circle((5.0 - off, 5.0), self.gate_radius),
-                   Circle((5.0 + off, 5.0), self.gate_radius)]
+        """The map: two gate circles, then random circles (deterministic in seed).
+
+        Circles are first rejection-sampled (radius and centre uniform) for up to ``_DRAWS``
+        draws: every map this completes is unchanged from earlier versions, the default one
+        included. Rejection sampling jams on dense maps (it failed for 11 of the first 20
+        seeds): :meth:`_complete` then finishes the map on a grid of candidate centres. Only
+        when no strategy fits even the smallest radius is the map infeasible, and the error
+        says what (density, radius range, clearances).
+        """
+        circles = self._gates()
         rng = np.random.default_rng(self.seed)
         ends = (np.array(self.start), np.array(self.goal))
-        for _ in range(100_000):
+        for _ in range(_DRAWS):
             if len(circles) == self.n_obstacles:
                 break
             r = rng.uniform(*self.radius_range)
@@ -70,9 +112,101 @@ class NavigationScene:
                 continue
             circles.append(Circle((float(c[0]), float(c[1])), float(r)))
         if len(circles) < self.n_obstacles:
-            raise ValueError(f"NavigationScene.seed = {self.seed} is invalid: could not place "
-                             f"{self.n_obstacles} obstacles")
+            circles = self._complete(circles, rng)
         return tuple(circles)
+
+    def _gates(self) -> list[Circle]:
+        off = self.gate_radius + self.corridor_width / 2
+        return [Circle((5.0 - off, 5.0), self.gate_radius),
+                Circle((5.0 + off, 5.0), self.gate_radius)]
+
+    def _check_endpoints(self, circles) -> None:
+        """Start and goal outside the gate circles (the random circles keep
+        endpoint_clearance from both by construction)."""
+        for name in ("start", "goal"):
+            p = np.array(getattr(self, name), dtype=float)
+            for i, o in enumerate(circles):
+                if np.linalg.norm(p - np.array(o.center)) <= o.radius:
+                    raise fail(f"NavigationScene.{name}", getattr(self, name),
+                               f"lies inside obstacle {i} (centre {o.center}, radius "
+                               f"{o.radius:g}); start and goal must be in free space")
+
+    def _infeasible(self, placed: int) -> str:
+        lo, hi = self.center_range
+        r0, r1 = self.radius_range
+        cover = (self.n_obstacles - 2) * np.pi * ((r0 + r1) / 2 + self.edge_gap / 2) ** 2
+        return (f"NavigationScene: placed at most {placed} of n_obstacles = {self.n_obstacles} "
+                f"circles; no centre in center_range = {self.center_range} leaves room for the "
+                f"smallest radius (radius_range[0] = {r0:g}) with edge_gap = {self.edge_gap:g} "
+                f"to the other circles and endpoint_clearance = {self.endpoint_clearance:g} to "
+                f"start and goal: the map is too dense (the random circles with half the gap "
+                f"cover about {cover:.0f} m^2; the centre area is {(hi - lo) ** 2:.0f} m^2). "
+                "Lower n_obstacles, the radius range or the gaps, or widen center_range")
+
+    def _complete(self, circles: list[Circle], rng: np.random.Generator) -> list[Circle]:
+        """Finish a map rejection sampling could not: first fill the gaps it left on the grid;
+        if that jams, pack all random circles afresh, smallest first, each touching the
+        circles already placed (drawn among the ``jitter`` tightest fits). Strategies are
+        tried in order with the same generator, so the map stays deterministic in the seed."""
+        most = 0
+        for jitter in (None, 10, 100, 1):
+            start = list(circles) if jitter is None else list(circles[:2])
+            radii = None if jitter is None else np.sort(
+                rng.uniform(*self.radius_range, self.n_obstacles - 2))
+            try:
+                return self._place_on_grid(start, rng, radii=radii, jitter=jitter)
+            except _Jammed as exc:
+                most = max(most, exc.args[0])
+        raise ValueError(self._infeasible(most))
+
+    def _place_on_grid(self, circles: list[Circle], rng: np.random.Generator, *,
+                       radii: np.ndarray | None, jitter: int | None) -> list[Circle]:
+        """Place circles until there are n_obstacles, on a grid of candidate centres.
+
+        Each circle takes the next of ``radii`` (or a drawn radius) at a centre where it fits:
+        any such centre (``jitter`` None), or one of the ``jitter`` tightest fits (touching the
+        circles already placed: dense packing that leaves the open space for later circles).
+        Without a centre for that radius the largest circle that still fits is used. Raises
+        _Jammed(placed) when not even the smallest radius fits anywhere.
+        """
+        lo, hi = self.center_range
+        g = np.arange(lo, hi + 1e-12, _GRID)
+        G = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+        room = np.full(G.shape[0], np.inf)  # largest radius each candidate centre allows
+        for e in (self.start, self.goal):
+            room = np.minimum(room, np.hypot(*(G - np.array(e)).T) - self.endpoint_clearance)
+
+        def shrink(o: Circle) -> np.ndarray:
+            return np.hypot(*(G - np.array(o.center)).T) - o.radius - self.edge_gap
+
+        for o in circles:
+            room = np.minimum(room, shrink(o))
+        i = 0
+        while len(circles) < self.n_obstacles:
+            r = float(radii[i]) if radii is not None else float(rng.uniform(*self.radius_range))
+            i += 1
+            fits = np.flatnonzero(room >= r)
+            if fits.size:
+                if jitter is not None:
+                    fits = fits[np.argsort(room[fits], kind="stable")[:jitter]]
+                k = int(fits[rng.integers(fits.size)])
+            else:
+                k = int(np.argmax(room))
+                r = float(room[k])
+                if r < self.radius_range[0]:
+                    raise _Jammed(len(circles))
+            c = Circle((float(G[k, 0]), float(G[k, 1])), r)
+            circles.append(c)
+            room = np.minimum(room, shrink(c))
+        return circles
 
     def assumed_values(self) -> dict[str, object]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+_DRAWS = 100_000  # rejection-sampling draws before the grid placement takes over
+_GRID = 0.02  # grid spacing of candidate centres (m)
+
+
+class _Jammed(Exception):
+    """Grid placement found no room for the smallest radius (args: circles placed)."""

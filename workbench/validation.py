@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -63,3 +65,23 @@ def bounds(field_lo: str, lo: np.ndarray, field_hi: str, hi: np.ndarray) -> None
             f"{field_lo}[{i}] = {lo[i]:g} is above {field_hi}[{i}] = {hi[i]:g}: "
             f"each lower bound must be <= its upper bound"
         )
+
+
+def writable_dir(field: str, path) -> Path:
+    """Check that ``path`` is (or can be created as) a directory this process can write:
+    returns it as a Path, or raises ValueError naming ``field``. Creates the directory."""
+    p = Path(path).expanduser()
+    if p.exists() and not p.is_dir():
+        raise fail(field, str(p), "is an existing file, not a directory")
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise fail(field, str(p), f"its parent {parent} is a file, not a directory")
+            break
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=p):
+            pass
+    except OSError as exc:
+        raise fail(field, str(p), f"is not a writable directory ({exc.strerror or exc})") from exc
+    return p

@@ -16,6 +16,7 @@ from studies.tracking_comparison.config import METHODS, PROFILES, StudyConfig
 from studies.tracking_comparison.findings import NAMES
 from studies.tracking_comparison.run import run
 from workbench.study import StudyInterrupted, fmt_rate
+from workbench.validation import writable_dir
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -36,6 +37,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.no_sweep:
         overrides["sweep"] = False
     config = StudyConfig.for_profile(args.profile, **overrides)  # fails fast on bad values
+    try:
+        writable_dir("--out", args.out)
+    except ValueError as exc:
+        ap.error(str(exc))  # exits with status 2 and the message
     try:
         outcome = run(config, args.out, workers=args.workers, scheduler=args.scheduler)
     except StudyInterrupted:

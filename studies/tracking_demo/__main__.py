@@ -23,7 +23,7 @@ from workbench.ipopt_oracle import solve_ipopt
 from workbench.models import double_integrator
 from workbench.scenes import TrackingScene
 from workbench.tracking import TrackingWeights, bas_ilqg, tracking_params
-from workbench.validation import one_of
+from workbench.validation import one_of, writable_dir
 
 PROFILES = {"quick": (1e-2,), "full": (1e-3, 1e-2, 1e-1, 1.0)}
 
@@ -119,6 +119,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--profile", default="quick", choices=sorted(PROFILES))
     ap.add_argument("--out", type=Path, default=Path("reports/tracking_demo"))
     args = ap.parse_args(argv)
+    try:
+        writable_dir("--out", args.out)
+    except ValueError as exc:
+        ap.error(str(exc))  # exits with status 2 and the message
     for r in run(args.profile, args.out):
         print(f"q_beta={r.q_beta:g}: cost {r.cost:.4f} (IPOPT {r.ipopt_cost:.4f}), "
               f"min h {r.min_h:.4f}, final distance {r.final_distance:.4f} m")

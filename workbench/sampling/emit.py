@@ -39,6 +39,10 @@ _UNARY = {
     ca.OP_FLOOR: "floor({0})", ca.OP_CEIL: "ceil({0})", ca.OP_ATAN: "atan({0})",
     ca.OP_ASSIGN: "{0}", ca.OP_LOG1P: "log1p({0})", ca.OP_EXPM1: "expm1({0})",
     ca.OP_SIGN: "(({0})<0 ? -1.0 : (({0})>0 ? 1.0 : ({0})))",
+    # libm functions: correct first (they may keep gcc from vectorising the lane loop)
+    ca.OP_ASIN: "asin({0})", ca.OP_ACOS: "acos({0})", ca.OP_ERF: "erf({0})",
+    ca.OP_SINH: "sinh({0})", ca.OP_COSH: "cosh({0})", ca.OP_ASINH: "asinh({0})",
+    ca.OP_ACOSH: "acosh({0})", ca.OP_ATANH: "atanh({0})",
 }
 _BINARY = {
     ca.OP_ADD: "({0}+{1})", ca.OP_SUB: "({0}-{1})", ca.OP_MUL: "({0}*{1})",
@@ -56,7 +60,27 @@ _BINARY = {
     # comparisons as selects: a (double)(a < b) conversion blocks vectorisation in gcc 12
     ca.OP_IF_ELSE_ZERO: "(({0})==0 ? 0.0 : ({1}))", ca.OP_HYPOT: "hypot({0},{1})",
     ca.OP_COPYSIGN: "copysign({0},{1})", ca.OP_FMOD: "fmod({0},{1})",
+    ca.OP_REMAINDER: "remainder({0},{1})",
 }
+_OP_NAMES = {getattr(ca, n): n[3:].lower() for n in dir(ca) if n.startswith("OP_")}
+_STRUCTURAL = (ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST)
+
+
+def op_name(op: int) -> str:
+    """CasADi's name of an operation code (e.g. 86 -> 'erfinv')."""
+    return _OP_NAMES.get(op, f"op code {op}")
+
+
+def supported_operations() -> tuple[str, ...]:
+    """Names of the CasADi operations the emitter writes as C."""
+    return tuple(sorted(op_name(op) for op in (*_UNARY, *_BINARY)))
+
+
+def unsupported_operations(f: ca.Function) -> tuple[str, ...]:
+    """Names of the operations of SX Function ``f`` the emitter cannot write (empty if none)."""
+    ops = {f.instruction_id(k) for k in range(f.n_instructions())}
+    bad = ops - set(_UNARY) - set(_BINARY) - set(_STRUCTURAL)
+    return tuple(sorted(op_name(op) for op in bad))
 
 
 class EmitError(ValueError):
@@ -77,6 +101,11 @@ def straight_line(f: ca.Function, load, store, prefix: str) -> list[str]:
     Outputs are collected and written after every load."""
     if not f.is_a("SXFunction"):
         raise EmitError(f"{f.name()}: only SX Functions can be emitted")
+    bad = unsupported_operations(f)
+    if bad:
+        raise EmitError(f"{f.name()} uses the CasADi operation{'s' if len(bad) > 1 else ''} "
+                        f"{', '.join(bad)}, which the sampler's C emitter does not support; "
+                        f"supported: {', '.join(supported_operations())}")
     work: dict[int, str] = {}
     body, stores = [], []
     for k in range(f.n_instructions()):
@@ -96,8 +125,8 @@ def straight_line(f: ca.Function, load, store, prefix: str) -> list[str]:
             a = work[ins[0]]
             b = work[ins[1]] if op != ca.OP_CONSTPOW or len(ins) > 1 else None
             expr = _BINARY[op].format(a, b)
-        else:
-            raise EmitError(f"{f.name()}: CasADi op code {op} is not supported by the emitter")
+        else:  # unreachable: unsupported_operations checked every instruction
+            raise EmitError(f"{f.name()}: CasADi operation {op_name(op)} is not supported")
         body.append(f"const double {name} = {expr};")
         work[outs[0]] = name
     return body + stores

@@ -11,16 +11,18 @@ Carries and results are named by :func:`layouts` (one :class:`Layout` per kernel
 from __future__ import annotations
 
 import ctypes
+import warnings
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from workbench.barrier import min_margin
-from workbench.codegen import build_library
-from workbench.sampling.emit import LANES, KernelSpec, emit_kernel, rng_source
+from workbench.codegen import CompileError, build_library
+from workbench.sampling.emit import LANES, EmitError, KernelSpec, emit_kernel, rng_source
 from workbench.sampling.layout import Layout
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.verify import KernelMismatch, verify_kernel
 
 _OPTS = {"cse": True}
 # -fsched-pressure -fschedule-insns: register-pressure-aware scheduling of the long
@@ -177,7 +179,10 @@ def _addr(a: np.ndarray) -> int:
 class CompiledKernel:
     """A loaded kernel: call with arrays, get :class:`KernelOutput`."""
 
-    def __init__(self, spec: KernelSpec, cdll: ctypes.CDLL, carry: Layout, result: Layout):
+    def __init__(self, spec: KernelSpec, cdll: ctypes.CDLL, carry: Layout | None = None,
+                 result: Layout | None = None):
+        carry = carry or Layout(f"{spec.name} carry", (("carry", spec.n_carry),))
+        result = result or Layout(f"{spec.name} result", (("result", spec.n_result),))
         if (carry.size, result.size) != (spec.n_carry, spec.n_result):
             raise ValueError(f"{spec.name}: layouts ({carry.size}, {result.size}) do not match "
                              f"the kernel ({spec.n_carry}, {spec.n_result})")
@@ -267,25 +272,67 @@ class SamplerLibrary:
 
 
 _LIBS: dict[str, SamplerLibrary | None] = {}
+_FALLBACK_WARNED: set[str] = set()
+
+
+def _load(specs, source: str, stem: str, rebuild: bool,
+          lays=None) -> SamplerLibrary | None:
+    lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS, rebuild=rebuild)
+    if lib is None:
+        return None
+    c = lib.cdll
+    c.wb_normals.restype = None
+    c.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
+    c.wb_set_threads.argtypes = [ctypes.c_int]
+    c.wb_get_threads.restype = ctypes.c_int
+    lays = lays or [(None, None)] * len(specs)
+    kernels = [CompiledKernel(s, c, *lay) for s, lay in zip(specs, lays, strict=True)]
+    return SamplerLibrary(*kernels, cdll=c)
+
+
+def _verified(specs, source: str, stem: str, lays=None) -> SamplerLibrary | None:
+    """Load the library and check every kernel against CasADi's evaluation of its step
+    (:mod:`workbench.sampling.verify`) before first use; a mismatch (e.g. a cached library
+    swapped with another problem's) rebuilds it once, a second mismatch raises."""
+    lib = _load(specs, source, stem, rebuild=False, lays=lays)
+    if lib is None:
+        return None
+    try:
+        for k in (lib.mppi, lib.sais, lib.candidates):
+            verify_kernel(k)
+    except KernelMismatch as exc:
+        warnings.warn(f"workbench: {exc}; rebuilding the sampler library", RuntimeWarning,
+                      stacklevel=3)
+        lib = _load(specs, source, stem, rebuild=True, lays=lays)
+        for k in (lib.mppi, lib.sais, lib.candidates):
+            verify_kernel(k)
+    return lib
+
+
+def library_sources(sp: SamplingProblem) -> tuple[str, list[KernelSpec], str]:
+    """(cache stem, kernel specs, C source) of a sampling problem's library."""
+    specs = [mppi_spec(sp), sais_spec(sp), candidate_spec(sp)]
+    source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
+    return f"sampler_{sp.model.name.replace('+', '_')}", specs, source
 
 
 def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
-    """Build (or load from the cache) the kernels of a sampling problem; None without compiler."""
+    """Build (or load from the cache) the kernels of a sampling problem, verified; None without
+    a compiler, or, with one warning, when the model uses an operation the emitter or the C
+    back end cannot compile (the sampler then uses the NumPy/CasADi twin: correct, slower)."""
     key = sp.fingerprint()
     if key not in _LIBS:
-        specs = [mppi_spec(sp), sais_spec(sp), candidate_spec(sp)]
-        source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
-        lib = build_library(f"sampler_{sp.model.name.replace('+', '_')}", [], source,
-                            extra_flags=KERNEL_FLAGS)
-        if lib is None:
+        try:
+            stem, specs, source = library_sources(sp)
+            lays = [layouts(sp, k) for k in ("mppi", "sais", "candidates")]
+            _LIBS[key] = _verified(specs, source, stem, lays)
+        except (EmitError, CompileError) as exc:
+            if isinstance(exc, CompileError) and "no linked library provides" not in str(exc):
+                raise
+            if key not in _FALLBACK_WARNED:
+                _FALLBACK_WARNED.add(key)
+                warnings.warn(f"workbench: no compiled sampler kernels for {sp.model.name}: "
+                              f"{str(exc).splitlines()[0]}; using the NumPy/CasADi evaluation "
+                              "(correct, slower)", RuntimeWarning, stacklevel=2)
             _LIBS[key] = None
-        else:
-            c = lib.cdll
-            c.wb_normals.restype = None
-            c.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
-            c.wb_set_threads.argtypes = [ctypes.c_int]
-            c.wb_get_threads.restype = ctypes.c_int
-            kernels = [CompiledKernel(s, c, *layouts(sp, k))
-                       for s, k in zip(specs, ("mppi", "sais", "candidates"), strict=True)]
-            _LIBS[key] = SamplerLibrary(*kernels, cdll=c)
     return _LIBS[key]

@@ -50,7 +50,9 @@ class Sampler:
         self.sp = sp
         self.lib = None if backend == "numpy" else sampler_library(sp)
         if backend == "compiled" and self.lib is None:
-            raise fail("backend", backend, "no C compiler is available; use 'numpy' or 'auto'")
+            raise fail("backend", backend, "no compiled kernels for this problem (no C compiler, "
+                       "or an operation the C back end cannot compile: see the warning); use "
+                       "'numpy' or 'auto'")
         self.backend = "compiled" if self.lib is not None else "numpy"
 
     def _noise(self, N: int, T: int, seed: int) -> np.ndarray:
