@@ -1,0 +1,29 @@
+"""Lemma 1 (free-energy bound) estimators and checks, SPEC 11.2-11.3 (issue 12).
+
+* :mod:`.free_energy` — F̂ by log-sum-exp, Ê by the delta method / MPPI-G / bootstrap;
+* :mod:`.tube` — tube radius R (pairwise, quantile, position-only, about the mean nominal);
+* :mod:`.lipschitz` — local and global Lipschitz constants of q, φ, secant check;
+* :mod:`.disturbance` — D (a quantile of ‖w‖) and D_F;
+* :mod:`.step` — :class:`BoundStep` from one SA-RMPPI step's first SAIS batch;
+* :mod:`.checks` — T1, T2, T3, T3b, T3c, T3d.
+"""
+
+from workbench.bound.checks import Check, episode_checks, step_checks, transition_checks
+from workbench.bound.disturbance import chi_radius, d_f, disturbance_bound
+from workbench.bound.free_energy import (
+    Bootstrap,
+    FreeEnergy,
+    bootstrap_free_energy,
+    free_energy_estimate,
+    free_energy_lse,
+)
+from workbench.bound.lipschitz import CostGradients, Lipschitz, LipschitzGrid
+from workbench.bound.step import BoundConfig, BoundEstimator, BoundStep, first_batch
+from workbench.bound.tube import Tube, tube_radius
+
+__all__ = [
+    "Bootstrap", "BoundConfig", "BoundEstimator", "BoundStep", "Check", "CostGradients",
+    "FreeEnergy", "Lipschitz", "LipschitzGrid", "Tube", "bootstrap_free_energy", "chi_radius",
+    "d_f", "disturbance_bound", "episode_checks", "first_batch", "free_energy_estimate",
+    "free_energy_lse", "step_checks", "transition_checks", "tube_radius",
+]

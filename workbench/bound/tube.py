@@ -1,0 +1,56 @@
+"""Tube radius R of the real samples about the nominal ones (SPEC 11.2 item 5).
+
+Trajectories are lane-major (T+1, nx, N), k = 0..T, as :class:`SAISDiagBatch` holds them. Norms
+are Euclidean on the physical state (p, v) — the state whose norm the Lipschitz constants of
+:mod:`workbench.bound.lipschitz` use (β is a function of p on every sample, see there).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workbench.validation import fail
+
+
+@dataclass(frozen=True)
+class Tube:
+    R: float  # max_{n,k} ‖x^n_k − x*^n_k‖ (the proof's e_k, pairwise)
+    R99: float  # 99 % quantile over samples of max_k ‖x^n_k − x*^n_k‖
+    R_position: float  # pairwise, position coordinates only
+    R_mean_nominal: float  # max_{n,k} ‖x^n_k − mean_m x*^m_k‖ (tube about the mean nominal)
+    per_sample: np.ndarray  # (N,) max_k ‖x^n_k − x*^n_k‖
+
+
+def check_trajectories(X, X_nom) -> tuple[np.ndarray, np.ndarray]:
+    """Both (T+1, nx, N), finite, same shape, N >= 1."""
+    out = []
+    for name, a in (("X", X), ("X_nom", X_nom)):
+        a = np.asarray(a, dtype=float)
+        if a.ndim != 3:
+            raise fail(name, a.shape, "expected lane-major trajectories (T+1, nx, N)")
+        if a.shape[0] < 2 or a.shape[2] < 1:
+            raise fail(name, a.shape, "the batch is empty: need T >= 1 and N >= 1")
+        if not np.all(np.isfinite(a)):
+            raise fail(name, "non-finite entries", "trajectories must be finite")
+        out.append(a)
+    if out[0].shape != out[1].shape:
+        raise fail("X_nom", out[1].shape, f"must match X {out[0].shape}")
+    return out[0], out[1]
+
+
+def tube_radius(X, X_nom, physical: int, position=(0, 1), quantile: float = 0.99) -> Tube:
+    """Radii of the real samples X about the nominal samples X_nom (module docstring)."""
+    X, X_nom = check_trajectories(X, X_nom)
+    if not 1 <= physical <= X.shape[1]:
+        raise fail("physical", physical, f"must lie in [1, {X.shape[1]}]")
+    E = X[:, :physical] - X_nom[:, :physical]
+    d = np.sqrt(np.einsum("kin,kin->kn", E, E))  # (T+1, N)
+    per = d.max(axis=0)
+    P = E[:, list(position)]
+    dp = np.sqrt(np.einsum("kin,kin->kn", P, P))
+    M = X[:, :physical] - X_nom[:, :physical].mean(axis=2, keepdims=True)
+    dm = np.sqrt(np.einsum("kin,kin->kn", M, M))
+    return Tube(float(per.max()), float(np.quantile(per, quantile)), float(dp.max()),
+                float(dm.max()), per)
