@@ -5,11 +5,13 @@
 * :mod:`.lipschitz` — local and global Lipschitz constants of q, φ, secant check;
 * :mod:`.disturbance` — D (a quantile of ‖w‖) and D_F;
 * :mod:`.step` — :class:`BoundStep` from one SA-RMPPI step's first SAIS batch;
-* :mod:`.checks` — T1, T2, T3, T3b, T3c, T3d.
+* :mod:`.checks` — T1, T2, T3, T3b, T3c, T3d (and T1s);
+* :mod:`.episode` — :class:`BoundRecorder`, a controller wrapper for ``sim.closed_loop``.
 """
 
 from workbench.bound.checks import Check, episode_checks, step_checks, transition_checks
 from workbench.bound.disturbance import chi_radius, d_f, disturbance_bound
+from workbench.bound.episode import BoundRecorder
 from workbench.bound.free_energy import (
     Bootstrap,
     FreeEnergy,
@@ -18,12 +20,37 @@ from workbench.bound.free_energy import (
     free_energy_lse,
 )
 from workbench.bound.lipschitz import CostGradients, Lipschitz, LipschitzGrid
-from workbench.bound.step import BoundConfig, BoundEstimator, BoundStep, first_batch
+from workbench.bound.step import (
+    BoundConfig,
+    BoundEstimator,
+    BoundStep,
+    first_batch,
+    with_diagnostics,
+)
 from workbench.bound.tube import Tube, tube_radius
 
 __all__ = [
-    "Bootstrap", "BoundConfig", "BoundEstimator", "BoundStep", "Check", "CostGradients",
-    "FreeEnergy", "Lipschitz", "LipschitzGrid", "Tube", "bootstrap_free_energy", "chi_radius",
-    "d_f", "disturbance_bound", "episode_checks", "first_batch", "free_energy_estimate",
-    "free_energy_lse", "step_checks", "transition_checks", "tube_radius",
+    "Bootstrap",
+    "BoundConfig",
+    "BoundEstimator",
+    "BoundRecorder",
+    "BoundStep",
+    "Check",
+    "CostGradients",
+    "FreeEnergy",
+    "Lipschitz",
+    "LipschitzGrid",
+    "Tube",
+    "bootstrap_free_energy",
+    "chi_radius",
+    "d_f",
+    "disturbance_bound",
+    "episode_checks",
+    "first_batch",
+    "free_energy_estimate",
+    "free_energy_lse",
+    "step_checks",
+    "transition_checks",
+    "tube_radius",
+    "with_diagnostics",
 ]

@@ -6,6 +6,8 @@ are the pure-state-cost estimates of SPEC 11.2 item 3 (``estimate="code"``: from
 S_nom as Algorithm 1 computes them). Readings (SPEC 13, L2-L3):
 
 * T1  max_n (Sx_n − Sx*_n) <= δ_t                       (per sample, all n)
+* T1s T1 over the samples whose real and nominal rollouts both stayed safe (a diagnostic, not
+      in SPEC: a crashed real sample carries β_max, so T1 can only fail through it)
 * T2  F̂_real(t) <= F̂_nom(t) + δ_t
 * T3  F̂_real(t+1) − F̂_real(t) <= α_t − F̂_nom(t) + 2Ê + R_t (L_φ + n_q L_q) D̂_F(t)   (as printed)
 * T3b as T3 with δ_t in place of δ_t D̂_F(t) (the proof's δ)
@@ -25,7 +27,7 @@ from typing import Literal
 from workbench.bound.step import BoundStep, Constants
 from workbench.validation import fail, one_of
 
-STEP_TESTS = ("T1", "T2")
+STEP_TESTS = ("T1", "T1s", "T2")
 TRANSITION_TESTS = ("T3", "T3b", "T3c", "T3d")
 Estimate = Literal["pure", "code"]
 
@@ -55,7 +57,7 @@ def _F(s: BoundStep, estimate: Estimate) -> tuple[float, float]:
 
 def step_checks(s: BoundStep, constants: tuple[Constants, ...] = ("local", "global"),
                 estimate: Estimate = "pure") -> list[Check]:
-    """T1 and T2 at one step, for each set of constants."""
+    """T1, T1s and T2 at one step, for each set of constants."""
     if not isinstance(s, BoundStep):
         raise fail("step", type(s).__name__, "need a BoundStep")
     Fr, Fn = _F(s, estimate)
@@ -63,6 +65,7 @@ def step_checks(s: BoundStep, constants: tuple[Constants, ...] = ("local", "glob
     for c in constants:
         d = s.delta(c)
         out.append(_check("T1", c, -s.t1_gap, d, d))
+        out.append(_check("T1s", c, -s.t1_gap_safe, d, d))
         out.append(_check("T2", c, Fr, Fn + d, d))
     return out
 
@@ -91,7 +94,7 @@ def transition_checks(s0: BoundStep, s1: BoundStep,
 
 def episode_checks(steps: list[BoundStep], constants: tuple[Constants, ...] = ("local", "global"),
                    estimate: Estimate = "pure") -> list[list[Check]]:
-    """Per step t: T1, T2 at t and, when t+1 exists, T3-T3d for (t, t+1)."""
+    """Per step t: T1, T1s, T2 at t and, when t+1 exists, T3-T3d for (t, t+1)."""
     out = []
     for t, s in enumerate(steps):
         c = step_checks(s, constants, estimate)

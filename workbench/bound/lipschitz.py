@@ -148,20 +148,25 @@ class CostGradients:
         if backend == "compiled" and self.lib is None:
             raise fail("backend", backend, "no C compiler is available; use 'numpy' or 'auto'")
         y, p, qt, pt, mh = composed_costs(sp)
+        gq, gp = ca.gradient(qt, y), ca.gradient(pt, y)
         self._point = ca.Function("cost_point", [y, p],
-                                  [qt, pt, ca.norm_2(ca.gradient(qt, y)),
-                                   ca.norm_2(ca.gradient(pt, y)), mh])
+                                  [qt, pt, ca.dot(gq, gq), ca.dot(gp, gp), mh])
 
     def _p(self, p) -> np.ndarray:
         return as_array("p", p, (self.sp.n_p,))
 
     def at_points(self, Y, p) -> dict[str, np.ndarray]:
         """q̃, φ̃, ‖∇q̃‖, ‖∇φ̃‖ and min h at physical states Y (M, n_physical), CasADi VM."""
+        r = self._at_points(Y, p)
+        r["grad_q"], r["grad_phi"] = np.sqrt(r.pop("g2_q")), np.sqrt(r.pop("g2_phi"))
+        return r
+
+    def _at_points(self, Y, p) -> dict[str, np.ndarray]:
         n = self.sp.model.n_physical
         Y = as_array("Y", Y, (None, n))
         out = self._point.map(Y.shape[0])(Y.T, self._p(p))
         return {k: np.asarray(v).ravel()
-                for k, v in zip(("q", "phi", "grad_q", "grad_phi", "min_h"), out, strict=True)}
+                for k, v in zip(("q", "phi", "g2_q", "g2_phi", "min_h"), out, strict=True)}
 
     def local(self, X, X_nom, p) -> Lipschitz:
         """Local constants on the tube of one batch: trajectories (T+1, nx, N), k = 0..T."""
@@ -191,8 +196,8 @@ class CostGradients:
             r = k.result.unpack(out.result)
         else:
             r = self._reference(X, X_nom, wq, wphi, p)
-        return Lipschitz(float(r["L_q"].max()), float(r["L_phi"].max()),
-                         float(r["sec_q"].max()), float(r["sec_phi"].max()),
+        return Lipschitz(float(np.sqrt(r["L2_q"].max())), float(np.sqrt(r["L2_phi"].max())),
+                         float(np.sqrt(r["sec2_q"].max())), float(np.sqrt(r["sec2_phi"].max())),
                          int(r["points_q"].sum()), int(r["points_phi"].sum()),
                          int(r["excluded_q"].sum()), int(r["excluded_phi"].sum()))
 
@@ -204,22 +209,22 @@ class CostGradients:
         ev = []
         for s in SEGMENT_POINTS:
             Y = np.transpose(A + s * (B - A), (0, 2, 1)).reshape(-1, n)
-            ev.append({k: v.reshape(T1, N) for k, v in self.at_points(Y, p).items()})
+            ev.append({k: v.reshape(T1, N) for k, v in self._at_points(Y, p).items()})
         wq, wphi = wq[:, :1], wphi[:, :1]
         ok = np.stack([e["min_h"] > 0 for e in ev])  # (5, T1, N)
-        gq = np.stack([e["grad_q"] for e in ev])
-        gp = np.stack([e["grad_phi"] for e in ev])
-        d = np.linalg.norm(B - A, axis=1)  # (T1, N)
-        use = ok.all(axis=0) & (d > 0)
+        gq = np.stack([e["g2_q"] for e in ev])
+        gp = np.stack([e["g2_phi"] for e in ev])
+        d2 = np.sum((B - A) ** 2, axis=1)  # (T1, N)
+        use = ok.all(axis=0) & (d2 > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            sq = np.where(use, np.abs(ev[-1]["q"] - ev[0]["q"]) / d, 0.0)
-            sp_ = np.where(use, np.abs(ev[-1]["phi"] - ev[0]["phi"]) / d, 0.0)
+            sq = np.where(use, (ev[-1]["q"] - ev[0]["q"]) ** 2 / d2, 0.0)
+            sp_ = np.where(use, (ev[-1]["phi"] - ev[0]["phi"]) ** 2 / d2, 0.0)
         nsp = len(SEGMENT_POINTS)
         return {
-            "L_q": np.where(ok & (wq > 0), gq, 0.0).max(axis=(0, 1)),
-            "L_phi": np.where(ok & (wphi > 0), gp, 0.0).max(axis=(0, 1)),
-            "sec_q": np.where(wq > 0, sq, 0.0).max(axis=0),
-            "sec_phi": np.where(wphi > 0, sp_, 0.0).max(axis=0),
+            "L2_q": np.where(ok & (wq > 0), gq, 0.0).max(axis=(0, 1)),
+            "L2_phi": np.where(ok & (wphi > 0), gp, 0.0).max(axis=(0, 1)),
+            "sec2_q": np.where(wq > 0, sq, 0.0).max(axis=0),
+            "sec2_phi": np.where(wphi > 0, sp_, 0.0).max(axis=0),
             "excluded_q": (wq * (~ok)).sum(axis=(0, 1)),
             "excluded_phi": (wphi * (~ok)).sum(axis=(0, 1)),
             "points_q": np.full(N, nsp * wq.sum()), "points_phi": np.full(N, nsp * wphi.sum()),

@@ -80,6 +80,7 @@ class BoundStep:
     D: float
     D_F: float
     t1_gap: float  # min_n (Sx_nom_n - Sx_real_n): T1 holds iff delta + t1_gap >= 0
+    t1_gap_safe: float  # the same over samples whose real and nominal rollouts stayed safe
     n_samples: int
     n_crashed_real: int
     n_crashed_nom: int
@@ -158,13 +159,16 @@ class BoundEstimator:
         if info.x_nom is None:
             raise fail("info.x_nom", None, "the step's info must carry the nominal state")
         xn = self._dyn(xb, np.asarray(u, float))[0]
+        gap = batch.Sx_nom - batch.Sx_real
+        safe = ~(np.asarray(batch.crashed_real) | np.asarray(batch.crashed_nom))
+        gap_safe = float(np.min(gap[safe])) if safe.any() else np.inf
         DF = d_f(xb, xn, info.x_nom, self.D, n)
         return BoundStep(
             lam=lam, alpha=float(info.alpha), F_real=Fr, F_nom=Fn,
             F_real_code=free_energy_lse(batch.S_real, lam),
             F_nom_code=free_energy_lse(batch.S_nom, lam), E=max(Fr.E, Fn.E), E_bootstrap=Eb,
             tube=tube, local=local, global_=self.global_, n_q=T if cfg.n_q == "T" else T - 1,
-            D=self.D, D_F=DF, t1_gap=float(np.min(batch.Sx_nom - batch.Sx_real)),
+            D=self.D, D_F=DF, t1_gap=float(np.min(gap)), t1_gap_safe=gap_safe,
             n_samples=int(batch.Sx_real.size), n_crashed_real=int(batch.crashed_real.sum()),
             n_crashed_nom=int(batch.crashed_nom.sum()), fallback_used=bool(info.fallback_used),
             nominal_differs=bool(info.nominal_differs))

@@ -45,12 +45,17 @@ def tube_radius(X, X_nom, physical: int, position=(0, 1), quantile: float = 0.99
     X, X_nom = check_trajectories(X, X_nom)
     if not 1 <= physical <= X.shape[1]:
         raise fail("physical", physical, f"must lie in [1, {X.shape[1]}]")
-    E = X[:, :physical] - X_nom[:, :physical]
-    d = np.sqrt(np.einsum("kin,kin->kn", E, E))  # (T+1, N)
-    per = d.max(axis=0)
-    P = E[:, list(position)]
-    dp = np.sqrt(np.einsum("kin,kin->kn", P, P))
-    M = X[:, :physical] - X_nom[:, :physical].mean(axis=2, keepdims=True)
-    dm = np.sqrt(np.einsum("kin,kin->kn", M, M))
-    return Tube(float(per.max()), float(np.quantile(per, quantile)), float(dp.max()),
-                float(dm.max()), per)
+    pos = set(position)
+    d2, dp2, dm2 = (np.zeros((X.shape[0], X.shape[2])) for _ in range(3))
+    for i in range(physical):  # per coordinate: (T+1, N) planes, no strided temporaries
+        e = X[:, i] - X_nom[:, i]
+        e *= e
+        d2 += e
+        if i in pos:
+            dp2 += e
+        m = X[:, i] - X_nom[:, i].mean(axis=1, keepdims=True)
+        m *= m
+        dm2 += m
+    per = np.sqrt(d2.max(axis=0))
+    return Tube(float(per.max()), float(np.quantile(per, quantile)),
+                float(np.sqrt(dp2.max())), float(np.sqrt(dm2.max())), per)

@@ -6,9 +6,10 @@
   (T, nx, N) and the pure state costs Σ_{k=1}^T q(x_k) + φ(x_T) of the real and the nominal
   sample (no crash cost, no control or feedback cost) as two more carries/results.
 * ``wb_cost_gradients`` — for per-sample segment end points x (real) and x* (nominal) given as
-  lane inputs (T, nx, N): the largest ‖∇q̃‖ and ‖∇φ̃‖ at x* + s (x − x*), s ∈ {0, ¼, ½, ¾, 1},
-  over the steps where the time weights ``wq``/``wphi`` are 1, the secant ratios
-  |q̃(x) − q̃(x*)| / ‖x − x*‖, and counts of points excluded because min h ≤ 0. q̃(y) =
+  lane inputs (T, nx, N): the largest ‖∇q̃‖² and ‖∇φ̃‖² at x* + s (x − x*), s ∈ {0, ¼, ½, ¾, 1},
+  over the steps where the time weights ``wq``/``wphi`` are 1, the squared secant ratios
+  (q̃(x) − q̃(x*))² / ‖x − x*‖², and counts of points excluded because min h ≤ 0 (squares: no
+  sqrt in the lane loop, which would stop it vectorising). q̃(y) =
   q(lift(y), p) is the state cost as a function of the *physical* state y (β = B(h(y)), which is
   what β is on every sample with γ = 0); gradients are CasADi's exact ones, norms Euclidean in
   the physical state.
@@ -32,7 +33,7 @@ from workbench.sampling.problem import SamplingProblem
 
 _OPTS = {"cse": True}
 SEGMENT_POINTS = (0.0, 0.25, 0.5, 0.75, 1.0)  # SPEC 11.2 item 6
-GRADIENT_RESULTS = ("L_q", "L_phi", "sec_q", "sec_phi", "excluded_q", "excluded_phi",
+GRADIENT_RESULTS = ("L2_q", "L2_phi", "sec2_q", "sec2_phi", "excluded_q", "excluded_phi",
                     "points_q", "points_phi")
 
 
@@ -96,8 +97,10 @@ def gradient_spec(sp: SamplingProblem, name: str = "wb_cost_gradients") -> Kerne
     """Segment gradient maxima, secants and exclusions (see module docstring)."""
     nx, n = sp.nx, sp.model.n_physical
     y, p, qt, pt, mh = composed_costs(sp)
-    point = ca.Function("point", [y, p], [qt, pt, ca.norm_2(ca.gradient(qt, y)),
-                                          ca.norm_2(ca.gradient(pt, y)), mh])
+    gq_, gp_ = ca.gradient(qt, y), ca.gradient(pt, y)
+    # squared norms: sqrt (an errno-setting libm call) would stop gcc vectorising the lane
+    # loop; the maxima of squares are squared back in NumPy
+    point = ca.Function("point", [y, p], [qt, pt, ca.dot(gq_, gq_), ca.dot(gp_, gp_), mh])
     carry = ca.SX.sym("carry", len(GRADIENT_RESULTS))
     x, xs = ca.SX.sym("x", nx), ca.SX.sym("x_nom", nx)
     wq, wphi = ca.SX.sym("wq"), ca.SX.sym("wphi")
@@ -115,10 +118,11 @@ def gradient_spec(sp: SamplingProblem, name: str = "wb_cost_gradients") -> Kerne
         eq = eq + wq * (1 - ok)
         ep = ep + wphi * (1 - ok)
         vals.append((qv, pv))
-    d = ca.norm_2(b - a)
-    use = allok * (d > 0)
-    sq = ca.fmax(sq, ca.if_else(use * wq, ca.fabs(vals[-1][0] - vals[0][0]) / d, 0.0))
-    sph = ca.fmax(sph, ca.if_else(use * wphi, ca.fabs(vals[-1][1] - vals[0][1]) / d, 0.0))
+    d2 = ca.dot(b - a, b - a)
+    use = allok * (d2 > 0)
+    dq, dp = vals[-1][0] - vals[0][0], vals[-1][1] - vals[0][1]
+    sq = ca.fmax(sq, ca.if_else(use * wq, dq * dq / d2, 0.0))
+    sph = ca.fmax(sph, ca.if_else(use * wphi, dp * dp / d2, 0.0))
     nq = nq + wq * len(SEGMENT_POINTS)
     npt = npt + wphi * len(SEGMENT_POINTS)
     ins = {"carry": carry, "x": x, "x_nom": xs, "wq": wq, "wphi": wphi, "p": p}
