@@ -25,6 +25,7 @@ from workbench.bound.step import (
     BoundEstimator,
     BoundStep,
     first_batch,
+    independent_batch,
     with_diagnostics,
 )
 from workbench.bound.tube import Tube, tube_radius
@@ -49,6 +50,7 @@ __all__ = [
     "first_batch",
     "free_energy_estimate",
     "free_energy_lse",
+    "independent_batch",
     "step_checks",
     "transition_checks",
     "tube_radius",

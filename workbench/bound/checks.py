@@ -9,6 +9,8 @@ S_nom as Algorithm 1 computes them). Readings (SPEC 13, L2-L3):
 * T1s T1 over the samples whose real and nominal rollouts both stayed safe (a diagnostic, not
       in SPEC: a crashed real sample carries β_max, so T1 can only fail through it)
 * T2  F̂_real(t) <= F̂_nom(t) + δ_t
+* T2E F̂_real(t) <= F̂'_nom(t) + δ_t + 2 max(Ê, Ê') with F̂' from an independent batch of the
+      same step (SPEC's "true-F version"; only when the step has one)
 * T3  F̂_real(t+1) − F̂_real(t) <= α_t − F̂_nom(t) + 2Ê + R_t (L_φ + n_q L_q) D̂_F(t)   (as printed)
 * T3b as T3 with δ_t in place of δ_t D̂_F(t) (the proof's δ)
 * T3c as T3 with F̂_nom(t+1) in place of F̂_nom(t)
@@ -24,10 +26,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
+
 from workbench.bound.step import BoundStep, Constants
 from workbench.validation import fail, one_of
 
-STEP_TESTS = ("T1", "T1s", "T2")
+STEP_TESTS = ("T1", "T1s", "T2", "T2E")
 TRANSITION_TESTS = ("T3", "T3b", "T3c", "T3d")
 Estimate = Literal["pure", "code"]
 
@@ -57,7 +61,7 @@ def _F(s: BoundStep, estimate: Estimate) -> tuple[float, float]:
 
 def step_checks(s: BoundStep, constants: tuple[Constants, ...] = ("local", "global"),
                 estimate: Estimate = "pure") -> list[Check]:
-    """T1, T1s and T2 at one step, for each set of constants."""
+    """T1, T1s, T2 (and T2E with an independent batch) at one step, per set of constants."""
     if not isinstance(s, BoundStep):
         raise fail("step", type(s).__name__, "need a BoundStep")
     Fr, Fn = _F(s, estimate)
@@ -67,6 +71,8 @@ def step_checks(s: BoundStep, constants: tuple[Constants, ...] = ("local", "glob
         out.append(_check("T1", c, -s.t1_gap, d, d))
         out.append(_check("T1s", c, -s.t1_gap_safe, d, d))
         out.append(_check("T2", c, Fr, Fn + d, d))
+        if np.isfinite(s.F_nom_ind) and estimate == "pure":
+            out.append(_check("T2E", c, Fr, s.F_nom_ind + d + 2 * max(s.E, s.E_ind), d))
     return out
 
 

@@ -86,6 +86,10 @@ class BoundStep:
     n_crashed_nom: int
     fallback_used: bool  # no candidate was admissible
     nominal_differs: bool  # x*_0 != measured state
+    # from an independent batch of the same step (nan without one), for T2E
+    F_real_ind: float = np.nan
+    F_nom_ind: float = np.nan
+    E_ind: float = np.nan
 
     @property
     def all_real_safe(self) -> bool:
@@ -132,9 +136,12 @@ class BoundEstimator:
         self._dyn = FastFunction(sp.functions()["dyn"])
 
     def step(self, batch: SAISDiagBatch, info: RMPPIInfo, x, u,
-             rng: np.random.Generator | None = None) -> BoundStep:
+             rng: np.random.Generator | None = None,
+             independent: SAISDiagBatch | None = None) -> BoundStep:
         """The record of one step: ``batch`` its first SAIS batch, ``info`` its info, ``x`` the
-        measured state, ``u`` the applied control; ``rng`` for the bootstrap (if enabled)."""
+        measured state, ``u`` the applied control; ``rng`` for the bootstrap (if enabled);
+        ``independent`` an optional second batch of the same step (:func:`independent_batch`)
+        for T2E."""
         check_batch(batch)
         cfg, lam = self.cfg, float(self.ctrl.cfg.lam)
         sp = self.ctrl.sp
@@ -172,6 +179,15 @@ class BoundEstimator:
             n_samples=int(batch.Sx_real.size), n_crashed_real=int(batch.crashed_real.sum()),
             n_crashed_nom=int(batch.crashed_nom.sum()), fallback_used=bool(info.fallback_used),
             nominal_differs=bool(info.nominal_differs))
+
+
+def independent_batch(ctrl: RobustMPPI, batch: SAISDiagBatch, seed: int) -> SAISDiagBatch:
+    """A second batch of the same step: same starts, plan, gains and constants, another seed."""
+    check_batch(batch)
+    if int(seed) == batch.seed:
+        raise fail("seed", seed, "an independent batch needs a seed other than the batch's")
+    return ctrl.sampler.sais(batch.X[0, :, 0], batch.X_nom[0, :, 0], batch.U, batch.K,
+                             batch.X.shape[2], batch.consts, int(seed), diagnostics=True)
 
 
 def with_diagnostics(ctrl: RobustMPPI) -> RobustMPPI:

@@ -93,11 +93,12 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
 
 
 def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
-                   model_backend: str = "auto") -> dict[str, np.ndarray]:
+                   model_backend: str = "auto", pure_costs: bool = False) -> dict[str, np.ndarray]:
     """Algorithm 1 (SPEC 10.1) with clip_in_cost: real samples with feedback K_k (x - x*), nominal
     samples without, the same noise for both. X0, Xs0 (N,nx) real and nominal starts, U (T,nu),
-    K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces they are made of, the
-    trajectories X, X_nom (N,T+1,nx) and the pure state costs Sx_real, Sx_nom (no crash cost)."""
+    K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces they are made of and the
+    trajectories X, X_nom (N,T+1,nx); with ``pure_costs`` also the pure state costs Sx_real,
+    Sx_nom (Σq + φ without crash cost, SPEC 11.2 item 1)."""
     N, T = Z.shape[0], Z.shape[1]
     m = _model(sp, N, model_backend)
     inv = 1.0 / (c.sigma**2)
@@ -136,6 +137,9 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
     Sx_real += phi_r
     Sx_nom += phi_n
     S_nom = 0.5 * S_state_nom + 0.5 * np.maximum(np.minimum(S_hat, c.alpha), S_state_nom) + LR
-    return {"S_nom": S_nom, "S_real": S_real, "S_state_nom": S_state_nom, "S_hat": S_hat,
-            "LR": LR, "crashed_real": cr, "crashed_nom": cn, "v_nom": Vn, "v_real": Vr,
-            "X": X, "X_nom": Xs, "Sx_real": Sx_real, "Sx_nom": Sx_nom}
+    out = {"S_nom": S_nom, "S_real": S_real, "S_state_nom": S_state_nom, "S_hat": S_hat,
+           "LR": LR, "crashed_real": cr, "crashed_nom": cn, "v_nom": Vn, "v_real": Vr,
+           "X": X, "X_nom": Xs}
+    if pure_costs:
+        out.update(Sx_real=Sx_real, Sx_nom=Sx_nom)
+    return out

@@ -15,6 +15,7 @@ import numpy as np
 
 from workbench.sampling.constants import SamplerConstants
 from workbench.sampling.diagnostics import diagnostics_library
+from workbench.sampling.emit import LANES
 from workbench.sampling.kernels import sampler_library
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import mppi_reference, sais_reference
@@ -53,6 +54,11 @@ class SAISDiagBatch(SAISBatch):
     X_nom: np.ndarray  # (T+1, nx, N) nominal samples
     Sx_real: np.ndarray  # (N,)
     Sx_nom: np.ndarray  # (N,)
+    # the call's inputs, so that an independent batch can be drawn (SPEC 11.2, 11.3 T2)
+    U: np.ndarray  # (T, nu) importance-sampling sequence
+    K: np.ndarray  # (T, nu, nx) feedback gains
+    consts: SamplerConstants
+    seed: int
 
 
 class Sampler:
@@ -130,18 +136,21 @@ class Sampler:
         lib = diagnostics_library(self.sp) if self.lib is not None else None
         if lib is not None:
             k = lib.sais_diag
-            out = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
-                    time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed)
-            r = k.result.unpack(out.result)
-            X, Xs = np.empty((T + 1, nx, N)), np.empty((T + 1, nx, N))
+            Np = -(-N // LANES) * LANES
+            # the kernel writes the post-step states straight into rows 1..T (no copy)
+            X, Xs = np.empty((T + 1, nx, Np)), np.empty((T + 1, nx, Np))
             X[0], Xs[0] = x0[:, None], xs0[:, None]
-            X[1:], Xs[1:] = out.lane_out[2], out.lane_out[3]
+            bufs = [np.empty((T, self.sp.nu, Np)), np.empty((T, self.sp.nu, Np)), X[1:], Xs[1:]]
+            out = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
+                    time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed, lane_out=bufs)
+            r = k.result.unpack(out.result)
+            X, Xs = X[..., :N], Xs[..., :N]
             return SAISDiagBatch(r["S_nom"], r["S_real"], r["S_state_nom"], r["S_hat"],
                                  r["LR"], r["crashed_real"] > 0, r["crashed_nom"] > 0,
                                  out.lane_out[0], out.lane_out[1], X, Xs, r["Sx_real"].copy(),
-                                 r["Sx_nom"].copy())
+                                 r["Sx_nom"].copy(), U, K, c, int(seed))
         ref = sais_reference(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
-                             self._noise(N, T, seed), c)
+                             self._noise(N, T, seed), c, pure_costs=True)
 
         def lm(a):
             return np.ascontiguousarray(np.transpose(a, (1, 2, 0)))
@@ -149,7 +158,7 @@ class Sampler:
         return SAISDiagBatch(ref["S_nom"], ref["S_real"], ref["S_state_nom"], ref["S_hat"],
                              ref["LR"], ref["crashed_real"], ref["crashed_nom"], lm(ref["v_nom"]),
                              lm(ref["v_real"]), lm(ref["X"]), lm(ref["X_nom"]), ref["Sx_real"],
-                             ref["Sx_nom"])
+                             ref["Sx_nom"], U, K, c, int(seed))
 
     def candidates(self, starts, U, stride, c: SamplerConstants, seed: int) -> np.ndarray:
         """Costs (N,) of rollouts from per-sample starts (N, nx) following U shifted by the
