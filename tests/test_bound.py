@@ -22,6 +22,7 @@ from workbench.bound import (
     first_batch,
     free_energy_estimate,
     free_energy_lse,
+    independent_batch,
     step_checks,
     transition_checks,
     tube_radius,
@@ -378,6 +379,25 @@ def test_t1_holds_on_navigation_steps_where_all_real_samples_stay_safe(nav_small
             assert c["T1", "global"].rhs >= c["T1", "local"].rhs
             checked += 1
     assert checked >= 1
+
+
+def test_independent_batch_gives_t2e(nav_small):
+    """A second batch of the same step (same inputs, other seed) feeds T2E; same seed refused."""
+    nav, ctrl = nav_small
+    unit = Lipschitz(1.0, 1.0, 0.0, 0.0, 0, 0, 0, 0)  # skip the global grid
+    est = BoundEstimator(ctrl, Disturbance(10.0), global_constant=unit)
+    state = ctrl.initial_state(nav.x0)
+    batch, info, u, _ = first_batch(ctrl, state, nav.x0, np.random.default_rng(3))
+    other = independent_batch(ctrl, batch, batch.seed + 1)
+    assert np.array_equal(other.U, batch.U) and not np.array_equal(other.Sx_real, batch.Sx_real)
+    with pytest.raises(ValueError, match="seed = "):
+        independent_batch(ctrl, batch, batch.seed)
+    s = est.step(batch, info, nav.x0, u, independent=other)
+    c = {(x.test, x.constants): x for x in step_checks(s)}
+    assert ("T2E", "local") in c and np.isfinite(s.F_nom_ind)
+    assert c["T2E", "local"].rhs == pytest.approx(s.F_nom_ind + s.delta() + 2 * max(s.E, s.E_ind))
+    assert ("T2E", "local") not in {(x.test, x.constants) for x in step_checks(replace(
+        s, F_nom_ind=np.nan))}
 
 
 # ----------------------------------------------------------------------------------------------

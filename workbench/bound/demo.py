@@ -93,11 +93,10 @@ def main(argv=None) -> None:
               f"{np.median([c.lipschitz_term for c in cs]):9.3g} {ratio:>8} | "
               f"{frac([c for i, c in ic if steps[i].all_real_safe])}  "
               f"{frac([c for i, c in ic if steps[i].nominal_differs])}")
-    fails = [(i, s) for i, s in enumerate(steps)
-             if not next(c for c in checks[i] if c.test == "T1" and c.constants == "local").holds]
-    for i, s in fails:
-        print(f"T1 (local) fails at step {i}: {s.n_crashed_real} real samples crashed, "
-              f"T1 over samples that stayed safe holds: {s.delta() + s.t1_gap_safe >= 0}")
+    for i, cs in enumerate(checks):
+        for c in cs:
+            if c.constants == "local" and not c.holds:
+                print(f"{c.test} (local) fails at step {i}: {_why(c, steps, i)}")
 
     ts = np.median(rec.step_time_s) * 1e3
     tb = np.median(rec.bound_time_s) * 1e3
@@ -105,6 +104,18 @@ def main(argv=None) -> None:
     print(f"\nper step (median): plain SA-RMPPI step {tp:.1f} ms; with diagnostic batch "
           f"{ts:.1f} ms (+{ts - tp:.1f}); estimators {tb:.1f} ms; total {ts + tb:.1f} ms = "
           f"{(ts + tb) / tp:.1f}x a plain step")
+
+
+def _why(c, steps, i) -> str:
+    s = steps[i]
+    if c.test.startswith("T1") or c.test.startswith("T2"):
+        return (f"slack {c.slack:.3g}; {s.n_crashed_real} real samples crashed (beta_max in "
+                f"their state cost), T1 over samples that stayed safe holds: "
+                f"{s.delta() + s.t1_gap_safe >= 0}")
+    n = steps[i + 1]
+    return (f"slack {c.slack:.3g}; F_real(t+1) = {n.F_real.value:.1f} vs alpha_t = {s.alpha:.1f}"
+            f", alpha_t+1 = {n.alpha:.1f}, 2E = {2 * max(s.E, n.E):.1f}; R_t = {s.tube.R:.3g} "
+            f"(nominal differs: {s.nominal_differs}); fallback at t+1: {n.fallback_used}")
 
 
 def _ratios(rows, test, ic_global) -> list[float]:

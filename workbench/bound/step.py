@@ -156,7 +156,9 @@ class BoundEstimator:
             if rng is None:
                 raise fail("rng", None, "BoundConfig.bootstrap > 0 needs a generator")
             Eb = max(bootstrap_free_energy(S, lam, rng, cfg.bootstrap, cfg.z).E for S in (Sr, Sn))
-        tube = tube_radius(batch.X, batch.X_nom, n, sp.model.position, cfg.quantile)
+        # per-sample radii dropped: a record is kept per step over whole studies
+        tube = replace(tube_radius(batch.X, batch.X_nom, n, sp.model.position, cfg.quantile),
+                       per_sample=None)
         local = self.gradients.local(batch.X, batch.X_nom, self.p)
         xb = np.asarray(x, float).ravel()
         if xb.size == n and sp.nx != n:
@@ -178,7 +180,16 @@ class BoundEstimator:
             D=self.D, D_F=DF, t1_gap=float(np.min(gap)), t1_gap_safe=gap_safe,
             n_samples=int(batch.Sx_real.size), n_crashed_real=int(batch.crashed_real.sum()),
             n_crashed_nom=int(batch.crashed_nom.sum()), fallback_used=bool(info.fallback_used),
-            nominal_differs=bool(info.nominal_differs))
+            nominal_differs=bool(info.nominal_differs), **self._independent(independent, lam))
+
+    def _independent(self, b: SAISDiagBatch | None, lam: float) -> dict[str, float]:
+        if b is None:
+            return {}
+        check_batch(b)
+        cfg = self.cfg
+        Fr = free_energy_estimate(b.Sx_real + b.LR, lam, cfg.z, cfg.method)
+        Fn = free_energy_estimate(b.Sx_nom + b.LR, lam, cfg.z, cfg.method)
+        return {"F_real_ind": Fr.value, "F_nom_ind": Fn.value, "E_ind": max(Fr.E, Fn.E)}
 
 
 def independent_batch(ctrl: RobustMPPI, batch: SAISDiagBatch, seed: int) -> SAISDiagBatch:

@@ -20,7 +20,7 @@ class Tube:
     R99: float  # 99 % quantile over samples of max_k ‖x^n_k − x*^n_k‖
     R_position: float  # pairwise, position coordinates only
     R_mean_nominal: float  # max_{n,k} ‖x^n_k − mean_m x*^m_k‖ (tube about the mean nominal)
-    per_sample: np.ndarray  # (N,) max_k ‖x^n_k − x*^n_k‖
+    per_sample: np.ndarray | None  # (N,) max_k ‖x^n_k − x*^n_k‖ (None in a BoundStep)
 
 
 def check_trajectories(X, X_nom) -> tuple[np.ndarray, np.ndarray]:
