@@ -10,6 +10,7 @@ import pytest
 
 from workbench.barrier import embed_barrier
 from workbench.bound import (
+    BoundConfig,
     BoundEstimator,
     BoundRecorder,
     BoundStep,
@@ -385,14 +386,18 @@ def test_independent_batch_gives_t2e(nav_small):
     """A second batch of the same step (same inputs, other seed) feeds T2E; same seed refused."""
     nav, ctrl = nav_small
     unit = Lipschitz(1.0, 1.0, 0.0, 0.0, 0, 0, 0, 0)  # skip the global grid
-    est = BoundEstimator(ctrl, Disturbance(10.0), global_constant=unit)
+    est = BoundEstimator(ctrl, Disturbance(10.0), BoundConfig(bootstrap=200),
+                         global_constant=unit)
     state = ctrl.initial_state(nav.x0)
     batch, info, u, _ = first_batch(ctrl, state, nav.x0, np.random.default_rng(3))
     other = independent_batch(ctrl, batch, batch.seed + 1)
     assert np.array_equal(other.U, batch.U) and not np.array_equal(other.Sx_real, batch.Sx_real)
     with pytest.raises(ValueError, match="seed = "):
         independent_batch(ctrl, batch, batch.seed)
-    s = est.step(batch, info, nav.x0, u, independent=other)
+    with pytest.raises(ValueError, match="rng = "):
+        est.step(batch, info, nav.x0, u)
+    s = est.step(batch, info, nav.x0, u, np.random.default_rng(4), independent=other)
+    assert np.isfinite(s.E_bootstrap) and s.E_bootstrap > 0
     c = {(x.test, x.constants): x for x in step_checks(s)}
     assert ("T2E", "local") in c and np.isfinite(s.F_nom_ind)
     assert c["T2E", "local"].rhs == pytest.approx(s.F_nom_ind + s.delta() + 2 * max(s.E, s.E_ind))

@@ -13,7 +13,7 @@ from workbench.bound.step import BoundEstimator, BoundStep, with_diagnostics
 class BoundRecorder:
     """A controller wrapper for :func:`workbench.sim.closed_loop`: each step runs the
     controller with diagnostics, appends a :class:`BoundStep` to ``records`` and hands on the
-    info without its batch (a batch is ~8 MB at N = 1024, T = 100). ``step_time_s`` /
+    info without its batch (≈ 12 MB at N = 1024, T = 100). ``step_time_s`` /
     ``bound_time_s`` split the time between the controller and the estimators."""
 
     def __init__(self, estimator: BoundEstimator, rng_bootstrap: np.random.Generator | None = None):
