@@ -25,6 +25,7 @@ from workbench.bound import (
     free_energy_lse,
     independent_batch,
     step_checks,
+    summarize,
     transition_checks,
     tube_radius,
 )
@@ -241,6 +242,26 @@ def test_checks_follow_spec_11_3():
     assert len(episode_checks([s0, s1, s0])[0]) == 2 * 7
 
 
+def test_summary_counts_fractions_and_ratios():
+    s0 = _step(F_real=5.5, F_nom=4.0, E=0.5, R=0.1, Lq=2.0, Lphi=4.0, gap=-0.5)
+    s1 = _step(F_real=7.5, F_nom=7.0, E=0.25, R=0.2, Lq=1.0, Lphi=1.0, gap=0.0, alpha=9.0)
+    s1 = replace(s1, fallback_used=True, n_crashed_real=3)
+    rows = {(r.test, r.constants, r.stratum): r for r in summarize([s0, s1])}
+    t2 = rows["T2", "local", "all"]  # fails at s0 (slack -0.5), holds at s1 (slack 0.3)
+    assert (t2.n_steps, t2.n_holding, t2.fraction_holding) == (2, 1, 0.5)
+    assert t2.interval[0] < 0.5 < t2.interval[1]
+    assert rows["T2", "local", "fallback"].n_steps == 1
+    assert rows["T3", "local", "all"].n_steps == 1  # one transition
+    assert ("T1", "local", "nominal_is_real") not in rows  # both steps: nominal differs
+    g = rows["T1", "global", "all"]  # global L_q = 10 x local (see _step)
+    assert g.term_ratio == pytest.approx(np.median([(4 + 3 * 20) / (4 + 3 * 2),
+                                                    (1 + 3 * 10) / (1 + 3 * 1)]))
+    assert np.isnan(rows["T1", "local", "all"].term_ratio)
+    assert g.as_dict()["interval"] == list(g.interval)
+    with pytest.raises(ValueError, match="strata = "):
+        summarize([s0], strata=("bogus",))
+
+
 # ----------------------------------------------------------------------------------------------
 # Diagnostic kernels against the twins
 # ----------------------------------------------------------------------------------------------
@@ -303,6 +324,12 @@ def test_diagnostic_kernel_matches_the_twin_and_the_plain_kernel(scene):
     extra = (b.S_state_nom - b.Sx_nom) / c.crash_cost
     assert np.allclose(extra, np.round(extra), atol=1e-6)
     assert np.all((extra > 0.5) == b.crashed_nom)
+    # the reading of workbench.bound.lipschitz: on every sample beta_k = B(h(p_k)) exactly
+    # (gamma = 0), so the state costs are functions of the physical state
+    lift = sp.model.lift_function.map(N * (U.shape[0] + 1))
+    for Xb in (b.X, b.X_nom):
+        Y = np.transpose(Xb, (0, 2, 1)).reshape(-1, sp.nx)
+        assert np.array_equal(np.asarray(lift(Y[:, :4].T)).T, Y)
     # the NumPy backend's diagnostic batch has the same shapes and pure costs (its own noise)
     nb = Sampler(sp, backend="numpy").sais(x0, xs0, U, K, 7, c, seed, diagnostics=True)
     assert nb.X.shape == (U.shape[0] + 1, sp.nx, 7) and nb.Sx_real.shape == (7,)

@@ -6,7 +6,8 @@
 * :mod:`.disturbance` — D (a quantile of ‖w‖) and D_F;
 * :mod:`.step` — :class:`BoundStep` from one SA-RMPPI step's first SAIS batch;
 * :mod:`.checks` — T1, T2, T3, T3b, T3c, T3d (and T1s);
-* :mod:`.episode` — :class:`BoundRecorder`, a controller wrapper for ``sim.closed_loop``.
+* :mod:`.episode` — :class:`BoundRecorder`, a controller wrapper for ``sim.closed_loop``;
+* :mod:`.summary` — fractions holding (Wilson), slack quantiles, global/local ratios by stratum.
 """
 
 from workbench.bound.checks import Check, episode_checks, step_checks, transition_checks
@@ -28,15 +29,18 @@ from workbench.bound.step import (
     independent_batch,
     with_diagnostics,
 )
+from workbench.bound.summary import STRATA, CheckSummary, summarize
 from workbench.bound.tube import Tube, tube_radius
 
 __all__ = [
+    "STRATA",
     "Bootstrap",
     "BoundConfig",
     "BoundEstimator",
     "BoundRecorder",
     "BoundStep",
     "Check",
+    "CheckSummary",
     "CostGradients",
     "FreeEnergy",
     "Lipschitz",
@@ -52,6 +56,7 @@ __all__ = [
     "free_energy_lse",
     "independent_batch",
     "step_checks",
+    "summarize",
     "transition_checks",
     "tube_radius",
     "with_diagnostics",

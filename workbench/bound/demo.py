@@ -21,6 +21,7 @@ import numpy as np
 from workbench.bound.checks import episode_checks
 from workbench.bound.episode import BoundRecorder
 from workbench.bound.step import BoundEstimator
+from workbench.bound.summary import summarize
 from workbench.navigation import navigation_setup
 from workbench.sampling.threshold import AlphaRule
 from workbench.sim import Disturbance, closed_loop
@@ -74,25 +75,18 @@ def main(argv=None) -> None:
           "steps")
 
     checks = episode_checks(steps)
-    rows: dict[tuple[str, str], list] = {}
-    for i, cs in enumerate(checks):
-        for c in cs:
-            rows.setdefault((c.test, c.constants), []).append((i, c))
-    print(f"\n{'test':5} {'const':6} {'n':>3} {'holds':>5} {'med slack':>10} {'5% slack':>10} "
-          f"{'med term':>9} {'glob/loc':>8} | holds: all safe   nominal differs")
-
-    def frac(sel):
-        return f"{np.mean([c.holds for c in sel]):.2f} of {len(sel):<3d}" if sel else "-" + " " * 9
-
-    for (test, cst), ic in rows.items():
-        cs = [c for _, c in ic]
-        sl = np.array([c.slack for c in cs])
-        ratio = "" if cst == "local" else f"{np.median(_ratios(rows, test, ic)):8.3g}"
-        print(f"{test:5} {cst:6} {len(cs):3d} {np.mean([c.holds for c in cs]):5.2f} "
-              f"{np.median(sl):10.4g} {np.quantile(sl, 0.05):10.4g} "
-              f"{np.median([c.lipschitz_term for c in cs]):9.3g} {ratio:>8} | "
-              f"{frac([c for i, c in ic if steps[i].all_real_safe])}  "
-              f"{frac([c for i, c in ic if steps[i].nominal_differs])}")
+    rows = summarize(steps, checks)
+    get = {(r.test, r.constants, r.stratum): r for r in rows}
+    print(f"\n{'test':5} {'const':6} {'n':>3} {'holds':>5} {'95% interval':>13} {'med slack':>10} "
+          f"{'5% slack':>10} {'glob/loc term':>13} | holds: all real safe, nominal differs")
+    for r in (r for r in rows if r.stratum == "all"):
+        ratio = "" if r.constants == "local" else f"{r.term_ratio:.3g}"
+        extra = [get.get((r.test, r.constants, k)) for k in ("all_real_safe", "nominal_differs")]
+        extra_s = ", ".join(f"{e.fraction_holding:.2f} of {e.n_steps}" if e else "-"
+                            for e in extra)
+        print(f"{r.test:5} {r.constants:6} {r.n_steps:3d} {r.fraction_holding:5.2f} "
+              f"[{r.interval[0]:.2f}, {r.interval[1]:.2f}] {r.slack_q50:10.4g} "
+              f"{r.slack_q05:10.4g} {ratio:>13} | {extra_s}")
     for i, cs in enumerate(checks):
         for c in cs:
             if c.constants == "local" and not c.holds:
@@ -116,13 +110,6 @@ def _why(c, steps, i) -> str:
     return (f"slack {c.slack:.3g}; F_real(t+1) = {n.F_real.value:.1f} vs alpha_t = {s.alpha:.1f}"
             f", alpha_t+1 = {n.alpha:.1f}, 2E = {2 * max(s.E, n.E):.1f}; R_t = {s.tube.R:.3g} "
             f"(nominal differs: {s.nominal_differs}); fallback at t+1: {n.fallback_used}")
-
-
-def _ratios(rows, test, ic_global) -> list[float]:
-    """Global over local Lipschitz term per step (steps where the local term is > 0)."""
-    local = dict(rows[(test, "local")])
-    return [c.lipschitz_term / local[i].lipschitz_term for i, c in ic_global
-            if local[i].lipschitz_term > 0] or [np.nan]
 
 
 if __name__ == "__main__":
