@@ -180,12 +180,20 @@ class CostGradients:
         wphi[-1] = 1.0
         return self._run(X, X_nom, wq, wphi, self._p(p))
 
-    def global_constant(self, grid: LipschitzGrid, p) -> Lipschitz:
-        """Global constants: the maxima over the grid's points (no secants)."""
+    def global_constant(self, grid: LipschitzGrid, p, chunk: int = 1 << 20) -> Lipschitz:
+        """Global constants: the maxima over the grid's points (no secants), in chunks of
+        ``chunk`` points to bound memory."""
         Y = grid.points(self.sp.model.obstacles, self.sp.model.n_physical, self.sp.eps_h)
-        X = np.zeros((1, self.sp.nx, Y.shape[0]))
-        X[0, : Y.shape[1]] = Y.T
-        return self._run(X, X, np.ones((1, 1)), np.ones((1, 1)), self._p(p))
+        p = self._p(p)
+        parts = []
+        for i in range(0, Y.shape[0], chunk):
+            Yc = Y[i : i + chunk]
+            X = np.zeros((1, self.sp.nx, Yc.shape[0]))
+            X[0, : Yc.shape[1]] = Yc.T
+            parts.append(self._run(X, X, np.ones((1, 1)), np.ones((1, 1)), p))
+        return Lipschitz(max(q.L_q for q in parts), max(q.L_phi for q in parts), 0.0, 0.0,
+                         sum(q.points_q for q in parts), sum(q.points_phi for q in parts),
+                         sum(q.excluded_q for q in parts), sum(q.excluded_phi for q in parts))
 
     def _run(self, X, X_nom, wq, wphi, p) -> Lipschitz:
         if self.lib is not None:
