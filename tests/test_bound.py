@@ -347,6 +347,29 @@ def test_gradient_kernel_matches_the_casadi_twin(scene):
     assert Lk.L_q > 1e3
 
 
+def test_augmented_space_constants_are_the_analytic_ones(scene):
+    """With beta as a coordinate q is quadratic in x̄ = [p, v, beta]: no barrier term in ∇q."""
+    sp, sampler, x0, xs0, U, K, c = scene
+    b = sampler.sais(x0, xs0, U, K, 61, c, 5, diagnostics=True)
+    La = CostGradients(sp, backend="compiled", space="augmented").local(b.X, b.X_nom, c.p)
+    Lr = CostGradients(sp, backend="numpy", space="augmented").local(b.X, b.X_nom, c.p)
+    for f in ("L_q", "L_phi", "secant_q", "secant_phi"):
+        assert rel_err(getattr(La, f), getattr(Lr, f)) <= RTOL, f
+    w = sp.weights
+    Wq = 2 * np.array([*w["Qp"], *w["Qv"], w["q_beta"]])
+    best = 0.0
+    for s in (0, .25, .5, .75, 1):
+        P = b.X_nom[1:] + s * (b.X[1:] - b.X_nom[1:])  # (T, 5, N)
+        h = np.min([(P[:, 0] - o.center[0]) ** 2 + (P[:, 1] - o.center[1]) ** 2 - o.radius ** 2
+                    for o in OBST], axis=0)
+        g = np.linalg.norm(Wq[None, :, None] * (P - c.p[None, :, None]), axis=1)
+        best = max(best, float(np.where(h > 0, g, 0.0).max()))
+    assert La.L_q == pytest.approx(best, rel=1e-12)
+    assert La.secant_ok
+    # R in the augmented norm includes the beta differences
+    assert tube_radius(b.X, b.X_nom, sp.nx).R >= tube_radius(b.X, b.X_nom, 4).R
+
+
 # ----------------------------------------------------------------------------------------------
 # SA-RMPPI on the navigation map
 # ----------------------------------------------------------------------------------------------
@@ -390,23 +413,29 @@ def test_t1_holds_on_navigation_steps_where_all_real_samples_stay_safe(nav_small
     sample stayed safe and the nominal state differed from the real one. Steps where some real
     samples crash can fail T1: a crashed sample carries beta_max = 1e6 in its state cost, its
     segment crosses an obstacle (those points are excluded), so no Lipschitz step applies;
-    T1 over the samples that stayed safe (T1s) holds there."""
+    T1 over the samples that stayed safe (T1s) holds there. Both readings of the norm."""
     nav, ctrl = nav_small
     est = BoundEstimator(ctrl, Disturbance(10.0))
     rec = BoundRecorder(est)
     closed_loop(rec, nav.plant, nav.x0, 6, np.random.default_rng(0), np.random.default_rng(1),
                 Disturbance(10.0), keep_infos=False)
+    # the same steps in the augmented reading (beta a coordinate): replay on the same seeds
+    aug = BoundRecorder(BoundEstimator(ctrl, Disturbance(10.0), BoundConfig(space="augmented")))
+    closed_loop(aug, nav.plant, nav.x0, 6, np.random.default_rng(0), np.random.default_rng(1),
+                Disturbance(10.0), keep_infos=False)
     assert est.global_.L_q >= max(s.local.L_q for s in rec.records)
     checked = 0
-    for s in rec.records:
-        c = {(x.test, x.constants): x for x in step_checks(s)}
-        assert c["T1s", "local"].holds and c["T1s", "global"].holds
-        if s.all_real_safe and s.nominal_differs:
-            assert s.tube.R > 0 and s.delta() > 0
-            assert c["T1", "local"].holds and c["T1", "global"].holds
-            assert c["T1", "global"].rhs >= c["T1", "local"].rhs
-            checked += 1
-    assert checked >= 1
+    for s, sa in zip(rec.records, aug.records, strict=True):
+        assert sa.t1_gap == s.t1_gap and sa.tube.R >= s.tube.R
+        for r in (s, sa):
+            c = {(x.test, x.constants): x for x in step_checks(r)}
+            assert c["T1s", "local"].holds and c["T1s", "global"].holds
+            if r.all_real_safe and r.nominal_differs:
+                assert r.tube.R > 0 and r.delta() > 0
+                assert c["T1", "local"].holds and c["T1", "global"].holds
+                assert c["T1", "global"].rhs >= c["T1", "local"].rhs
+                checked += 1
+    assert checked >= 2
 
 
 def test_independent_batch_gives_t2e(nav_small):

@@ -1,6 +1,7 @@
 """Demo (not a study): SA-RMPPI on the navigation map with the Lemma-1 checks at every step.
 
     python -m workbench.bound.demo [--steps 50] [--variance 10] [--seed 0] [--kappa 0.1]
+                                   [--space physical|augmented]
 
 ``--kappa`` is the progress-indexed alpha rule's margin. The default here is 0.1, not the
 rule's default 1.0: at variance 10 the default never rejects the real state (measured: 0 of
@@ -20,7 +21,7 @@ import numpy as np
 
 from workbench.bound.checks import episode_checks
 from workbench.bound.episode import BoundRecorder
-from workbench.bound.step import BoundEstimator
+from workbench.bound.step import BoundConfig, BoundEstimator
 from workbench.bound.summary import summarize
 from workbench.navigation import navigation_setup
 from workbench.sampling.threshold import AlphaRule
@@ -33,6 +34,8 @@ def main(argv=None) -> None:
     ap.add_argument("--variance", type=float, default=10.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--kappa", type=float, default=0.1)
+    ap.add_argument("--space", choices=("physical", "augmented"), default="physical",
+                    help="norm of R and L: physical state with beta = B(h(p)), or [x; beta]")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     nav = navigation_setup()
@@ -40,13 +43,13 @@ def main(argv=None) -> None:
     ctrl = nav.controller("sa_rmppi", rule=AlphaRule(kappa=a.kappa))
     t1 = time.perf_counter()
     dist = Disturbance(a.variance)
-    est = BoundEstimator(ctrl, dist)
+    est = BoundEstimator(ctrl, dist, BoundConfig(space=a.space))
     t2 = time.perf_counter()
     print(f"set-up: controller + alpha calibration {t1 - t0:.1f} s, global Lipschitz constant "
           f"{t2 - t1:.1f} s ({est.grid.describe(ctrl.sp.eps_h)})")
     g = est.global_
-    print(f"global L_q = {g.L_q:.3g}, L_phi = {g.L_phi:.3g} over {g.points_q} points "
-          f"({g.excluded_q} inside obstacles); D = {est.D:.4g}")
+    print(f"norm: {a.space} state; global L_q = {g.L_q:.3g}, L_phi = {g.L_phi:.3g} over "
+          f"{g.points_q} points ({g.excluded_q} inside obstacles); D = {est.D:.4g}")
 
     rec = BoundRecorder(est)
     ep = closed_loop(rec, nav.plant, nav.x0, a.steps, np.random.default_rng(a.seed),

@@ -38,7 +38,8 @@ def disturbance_bound(disturbance: Disturbance, dt: float, prob: float = 0.999) 
 
 def d_f(x, x_next_model, x_nom0, D: float, physical: int) -> float:
     """D̂_F = ‖F(x_t, u_t) − x_t‖ + ‖x*_0 − x_t‖ + D̂ on the physical state (SPEC 11.2 item 8);
-    ``x_next_model`` = F(x_t, u_t), the model step without disturbance."""
+    ``x_next_model`` = F(x_t, u_t), the model step without disturbance; the norm uses the
+    ``physical`` leading coordinates (nx for the augmented reading)."""
     x = as_array("x", np.ravel(x)[:physical], (physical,))
     xn = as_array("x_next_model", np.ravel(x_next_model)[:physical], (physical,))
     xs = as_array("x_nom0", np.ravel(x_nom0)[:physical], (physical,))

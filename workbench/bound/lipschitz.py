@@ -15,6 +15,10 @@ SPEC 11.2, which is what makes L_q large near obstacles and small away from them
   between the points (never for a quadratic cost: ‖∇q̃‖ is then convex along the segment).
 * Global: the same maxima over a dense, documented grid (:class:`LipschitzGrid`).
 
+``space="augmented"`` is SPEC 11.2 item 5's other reading: β is a coordinate, points are
+x̄* + s (x̄ − x̄*) in the full state, norms (and so the tube radius) include β; ∇q has no barrier
+term, but R then carries the β differences, which are large near obstacles.
+
 Gradients are CasADi's exact derivatives of the sampling problem's q and φ composed with the
 model's lift, evaluated by the generated kernel ``wb_cost_gradients``
 (:mod:`workbench.sampling.diagnostics`), or by the CasADi virtual machine without a compiler.
@@ -31,6 +35,7 @@ from workbench.bound.tube import check_trajectories
 from workbench.sampling.diagnostics import (
     GRADIENT_RESULTS,
     SEGMENT_POINTS,
+    SPACES,
     composed_costs,
     diagnostics_library,
 )
@@ -141,13 +146,15 @@ class LipschitzGrid:
 class CostGradients:
     """Gradient norms of q̃, φ̃ of one sampling problem (module docstring); build once."""
 
-    def __init__(self, sp: SamplingProblem, backend: str = "auto"):
+    def __init__(self, sp: SamplingProblem, backend: str = "auto", space: str = "physical"):
         one_of("backend", backend, ("auto", "compiled", "numpy"))
-        self.sp = sp
+        one_of("space", space, SPACES)
+        self.sp, self.space = sp, space
+        self.n = sp.model.n_physical if space == "physical" else sp.nx  # point dimension
         self.lib = None if backend == "numpy" else diagnostics_library(sp)
         if backend == "compiled" and self.lib is None:
             raise fail("backend", backend, "no C compiler is available; use 'numpy' or 'auto'")
-        y, p, qt, pt, mh = composed_costs(sp)
+        y, p, qt, pt, mh = composed_costs(sp, space)
         gq, gp = ca.gradient(qt, y), ca.gradient(pt, y)
         self._point = ca.Function("cost_point", [y, p],
                                   [qt, pt, ca.dot(gq, gq), ca.dot(gp, gp), mh])
@@ -156,14 +163,14 @@ class CostGradients:
         return as_array("p", p, (self.sp.n_p,))
 
     def at_points(self, Y, p) -> dict[str, np.ndarray]:
-        """q̃, φ̃, ‖∇q̃‖, ‖∇φ̃‖ and min h at physical states Y (M, n_physical), CasADi VM."""
+        """q, φ, ‖∇q‖, ‖∇φ‖ and min h at points Y (M, n) of the space (physical: n_physical,
+        augmented: nx), CasADi VM."""
         r = self._at_points(Y, p)
         r["grad_q"], r["grad_phi"] = np.sqrt(r.pop("g2_q")), np.sqrt(r.pop("g2_phi"))
         return r
 
     def _at_points(self, Y, p) -> dict[str, np.ndarray]:
-        n = self.sp.model.n_physical
-        Y = as_array("Y", Y, (None, n))
+        Y = as_array("Y", Y, (None, self.n))
         out = self._point.map(Y.shape[0])(Y.T, self._p(p))
         return {k: np.asarray(v).ravel()
                 for k, v in zip(("q", "phi", "g2_q", "g2_phi", "min_h"), out, strict=True)}
@@ -186,10 +193,14 @@ class CostGradients:
         Y = grid.points(self.sp.model.obstacles, self.sp.model.n_physical, self.sp.eps_h)
         p = self._p(p)
         parts = []
+        lift = self.sp.model.lift_function
         for i in range(0, Y.shape[0], chunk):
             Yc = Y[i : i + chunk]
             X = np.zeros((1, self.sp.nx, Yc.shape[0]))
-            X[0, : Yc.shape[1]] = Yc.T
+            if self.space == "physical":
+                X[0, : Yc.shape[1]] = Yc.T
+            else:  # the grid's states on the model's manifold: beta = B(h(p))
+                X[0] = np.asarray(lift.map(Yc.shape[0])(Yc.T))
             parts.append(self._run(X, X, np.ones((1, 1)), np.ones((1, 1)), p))
         return Lipschitz(max(q.L_q for q in parts), max(q.L_phi for q in parts), 0.0, 0.0,
                          sum(q.points_q for q in parts), sum(q.points_phi for q in parts),
@@ -197,7 +208,7 @@ class CostGradients:
 
     def _run(self, X, X_nom, wq, wphi, p) -> Lipschitz:
         if self.lib is not None:
-            k = self.lib.gradients
+            k = self.lib.gradients if self.space == "physical" else self.lib.gradients_augmented
             N = X.shape[2]
             out = k(np.zeros((N, len(GRADIENT_RESULTS))), consts={"p": p},
                     time_in={"wq": wq, "wphi": wphi}, lane_in={"x": X, "x_nom": X_nom})
@@ -211,7 +222,7 @@ class CostGradients:
 
     def _reference(self, X, X_nom, wq, wphi, p) -> dict[str, np.ndarray]:
         """The kernel's computation with the CasADi VM, per sample (the kernel's twin)."""
-        n = self.sp.model.n_physical
+        n = self.n
         T1, _, N = X.shape
         A, B = X_nom[:, :n], X[:, :n]  # (T1, n, N)
         ev = []

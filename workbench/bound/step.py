@@ -50,9 +50,12 @@ class BoundConfig:
     bootstrap: int = 0  # resamples for E_bootstrap (0: off; 200 to validate)
     quantile: float = 0.99  # tube radius quantile
     disturbance_prob: float = 0.999  # D = quantile of ‖w‖
+    # norm of R, L and D_F: the physical state with q̃ = q∘lift, or x̄ = [x; β] (lipschitz.py)
+    space: Literal["physical", "augmented"] = "physical"
 
     def __post_init__(self) -> None:
         one_of("BoundConfig.method", self.method, ("delta", "mppig"))
+        one_of("BoundConfig.space", self.space, ("physical", "augmented"))
         one_of("BoundConfig.n_q", self.n_q, ("T", "T-1"))
         if isinstance(self.bootstrap, bool) or not isinstance(self.bootstrap, int) \
                 or self.bootstrap < 0 or self.bootstrap == 1:
@@ -129,7 +132,7 @@ class BoundEstimator:
                  global_constant: Lipschitz | None = None, backend: str = "auto"):
         self.ctrl, self.cfg, self.grid = ctrl, config, grid or LipschitzGrid()
         sp = ctrl.sp
-        self.gradients = CostGradients(sp, backend)
+        self.gradients = CostGradients(sp, backend, config.space)
         self.p = np.asarray(ctrl.consts.p, float)
         self.global_ = global_constant or self.gradients.global_constant(self.grid, self.p)
         self.D = disturbance_bound(disturbance, sp.model.dt, config.disturbance_prob)
@@ -146,6 +149,7 @@ class BoundEstimator:
         cfg, lam = self.cfg, float(self.ctrl.cfg.lam)
         sp = self.ctrl.sp
         n = sp.model.n_physical
+        nr = self.gradients.n  # coordinates in the norm of R, L and D_F
         T = batch.X.shape[0] - 1
         Sr = batch.Sx_real + batch.LR
         Sn = batch.Sx_nom + batch.LR
@@ -157,7 +161,7 @@ class BoundEstimator:
                 raise fail("rng", None, "BoundConfig.bootstrap > 0 needs a generator")
             Eb = max(bootstrap_free_energy(S, lam, rng, cfg.bootstrap, cfg.z).E for S in (Sr, Sn))
         # per-sample radii dropped: a record is kept per step over whole studies
-        tube = replace(tube_radius(batch.X, batch.X_nom, n, sp.model.position, cfg.quantile),
+        tube = replace(tube_radius(batch.X, batch.X_nom, nr, sp.model.position, cfg.quantile),
                        per_sample=None)
         local = self.gradients.local(batch.X, batch.X_nom, self.p)
         xb = np.asarray(x, float).ravel()
@@ -171,7 +175,7 @@ class BoundEstimator:
         gap = batch.Sx_nom - batch.Sx_real
         safe = ~(np.asarray(batch.crashed_real) | np.asarray(batch.crashed_nom))
         gap_safe = float(np.min(gap[safe])) if safe.any() else np.inf
-        DF = d_f(xb, xn, info.x_nom, self.D, n)
+        DF = d_f(xb, xn, info.x_nom, self.D, nr)
         return BoundStep(
             lam=lam, alpha=float(info.alpha), F_real=Fr, F_nom=Fn,
             F_real_code=free_energy_lse(batch.S_real, lam),

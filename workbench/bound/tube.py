@@ -41,7 +41,8 @@ def check_trajectories(X, X_nom) -> tuple[np.ndarray, np.ndarray]:
 
 
 def tube_radius(X, X_nom, physical: int, position=(0, 1), quantile: float = 0.99) -> Tube:
-    """Radii of the real samples X about the nominal samples X_nom (module docstring)."""
+    """Radii of the real samples X about the nominal samples X_nom (module docstring); the
+    norm uses the ``physical`` leading coordinates (nx for the augmented reading)."""
     X, X_nom = check_trajectories(X, X_nom)
     if not 1 <= physical <= X.shape[1]:
         raise fail("physical", physical, f"must lie in [1, {X.shape[1]}]")

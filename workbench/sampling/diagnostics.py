@@ -12,7 +12,8 @@
   sqrt in the lane loop, which would stop it vectorising). q̃(y) =
   q(lift(y), p) is the state cost as a function of the *physical* state y (β = B(h(y)), which is
   what β is on every sample with γ = 0); gradients are CasADi's exact ones, norms Euclidean in
-  the physical state.
+  the physical state. ``wb_cost_gradients_aug`` does the same in the augmented state x̄ = [x; β]
+  (β a coordinate, segments and norms in x̄), SPEC 11.2 item 5's alternative.
 
 The main sampler library is left alone: this library is built on first use of diagnostics, so
 plain SAIS calls neither compile nor run anything extra.
@@ -74,17 +75,22 @@ def sais_diag_spec(sp: SamplingProblem, name: str = "wb_sais_diag") -> KernelSpe
     return KernelSpec(name, step, final, dict(base.roles))
 
 
-def composed_costs(sp: SamplingProblem):
-    """(y, q̃, φ̃, min h) in the physical state symbol y: the costs with β = lift(y)."""
+SPACES = ("physical", "augmented")
+
+
+def composed_costs(sp: SamplingProblem, space: str = "physical"):
+    """(y, p, q, φ, min h) as expressions of the point symbol y: ``"physical"`` — y is the
+    physical state and β = lift(y) (q̃, φ̃); ``"augmented"`` — y is the full state x̄ (β a
+    coordinate), min h from its physical part."""
     m = sp.model
     n = m.n_physical
-    y = ca.SX.sym("y", n)
+    y = ca.SX.sym("y", n if space == "physical" else sp.nx)
     p = ca.SX.sym("p", sp.n_p)
-    xb = m.lift_function(y)
+    xb = m.lift_function(y) if space == "physical" else y
     f = sp.functions()
     qt, pt = f["q"](xb, p), f["phi"](xb, p)
     if m.nh:
-        h = m.margins_function(y)
+        h = m.margins_function(y[:n])
         mh = h[0]
         for i in range(1, m.nh):
             mh = ca.fmin(mh, h[i])
@@ -93,10 +99,16 @@ def composed_costs(sp: SamplingProblem):
     return y, p, qt, pt, mh
 
 
-def gradient_spec(sp: SamplingProblem, name: str = "wb_cost_gradients") -> KernelSpec:
-    """Segment gradient maxima, secants and exclusions (see module docstring)."""
-    nx, n = sp.nx, sp.model.n_physical
-    y, p, qt, pt, mh = composed_costs(sp)
+def gradient_spec(sp: SamplingProblem, space: str = "physical",
+                  name: str | None = None) -> KernelSpec:
+    """Segment gradient maxima, secants and exclusions (see module docstring); ``space`` as
+    in :func:`composed_costs` (norms and segments in that space)."""
+    if space not in SPACES:
+        raise ValueError(f"space = {space!r} is invalid: allowed values are {SPACES}")
+    name = name or ("wb_cost_gradients" if space == "physical" else "wb_cost_gradients_aug")
+    nx = sp.nx
+    n = sp.model.n_physical if space == "physical" else nx
+    y, p, qt, pt, mh = composed_costs(sp, space)
     gq_, gp_ = ca.gradient(qt, y), ca.gradient(pt, y)
     # squared norms: sqrt (an errno-setting libm call) would stop gcc vectorising the lane
     # loop; the maxima of squares are squared back in NumPy
@@ -138,7 +150,8 @@ def gradient_spec(sp: SamplingProblem, name: str = "wb_cost_gradients") -> Kerne
 @dataclass(frozen=True, eq=False)
 class DiagnosticsLibrary:
     sais_diag: CompiledKernel
-    gradients: CompiledKernel
+    gradients: CompiledKernel  # physical space (q̃ = q∘lift)
+    gradients_augmented: CompiledKernel  # augmented space (β a coordinate)
     cdll: ctypes.CDLL
 
 
@@ -149,7 +162,7 @@ def diagnostics_library(sp: SamplingProblem) -> DiagnosticsLibrary | None:
     """Build (or load from the cache) the diagnostic kernels; None without a compiler."""
     key = sp.fingerprint()
     if key not in _LIBS:
-        specs = [sais_diag_spec(sp), gradient_spec(sp)]
+        specs = [sais_diag_spec(sp), gradient_spec(sp), gradient_spec(sp, "augmented")]
         source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
         lib = build_library(f"diag_{sp.model.name.replace('+', '_')}", [], source,
                             extra_flags=KERNEL_FLAGS)
@@ -157,8 +170,9 @@ def diagnostics_library(sp: SamplingProblem) -> DiagnosticsLibrary | None:
             _LIBS[key] = None
         else:
             g = Layout("gradients carry", tuple((r, 1) for r in GRADIENT_RESULTS))
+            res = Layout("gradients result", g.fields)
             _LIBS[key] = DiagnosticsLibrary(
                 CompiledKernel(specs[0], lib.cdll, *diag_layouts(sp)),
-                CompiledKernel(specs[1], lib.cdll, g, Layout("gradients result", g.fields)),
-                lib.cdll)
+                CompiledKernel(specs[1], lib.cdll, g, res),
+                CompiledKernel(specs[2], lib.cdll, g, res), lib.cdll)
     return _LIBS[key]
