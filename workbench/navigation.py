@@ -53,9 +53,11 @@ class NavigationSetup:
                           steps: int = 600, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Undisturbed run of the robust controller with alpha = inf: visited states (n, 4)
         and the real-state candidate free energies (n,), for threshold calibration."""
-        key = (feedback, robust, steps, seed)
+        key = (feedback, replace(robust, diagnostics=False), steps, seed)
         if key not in self._traces:
-            ctrl = RobustMPPI(self.problem, self.goal, self.mppi, replace(robust, alpha=np.inf),
+            # diagnostics off: the trace keeps every step's info, and a diagnostic batch is MBs
+            ctrl = RobustMPPI(self.problem, self.goal, self.mppi,
+                              replace(robust, alpha=np.inf, diagnostics=False),
                               self.feedback(feedback))
             ep = closed_loop(ctrl, self.plant, self.x0, steps, np.random.default_rng(seed),
                              np.random.default_rng(seed + 1))

@@ -24,7 +24,7 @@ from workbench.models import Model
 from workbench.sampling.constants import SamplerConstants
 from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.sampler import Backend, Sampler
+from workbench.sampling.sampler import Backend, SAISBatch, Sampler
 from workbench.sampling.threshold import ConstantThreshold, Threshold
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
 from workbench.validation import as_array, fail, one_of, positive
@@ -167,6 +167,9 @@ class RMPPIConfig:
     fallback: Literal["propagated", "keep_previous"] = "propagated"
     applied: Literal["nominal_feedback", "real"] = "nominal_feedback"
     clip_in_cost: bool = True  # SPEC 10.1: clipped noise/feedback in the SAIS costs
+    # SPEC 11.2: hand out the first SAIS batch of each step with trajectories and pure state
+    # costs (RMPPIInfo.batch, a SAISDiagBatch); same costs and controls, so the same behaviour
+    diagnostics: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.alpha, bool) or np.isnan(self.alpha) or self.alpha == -np.inf:
@@ -179,8 +182,9 @@ class RMPPIConfig:
             raise fail("RMPPIConfig.n_candidates", self.n_candidates, "must be odd and >= 3")
         one_of("RMPPIConfig.fallback", self.fallback, ("propagated", "keep_previous"))
         one_of("RMPPIConfig.applied", self.applied, ("nominal_feedback", "real"))
-        if not isinstance(self.clip_in_cost, bool | np.bool_):
-            raise fail("RMPPIConfig.clip_in_cost", self.clip_in_cost, "must be True or False")
+        for name in ("clip_in_cost", "diagnostics"):
+            if not isinstance(getattr(self, name), bool | np.bool_):
+                raise fail(f"RMPPIConfig.{name}", getattr(self, name), "must be True or False")
 
 
 @dataclass(frozen=True)
@@ -222,6 +226,7 @@ class RMPPIInfo:
     nominal_unsafe: bool  # the nominal rollout used for the gains left the safe set
     timing: dict[str, float] = field(default_factory=dict)
     x_nom: np.ndarray | None = None
+    batch: SAISBatch | None = None  # first SAIS batch with diagnostics (RMPPIConfig.diagnostics)
 
     @property
     def feedback_ok(self) -> bool:
@@ -313,9 +318,12 @@ class RobustMPPI:
         alpha = float(self.threshold(x_nom[None, :n])[0])
         consts = replace(self.consts, alpha=alpha)
         U_real = U
-        for _ in range(self.cfg.iterations):
+        first = None
+        for it in range(self.cfg.iterations):
             b = self.sampler.sais(xb, x_nom, U, K, self.cfg.n_samples, consts,
-                                  int(rng.integers(0, 2**63)))
+                                  int(rng.integers(0, 2**63)),
+                                  diagnostics=self.rcfg.diagnostics and it == 0)
+            first = b if it == 0 and self.rcfg.diagnostics else first
             t3 = time.perf_counter()
             Wn = importance_weights(b.S_nom, self.cfg.lam)
             Wr = importance_weights(b.S_real, self.cfg.lam)
@@ -332,7 +340,7 @@ class RobustMPPI:
         info = RMPPIInfo(sel.index, sel.free_energy, sel.alpha, sel.fallback,
                          not np.array_equal(x_nom, xb), alpha, Wn.free_energy, Wr.free_energy,
                          Wn.ess, Wr.ess, int(b.crashed_real.sum()), int(b.crashed_nom.sum()),
-                         gains.fallback, gains.nominal_unsafe, timing, x_nom)
+                         gains.fallback, gains.nominal_unsafe, timing, x_nom, first)
         return RMPPIState(U, x_nom, sel.index, gains), u, info
 
 

@@ -195,9 +195,12 @@ class CompiledKernel:
         self._sizes = {n: st.numel_in(i) for i, n in enumerate(st.name_in())}
 
     def __call__(self, carry0, *, consts: dict[str, np.ndarray], time_in=None, lane_in=None,
-                 noise=None, seed: int | None = None, keep_noise: bool = False) -> KernelOutput:
+                 noise=None, seed: int | None = None, keep_noise: bool = False,
+                 lane_out: list[np.ndarray] | None = None) -> KernelOutput:
         """carry0 (N, nc); time_in {name: (T, m)}; lane_in {name: (T, m, N)};
-        noise (T, nz, N) standard normals, or seed (draws in the kernel; kept if keep_noise)."""
+        noise (T, nz, N) standard normals, or seed (draws in the kernel; kept if keep_noise);
+        lane_out: optional C-contiguous (T, m, N padded to the lane count) buffers to write the
+        lane outputs into (allocated when None)."""
         spec = self.spec
         carry0 = np.ascontiguousarray(carry0, dtype=float)
         N = carry0.shape[0]
@@ -226,7 +229,15 @@ class CompiledKernel:
             "time": [prep(time_in[n]) for n in spec.inputs("time")],
             "const": [prep(consts[n]) for n in spec.inputs("const")],
         }
-        outs = [np.empty((T, m, Np)) for m in spec.lane_out_sizes()]
+        if lane_out is None:
+            outs = [np.empty((T, m, Np)) for m in spec.lane_out_sizes()]
+        else:
+            outs = list(lane_out)
+            want = [(T, m, Np) for m in spec.lane_out_sizes()]
+            if [o.shape for o in outs] != want or not all(
+                    o.dtype == np.float64 and o.flags.c_contiguous for o in outs):
+                raise ValueError(f"{spec.name}: lane_out must be C-contiguous float64 arrays "
+                                 f"of shapes {want}")
         result = np.empty((Np, spec.n_result))
         nz = spec.n_noise
         gen = seed is not None

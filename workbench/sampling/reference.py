@@ -93,10 +93,12 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
 
 
 def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
-                   model_backend: str = "auto") -> dict[str, np.ndarray]:
+                   model_backend: str = "auto", pure_costs: bool = False) -> dict[str, np.ndarray]:
     """Algorithm 1 (SPEC 10.1) with clip_in_cost: real samples with feedback K_k (x - x*), nominal
     samples without, the same noise for both. X0, Xs0 (N,nx) real and nominal starts, U (T,nu),
-    K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces they are made of."""
+    K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces they are made of and the
+    trajectories X, X_nom (N,T+1,nx); with ``pure_costs`` also the pure state costs Sx_real,
+    Sx_nom (Σq + φ without crash cost, SPEC 11.2 item 1)."""
     N, T = Z.shape[0], Z.shape[1]
     m = _model(sp, N, model_backend)
     inv = 1.0 / (c.sigma**2)
@@ -104,7 +106,7 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
     X = np.empty((N, T + 1, sp.nx))
     Xs = np.empty((N, T + 1, sp.nx))
     X[:, 0], Xs[:, 0] = X0, Xs0
-    S_state_nom, S_hat, S_real, LR = (np.zeros(N) for _ in range(4))
+    S_state_nom, S_hat, S_real, LR, Sx_real, Sx_nom = (np.zeros(N) for _ in range(6))
     cr, cn = np.zeros(N, bool), np.zeros(N, bool)
     Vn, Vr = np.empty((N, T, sp.nu)), np.empty((N, T, sp.nu))
     for t in range(T):
@@ -118,8 +120,11 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
         X[:, t + 1], Xs[:, t + 1] = m.step(X[:, t], vr), m.step(Xs[:, t], vn)
         cr |= m.crashed(X[:, t + 1], sp.eps_h)
         cn |= m.crashed(Xs[:, t + 1], sp.eps_h)
-        qr = m.cost(m.q, X[:, t + 1], c.p) + c.crash_cost * cr
-        qn = m.cost(m.q, Xs[:, t + 1], c.p) + c.crash_cost * cn
+        q_r, q_n = m.cost(m.q, X[:, t + 1], c.p), m.cost(m.q, Xs[:, t + 1], c.p)
+        Sx_real += q_r  # pure state costs (SPEC 11.2 item 1)
+        Sx_nom += q_n
+        qr = q_r + c.crash_cost * cr
+        qn = q_n + c.crash_cost * cn
         S_hat += qr + half * np.sum(kfb_eff * inv * kfb_eff, axis=1)  # line 8
         S_state_nom += qn
         S_real += qr + half * np.sum((u + kfb_eff) * inv * (u + 2 * eps_eff + kfb_eff), axis=1)
@@ -129,7 +134,12 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
     S_hat += phi_r
     S_state_nom += phi_n
     S_real += phi_r  # line 10
+    Sx_real += phi_r
+    Sx_nom += phi_n
     S_nom = 0.5 * S_state_nom + 0.5 * np.maximum(np.minimum(S_hat, c.alpha), S_state_nom) + LR
-    return {"S_nom": S_nom, "S_real": S_real, "S_state_nom": S_state_nom, "S_hat": S_hat,
-            "LR": LR, "crashed_real": cr, "crashed_nom": cn, "v_nom": Vn, "v_real": Vr,
-            "X": X, "X_nom": Xs}
+    out = {"S_nom": S_nom, "S_real": S_real, "S_state_nom": S_state_nom, "S_hat": S_hat,
+           "LR": LR, "crashed_real": cr, "crashed_nom": cn, "v_nom": Vn, "v_real": Vr,
+           "X": X, "X_nom": Xs}
+    if pure_costs:
+        out.update(Sx_real=Sx_real, Sx_nom=Sx_nom)
+    return out

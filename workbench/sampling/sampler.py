@@ -14,6 +14,8 @@ from typing import Literal
 import numpy as np
 
 from workbench.sampling.constants import SamplerConstants
+from workbench.sampling.diagnostics import diagnostics_library
+from workbench.sampling.emit import LANES
 from workbench.sampling.kernels import sampler_library
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import mppi_reference, sais_reference
@@ -40,6 +42,23 @@ class SAISBatch:
     crashed_nom: np.ndarray
     v_nom: np.ndarray  # (T, nu, N)
     v_real: np.ndarray  # (T, nu, N)
+
+
+@dataclass(frozen=True)
+class SAISDiagBatch(SAISBatch):
+    """A SAIS batch with the diagnostics of SPEC 11.2: both systems' state trajectories
+    (T+1, nx, N), k = 0..T (lane-major like v), and the pure state costs
+    Sx = sum_{k=1}^T q(x_k) + phi(x_T) (no crash, control or feedback cost), real and nominal."""
+
+    X: np.ndarray  # (T+1, nx, N) real samples (with feedback)
+    X_nom: np.ndarray  # (T+1, nx, N) nominal samples
+    Sx_real: np.ndarray  # (N,)
+    Sx_nom: np.ndarray  # (N,)
+    # the call's inputs, so that an independent batch can be drawn (SPEC 11.2, 11.3 T2)
+    U: np.ndarray  # (T, nu) importance-sampling sequence
+    K: np.ndarray  # (T, nu, nx) feedback gains
+    consts: SamplerConstants
+    seed: int
 
 
 class Sampler:
@@ -87,13 +106,18 @@ class Sampler:
         ref = mppi_reference(self.sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), c)
         return MPPIBatch(ref["S"], ref["crashed"], np.transpose(ref["v"], (1, 2, 0)))
 
-    def sais(self, x0, xs0, U, K, N: int, c: SamplerConstants, seed: int) -> SAISBatch:
+    def sais(self, x0, xs0, U, K, N: int, c: SamplerConstants, seed: int,
+             diagnostics: bool = False) -> SAISBatch:
+        """SAIS batch (Algorithm 1). ``diagnostics=True`` returns a :class:`SAISDiagBatch`
+        (same costs, bitwise, for the same seed; plus trajectories and pure state costs)."""
         U = self._check(N, U, c, K)
         x0, xs0 = as_array("x0", x0, (self.sp.nx,)), as_array("xs0", xs0, (self.sp.nx,))
         K = np.asarray(K, dtype=float)
         if not np.all(np.isfinite(K)):
             raise fail("K", K, "the gains must be finite")
         T = U.shape[0]
+        if diagnostics:
+            return self._sais_diag(x0, xs0, U, K, N, c, seed)
         if self.lib is not None:
             k = self.lib.sais
             out = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
@@ -108,6 +132,35 @@ class Sampler:
                          ref["LR"], ref["crashed_real"], ref["crashed_nom"],
                          np.transpose(ref["v_nom"], (1, 2, 0)),
                          np.transpose(ref["v_real"], (1, 2, 0)))
+
+    def _sais_diag(self, x0, xs0, U, K, N, c, seed) -> SAISDiagBatch:
+        T, nx = U.shape[0], self.sp.nx
+        lib = diagnostics_library(self.sp) if self.lib is not None else None
+        if lib is not None:
+            k = lib.sais_diag
+            Np = -(-N // LANES) * LANES
+            # the kernel writes the post-step states straight into rows 1..T (no copy)
+            X, Xs = np.empty((T + 1, nx, Np)), np.empty((T + 1, nx, Np))
+            X[0], Xs[0] = x0[:, None], xs0[:, None]
+            bufs = [np.empty((T, self.sp.nu, Np)), np.empty((T, self.sp.nu, Np)), X[1:], Xs[1:]]
+            out = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
+                    time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed, lane_out=bufs)
+            r = k.result.unpack(out.result)
+            X, Xs = X[..., :N], Xs[..., :N]
+            return SAISDiagBatch(r["S_nom"], r["S_real"], r["S_state_nom"], r["S_hat"],
+                                 r["LR"], r["crashed_real"] > 0, r["crashed_nom"] > 0,
+                                 out.lane_out[0], out.lane_out[1], X, Xs, r["Sx_real"].copy(),
+                                 r["Sx_nom"].copy(), U, K, c, int(seed))
+        ref = sais_reference(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
+                             self._noise(N, T, seed), c, pure_costs=True)
+
+        def lm(a):
+            return np.ascontiguousarray(np.transpose(a, (1, 2, 0)))
+
+        return SAISDiagBatch(ref["S_nom"], ref["S_real"], ref["S_state_nom"], ref["S_hat"],
+                             ref["LR"], ref["crashed_real"], ref["crashed_nom"], lm(ref["v_nom"]),
+                             lm(ref["v_real"]), lm(ref["X"]), lm(ref["X_nom"]), ref["Sx_real"],
+                             ref["Sx_nom"], U, K, c, int(seed))
 
     def candidates(self, starts, U, stride, c: SamplerConstants, seed: int) -> np.ndarray:
         """Costs (N,) of rollouts from per-sample starts (N, nx) following U shifted by the
