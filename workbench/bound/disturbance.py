@@ -31,9 +31,15 @@ def disturbance_scale(disturbance: Disturbance, dt: float) -> float:
             "white_noise": np.sqrt(dt) * np.sqrt(lvl), "kick": np.sqrt(lvl)}[disturbance.model]
 
 
-def disturbance_bound(disturbance: Disturbance, dt: float, prob: float = 0.999) -> float:
-    """D̂ = c √(χ²_{2,prob}) (module docstring)."""
-    return disturbance_scale(disturbance, dt) * chi_radius(prob, len(disturbance.velocity_index))
+def disturbance_bound(disturbance: Disturbance, dt: float, prob: float = 0.999,
+                      plant=None) -> float:
+    """D̂ = c √(χ²_{n,prob}) with n disturbed states: the disturbance's own indices, else the
+    plant's (:meth:`Disturbance.indices`), else 2 (the planar velocity)."""
+    if disturbance.velocity_index is not None:
+        n = len(disturbance.velocity_index)
+    else:
+        n = len(disturbance.indices(plant)) if plant is not None else 2
+    return disturbance_scale(disturbance, dt) * chi_radius(prob, n)
 
 
 def d_f(x, x_next_model, x_nom0, D: float, physical: int) -> float:

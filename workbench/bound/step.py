@@ -32,7 +32,7 @@ from workbench.bound.free_energy import (
 from workbench.bound.lipschitz import CostGradients, Lipschitz, LipschitzGrid
 from workbench.bound.tube import Tube, check_trajectories, tube_radius
 from workbench.fastcall import FastFunction
-from workbench.sampling.controllers import RMPPIInfo, RobustMPPI
+from workbench.sampling.controllers import RMPPIInfo, RobustMPPI, physical_model
 from workbench.sampling.sampler import SAISDiagBatch
 from workbench.sim import Disturbance
 from workbench.validation import fail, one_of
@@ -135,7 +135,8 @@ class BoundEstimator:
         self.gradients = CostGradients(sp, backend, config.space)
         self.p = np.asarray(ctrl.consts.p, float)
         self.global_ = global_constant or self.gradients.global_constant(self.grid, self.p)
-        self.D = disturbance_bound(disturbance, sp.model.dt, config.disturbance_prob)
+        self.D = disturbance_bound(disturbance, sp.model.dt, config.disturbance_prob,
+                                   physical_model(sp.model))
         self._dyn = FastFunction(sp.functions()["dyn"])
 
     def step(self, batch: SAISDiagBatch, info: RMPPIInfo, x, u,
