@@ -28,7 +28,8 @@ def main(argv=None) -> None:
     run_study(decl, a.out, workers=a.workers, scheduler=a.scheduler).raise_for_errors()
     config = {"episodes": a.episodes, "steps": a.steps, "seed": a.seed,
               "wall_s": time.time() - t0}
-    write_report(RunStore(a.out).table("episodes"), a.out, config)
+    store = RunStore(a.out)
+    write_report(store.table("episodes"), a.out, config, store)
 
 
 if __name__ == "__main__":

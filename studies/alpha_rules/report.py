@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from studies.alpha_rules.run import DEFAULT_RULE, RULES
@@ -37,7 +38,27 @@ def _fmt(x, p=3):
     return "-" if x is None or x != x else f"{x:.{p}f}"
 
 
-def write_report(df: pd.DataFrame, out: Path, config: dict) -> None:
+def distinct_paths(df: pd.DataFrame, store) -> list[str]:
+    """Per variance: on how many realisations SA-RMPPI (default rule), RMPPI and BaS-MPPI
+    followed different trajectories (the robust machinery changed what the robot did)."""
+    lines = []
+    base = df[(df.rule == DEFAULT_RULE) | (df.controller == "bas_mppi")]
+    for var, g in base.groupby("variance"):
+        paths = {(r.controller, r.episode): store.arrays(r.task_id)["path"]
+                 for r in g.itertuples()}
+        n = g.episode.nunique()
+
+        def differ(a, b, paths=paths, n=n):
+            return sum(not np.array_equal(paths[(a, j)], paths[(b, j)])
+                       for j in range(n) if (a, j) in paths and (b, j) in paths)
+
+        lines.append(f"- variance {var:g}: SA-RMPPI ≠ BaS-MPPI on {differ('sa_rmppi', 'bas_mppi')}"
+                     f" of {n}, SA-RMPPI ≠ RMPPI on {differ('sa_rmppi', 'rmppi')} of {n}, "
+                     f"RMPPI ≠ BaS-MPPI on {differ('rmppi', 'bas_mppi')} of {n} realisations")
+    return lines
+
+
+def write_report(df: pd.DataFrame, out: Path, config: dict, store=None) -> None:
     out = Path(out)
     s = summarise(df)
     out.mkdir(parents=True, exist_ok=True)
@@ -86,6 +107,9 @@ def write_report(df: pd.DataFrame, out: Path, config: dict) -> None:
         diff, lo, hi = paired_difference_interval(a, b, c, d)
         lines.append(f"| {rule} | {var:g} | {a} | {b} | {c} | {d} | {diff:+.2f} "
                      f"[{lo:+.2f}, {hi:+.2f}] | {mcnemar_exact(b, c):.3f} |")
+    if store is not None:
+        lines += ["", "## Do the controllers act differently? (same realisations)", ""]
+        lines += distinct_paths(df, store)
     lines += ["", "Rates of steps are pooled over all steps of all episodes of a cell. "
               "'nominal ≠ real': the nominal state after selection differs from the measured "
               "state. 'alpha fallback': no candidate was below alpha. 'K_safe fallback': the "
