@@ -62,7 +62,7 @@ def _declare(c: ctypes.CDLL) -> None:
     c.wb_line_search.restype = i
     c.wb_line_search.argtypes = [i] + [_dp] * 6 + [d, _dp, _dp, i, d, _dp, _dp, _dp, _dp, _dp]
     c.wb_backward.restype = i
-    c.wb_backward.argtypes = [i] + [_dp] * 10 + [d, i, i, _dp, _dp, _dp]
+    c.wb_backward.argtypes = [i] + [_dp] * 10 + [d, i, i, _dp, _dp, _dp, _dp, i]
     c.wb_solve.restype = None
     c.wb_solve.argtypes = [i] + [_dp] * 9 + [i] + [_dp] * 16
     c.wb_box_qp.restype = i
@@ -97,11 +97,13 @@ class CompiledPasses:
             "X": (T + 1, nx), "U": (T, nu), "P": (T + 1, max(problem.n_p, 1)), "x0": (nx,),
             "k": (T, nu), "K": (T, nu, nx), "dV": (2,), "umin": (nu,), "umax": (nu,),
             "Xn": (T + 1, nx), "Un": (T, nu), "out": (3,), "alphas": (32,),
-            "k2": (T, nu), "K2": (T, nu, nx), "J": (1,), "opt": (11,), "sout": (4,),
+            "k2": (T, nu), "K2": (T, nu, nx), "J": (1,), "opt": (12,), "sout": (4,),
+            "Xd": (T + 1, nx),
         }
         self._b = {n: np.zeros(s) for n, s in shapes.items()}
         self._a = {n: _ptr(v) for n, v in self._b.items()}
         self._d = {n: self._b[n] for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")}
+        self._d["X"] = self._b["Xd"]  # the trajectory of the derivatives (second order)
         self._pd = [self._a[n] for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")]
 
     def _put(self, name: str, value) -> int:
@@ -113,16 +115,17 @@ class CompiledPasses:
     def derivatives(self, X, U, P):
         self._c.wb_derivatives(self.T, self._put("X", X), self._put("U", U), self._put("P", P),
                                *self._pd)
+        np.copyto(self._b["Xd"], self._b["X"])
         return self._d
 
-    def backward(self, d, U, umin, umax, mu, reg, boxed):
+    def backward(self, d, U, umin, umax, mu, reg, boxed, second_order=False):
         if d is not self._d:
             for n in self._d:
                 np.copyto(self._d[n], d[n])
         status = self._c.wb_backward(
             self.T, *self._pd, self._put("U", U), self._put("umin", umin),
             self._put("umax", umax), float(mu), int(reg), int(boxed), self._a["k"],
-            self._a["K"], self._a["dV"])
+            self._a["K"], self._a["dV"], self._a["Xd"], int(second_order))
         return status, self._b["k"].copy(), self._b["K"].copy(), self._b["dV"].copy()
 
     def _policy(self, x0, X, U, k, K, P) -> list[int]:

@@ -3,7 +3,7 @@
  * Included after the generated code and a block of macros written by workbench/ilqg/compiled.py:
  *   NX NU NP NH              dimensions
  *   WB_SZ_ARG WB_SZ_RES WB_SZ_IW WB_SZ_W   shared work sizes (max over functions)
- * and the generated functions wb_dyn, wb_dyn_jac, wb_stage, wb_stage_quad, wb_term,
+ * and the generated functions wb_dyn, wb_dyn_jac, wb_dyn_hess, wb_stage, wb_stage_quad, wb_term,
  * wb_term_quad, wb_margins, whose matrix outputs are row-major.
  *
  * All arrays are row-major, batch dimension first: X (T+1,NX), U (T,NU), P (T+1,NP),
@@ -220,11 +220,13 @@ int wb_box_qp(int n, const double* H, const double* g, const double* lo, const d
 
 /* Backward pass. Returns 0 on success, t+1 if Quu (or the box QP) failed at step t.
  * reg: 0 = control-space (Quu + mu I), 1 = state-space (Vxx + mu I). boxed: use the box QP.
- * dV[0] = sum k'Qu, dV[1] = sum ½ k'Quu k. */
+ * dV[0] = sum k'Qu, dV[1] = sum ½ k'Quu k.
+ * second_order: full DDP, Qxx, Quu, Qux also get sum_i V'_x,i Hess F_i at (X[t], U[t])
+ * (wb_dyn_hess with lam = the next value gradient); X is read only then. */
 int wb_backward(int T, const double* A, const double* B, const double* lx, const double* lu,
                 const double* lxx, const double* luu, const double* lux, const double* U,
                 const double* umin, const double* umax, double mu, int reg, int boxed,
-                double* k, double* K, double* dV) {
+                double* k, double* K, double* dV, const double* X, int second_order) {
   double Vx[NX], Vxx[NX * NX], Qx[NX], Qu[NU], Qxx[NX * NX], Quu[NU * NU], Qux[NU * NX];
   double Quu_r[NU * NU], Qux_r[NU * NX], VA[NX * NX], VB[NX * NU], L[NU * NU];
   double lo[NU], hi[NU], warm[NU], kk[NU];
@@ -274,6 +276,13 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
         Quu[i * NU + j] = q;
         Quu_r[i * NU + j] = q;
       }
+    }
+    if (second_order) {
+      double Hxx[NX * NX], Huu[NU * NU], Hux[NU * NX];
+      wb_call(wb_dyn_hess, X + (size_t)t * NX, U + (size_t)t * NU, Vx, Hxx, Huu, Hux, 0, 0, 0);
+      for (int i = 0; i < NX * NX; ++i) Qxx[i] += Hxx[i];
+      for (int i = 0; i < NU * NU; ++i) { Quu[i] += Huu[i]; Quu_r[i] = Quu[i]; }
+      for (int i = 0; i < NU * NX; ++i) { Qux[i] += Hux[i]; Qux_r[i] = Qux[i]; }
     }
     if (reg == 0) {
       for (int i = 0; i < NU; ++i) Quu_r[i * NU + i] += mu;
@@ -362,7 +371,7 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
 /* The outer loop of workbench/ilqg/solver.py (ilqg, python loop) in C, for small problems where
  * the Python loop costs more than the passes. Keep the two in step; tests compare them.
  * opt = [max_iter, mu_init, mu_factor, mu_min, mu_max, reg, boxed, z_min, tol_abs, tol_rel,
- *        tol_grad]; X, U hold the initial (accepted) rollout and are updated in place; *J its
+ *        tol_grad, second_order]; X, U hold the initial (accepted) rollout and are updated in place; *J its
  * cost. hist rows (max_iter, 7): cost, dJ, expected, alpha, mu, grad_norm, accepted.
  * out = [stop code (0 max_iter, 1 regularization_limit, 2 gradient, 3 cost_change,
  * 4 line_search_failed), converged, n_hist, final mu]. Work: derivative arrays (7, as
@@ -375,6 +384,7 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
   const int max_iter = (int)opt[0], reg = (int)opt[5], boxed = (int)opt[6];
   const double f = opt[2], mu_min = opt[3], mu_max = opt[4], z_min = opt[7];
   const double tol_abs = opt[8], tol_rel = opt[9], tol_grad = opt[10];
+  const int second_order = (int)opt[11];
   double mu = opt[1], delta = 1.0, dV[2];
   int d_valid = 0, stop = 0, converged = 0, n_hist = 0;
   for (int it = 1; it <= max_iter; ++it) {
@@ -384,7 +394,7 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
     }
     for (;;) {
       if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k, K,
-                      dV) == 0)
+                      dV, X, second_order) == 0)
         break;
       delta = delta * f > f ? delta * f : f;
       mu = mu * delta > mu_min ? mu * delta : mu_min;
@@ -435,7 +445,7 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
   if (!d_valid) { /* gains about the returned trajectory */
     wb_derivatives(T, X, U, P, A, B, lx, lu, lxx, luu, lux);
     if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k2, K2,
-                    dV) == 0) {
+                    dV, X, second_order) == 0) {
       memcpy(k, k2, sizeof(double) * (size_t)T * NU);
       memcpy(K, K2, sizeof(double) * (size_t)T * NU * NX);
     }
