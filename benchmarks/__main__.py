@@ -84,8 +84,10 @@ def report_markdown(records: list[dict], man: dict) -> str:
         for key in ("goal_ratio", "goal_ms"):
             if p.get(key) is not None:
                 notes.append(f"{key} {p[key]}")
-        if "iterations" in p:
+        if isinstance(p.get("iterations"), dict):
             notes.append("iterations " + ", ".join(f"{k} {v}" for k, v in p["iterations"].items()))
+        if p.get("threads") is not None:
+            notes.append(f"threads {p['threads']}")
         if "max_rel_cost_difference" in p:
             notes.append(f"objectives agree to {p['max_rel_cost_difference']:.1e}")
         if "max_rel_err_vs_kernel_on_kernel_noise" in p:

@@ -88,7 +88,10 @@ def sais_batch_records(repeats: int) -> list[dict]:
     x0 = sp.model.lift(nav_setup.x0)
     T = U.shape[0]
     out = []
-    for N in (256, 1024, 4096):
+    for N, threads in ((256, None), (1024, None), (4096, None), (1024, 1)):
+        if threads is not None:  # one thread: robust to other processes on the machine
+            default_threads = sampler.lib.cdll.wb_get_threads()
+            sampler.lib.set_threads(threads)
         # exactness first: the vectorised baseline on the kernel's noise equals the kernel
         b = sampler.sais(x0, x0, U, K, N, c, 1)
         r = sais_numpy(vec, x0, x0, U, K, sampler.lib.normals(N, T, sp.nu, 1), c)
@@ -103,11 +106,15 @@ def sais_batch_records(repeats: int) -> list[dict]:
             lambda i, N=N: _sais_compiled(sampler, x0, U, K, N, c, i),
             lambda i, N=N: _sais_vectorised(vec, x0, U, K, N, c, i),
             max(repeats, 5) * 4, max(3, repeats // 2))
+        used = sampler.lib.cdll.wb_get_threads()
+        if threads is not None:
+            sampler.lib.set_threads(default_threads)
         out.append(_record(
-            f"sais_batch_N{N}_T100", 1e3 * t_fast, "ms", "vectorised_numpy_sais_ms",
+            f"sais_batch_N{N}_T100" + ("_1thread" if threads else ""), 1e3 * t_fast, "ms",
+            "vectorised_numpy_sais_ms",
             1e3 * t_slow, {
                 "N": N, "T": T, "obstacles": len(nav_setup.scene.obstacles()),
-                "threads": sampler.lib.cdll.wb_get_threads(),
+                "threads": used,
                 "includes": "noise draw + dual rollout + 3 costs + both weightings and updates "
                 "(both sides)", "max_rel_err_vs_kernel_on_kernel_noise": err,
                 "crashed_real_fraction": float(np.mean(r["crashed_real"])),
