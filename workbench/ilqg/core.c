@@ -110,8 +110,9 @@ static int chol(double* a, int n, int ld) {
   return 0;
 }
 
-/* Solve (L L') y = b in place, L lower triangular n x n with stride ld. */
-static void chol_solve(const double* L, int n, int ld, double* b) {
+/* Solve (L L') y = b in place, L lower triangular n x n with stride ld. Inlined: the
+ * backward pass calls it per column of K with n, ld known at compile time. */
+static inline __attribute__((always_inline)) void chol_solve(const double* L, int n, int ld, double* b) {
   for (int i = 0; i < n; ++i) {
     double s = b[i];
     for (int p = 0; p < i; ++p) s -= L[i * ld + p] * b[p];
@@ -254,10 +255,10 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
       double s = lx[(size_t)t * NX + i];
       for (int p = 0; p < NX; ++p) s += At[p * NX + i] * Vx[p];
       Qx[i] = s;
-      for (int j = 0; j < NX; ++j) {
+      for (int j = i; j < NX; ++j) { /* symmetric: upper triangle, mirrored below */
         double q = lxx[((size_t)t * NX + i) * NX + j];
         for (int p = 0; p < NX; ++p) q += At[p * NX + i] * VA[p * NX + j];
-        Qxx[i * NX + j] = q;
+        Qxx[i * NX + j] = Qxx[j * NX + i] = q;
       }
     }
     for (int i = 0; i < NU; ++i) {
@@ -339,31 +340,25 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
       dV[0] += kt[i] * Qu[i];
       dV[1] += 0.5 * kt[i] * Quuk[i];
     }
-    double QuuK[NU * NX];
+    double QuuK[NU * NX]; /* Quu K + Qux: V_xx = Qxx + K'(Quu K + Qux) + Qux' K */
     for (int i = 0; i < NU; ++i)
       for (int j = 0; j < NX; ++j) {
         double s = 0.0;
         for (int p = 0; p < NU; ++p) s += Quu[i * NU + p] * Kt[p * NX + j];
-        QuuK[i * NX + j] = s;
+        QuuK[i * NX + j] = s + Qux[i * NX + j];
       }
     for (int i = 0; i < NX; ++i) {
       double s = Qx[i];
       for (int p = 0; p < NU; ++p)
         s += Kt[p * NX + i] * Quuk[p] + Kt[p * NX + i] * Qu[p] + Qux[p * NX + i] * kt[p];
       Vx[i] = s;
-      for (int j = 0; j < NX; ++j) {
+      for (int j = i; j < NX; ++j) { /* symmetric: upper triangle, mirrored below */
         double v = Qxx[i * NX + j];
         for (int p = 0; p < NU; ++p)
-          v += Kt[p * NX + i] * QuuK[p * NX + j] + Kt[p * NX + i] * Qux[p * NX + j]
-               + Qux[p * NX + i] * Kt[p * NX + j];
-        Vxx[i * NX + j] = v;
+          v += Kt[p * NX + i] * QuuK[p * NX + j] + Qux[p * NX + i] * Kt[p * NX + j];
+        Vxx[i * NX + j] = Vxx[j * NX + i] = v;
       }
     }
-    for (int i = 0; i < NX; ++i)
-      for (int j = i + 1; j < NX; ++j) {
-        double m = 0.5 * (Vxx[i * NX + j] + Vxx[j * NX + i]);
-        Vxx[i * NX + j] = Vxx[j * NX + i] = m;
-      }
   }
   return 0;
 }
