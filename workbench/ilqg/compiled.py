@@ -37,7 +37,19 @@ def _macros(problem: Problem, fns: list[ca.Function]) -> str:
     lines = [f"#define NX {problem.nx}", f"#define NU {problem.nu}",
              f"#define NP {max(problem.n_p, 1)}", f"#define NH {problem.nh}"]
     lines += [f"#define WB_SZ_{k} {v}" for k, v in sz.items()]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n" + _jacobian_patterns(problem)
+
+
+def _jacobian_patterns(problem: Problem) -> str:
+    """Structural nonzeros of A = dF/dx and B = dF/du (compressed columns) for the backward
+    pass: its products skip the structural zeros (same sums, same order, so the same results)."""
+    m = problem.model
+    out = []
+    for name, wrt in (("A", m.x), ("B", m.u)):
+        sp = ca.jacobian(m.x_next, wrt).sparsity()
+        for arr, vals in (("COLIND", sp.colind()), ("ROW", sp.row() or [0])):
+            out.append(f"static const int WB_{name}_{arr}[] = {{{', '.join(map(str, vals))}}};")
+    return "\n".join(out) + "\n"
 
 
 def problem_library(problem: Problem) -> Library | None:

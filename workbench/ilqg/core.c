@@ -3,6 +3,8 @@
  * Included after the generated code and a block of macros written by workbench/ilqg/compiled.py:
  *   NX NU NP NH              dimensions
  *   WB_SZ_ARG WB_SZ_RES WB_SZ_IW WB_SZ_W   shared work sizes (max over functions)
+ *   WB_A_COLIND WB_A_ROW WB_B_COLIND WB_B_ROW   structural nonzeros of A and B (compressed
+ *                            columns): the backward pass sums over them only
  * and the generated functions wb_dyn, wb_dyn_jac, wb_dyn_hess, wb_stage, wb_stage_quad, wb_term,
  * wb_term_quad, wb_margins, whose matrix outputs are row-major.
  *
@@ -14,6 +16,10 @@
  */
 #include <math.h>
 #include <string.h>
+
+/* Full unrolling of the sparse products: after it, the pattern arrays are constants and the
+ * loops straight-line code over the structural nonzeros only. */
+#define WB_UNROLL _Pragma("GCC unroll 64")
 
 typedef int (*wb_fn)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 
@@ -238,44 +244,69 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
   for (int t = T - 1; t >= 0; --t) {
     const double* At = A + (size_t)t * NX * NX;
     const double* Bt = B + (size_t)t * NX * NU;
-    /* VA = Vxx A, VB = Vxx B */
-    for (int i = 0; i < NX; ++i) {
-      for (int j = 0; j < NX; ++j) {
+    /* VA = Vxx A, VB = Vxx B; every sum over p runs over the structural nonzeros of column
+     * j of A (or B) in increasing p, which adds the same terms in the same order as the dense
+     * sum without its exact zeros. */
+    WB_UNROLL
+    for (int j = 0; j < NX; ++j)
+      WB_UNROLL
+      for (int i = 0; i < NX; ++i) {
         double s = 0.0;
-        for (int p = 0; p < NX; ++p) s += Vxx[i * NX + p] * At[p * NX + j];
+        WB_UNROLL
+        for (int q = WB_A_COLIND[j]; q < WB_A_COLIND[j + 1]; ++q)
+          s += Vxx[i * NX + WB_A_ROW[q]] * At[WB_A_ROW[q] * NX + j];
         VA[i * NX + j] = s;
       }
-      for (int j = 0; j < NU; ++j) {
+    WB_UNROLL
+    for (int j = 0; j < NU; ++j)
+      WB_UNROLL
+      for (int i = 0; i < NX; ++i) {
         double s = 0.0;
-        for (int p = 0; p < NX; ++p) s += Vxx[i * NX + p] * Bt[p * NU + j];
+        WB_UNROLL
+        for (int q = WB_B_COLIND[j]; q < WB_B_COLIND[j + 1]; ++q)
+          s += Vxx[i * NX + WB_B_ROW[q]] * Bt[WB_B_ROW[q] * NU + j];
         VB[i * NU + j] = s;
       }
-    }
+    WB_UNROLL
     for (int i = 0; i < NX; ++i) {
       double s = lx[(size_t)t * NX + i];
-      for (int p = 0; p < NX; ++p) s += At[p * NX + i] * Vx[p];
+      WB_UNROLL
+      for (int q = WB_A_COLIND[i]; q < WB_A_COLIND[i + 1]; ++q)
+        s += At[WB_A_ROW[q] * NX + i] * Vx[WB_A_ROW[q]];
       Qx[i] = s;
+      WB_UNROLL
       for (int j = i; j < NX; ++j) { /* symmetric: upper triangle, mirrored below */
-        double q = lxx[((size_t)t * NX + i) * NX + j];
-        for (int p = 0; p < NX; ++p) q += At[p * NX + i] * VA[p * NX + j];
-        Qxx[i * NX + j] = Qxx[j * NX + i] = q;
+        double v = lxx[((size_t)t * NX + i) * NX + j];
+        WB_UNROLL
+        for (int q = WB_A_COLIND[i]; q < WB_A_COLIND[i + 1]; ++q)
+          v += At[WB_A_ROW[q] * NX + i] * VA[WB_A_ROW[q] * NX + j];
+        Qxx[i * NX + j] = Qxx[j * NX + i] = v;
       }
     }
+    WB_UNROLL
     for (int i = 0; i < NU; ++i) {
       double s = lu[(size_t)t * NU + i];
-      for (int p = 0; p < NX; ++p) s += Bt[p * NU + i] * Vx[p];
+      WB_UNROLL
+      for (int q = WB_B_COLIND[i]; q < WB_B_COLIND[i + 1]; ++q)
+        s += Bt[WB_B_ROW[q] * NU + i] * Vx[WB_B_ROW[q]];
       Qu[i] = s;
+      WB_UNROLL
       for (int j = 0; j < NX; ++j) {
-        double q = lux[((size_t)t * NU + i) * NX + j];
-        for (int p = 0; p < NX; ++p) q += Bt[p * NU + i] * VA[p * NX + j];
-        Qux[i * NX + j] = q;
-        Qux_r[i * NX + j] = q;
+        double v = lux[((size_t)t * NU + i) * NX + j];
+        WB_UNROLL
+        for (int q = WB_B_COLIND[i]; q < WB_B_COLIND[i + 1]; ++q)
+          v += Bt[WB_B_ROW[q] * NU + i] * VA[WB_B_ROW[q] * NX + j];
+        Qux[i * NX + j] = v;
+        Qux_r[i * NX + j] = v;
       }
+      WB_UNROLL
       for (int j = 0; j < NU; ++j) {
-        double q = luu[((size_t)t * NU + i) * NU + j];
-        for (int p = 0; p < NX; ++p) q += Bt[p * NU + i] * VB[p * NU + j];
-        Quu[i * NU + j] = q;
-        Quu_r[i * NU + j] = q;
+        double v = luu[((size_t)t * NU + i) * NU + j];
+        WB_UNROLL
+        for (int q = WB_B_COLIND[i]; q < WB_B_COLIND[i + 1]; ++q)
+          v += Bt[WB_B_ROW[q] * NU + i] * VB[WB_B_ROW[q] * NU + j];
+        Quu[i * NU + j] = v;
+        Quu_r[i * NU + j] = v;
       }
     }
     if (second_order) {
