@@ -144,7 +144,7 @@ def bench_bas_ilqg_vs_nlp(repeats: int) -> list[dict]:
         "gauss_newton": lambda: ilqg(problem, scene.start, U0, P, gn_opts, passes),
         "ipopt": lambda: nlp["ipopt"].solve(scene.start, U0, P),
         "fatrop": lambda: nlp["fatrop"].solve(scene.start, U0, P),
-    }, max(repeats, 5))
+    }, max(repeats, 11))
     costs = {n: r.cost for n, (_, r) in res.items()}
     worst = _check_agree("BaS tracking", costs, 1e-6)
     ms = {n: 1e3 * t for n, (t, _) in res.items()}
@@ -180,7 +180,7 @@ def bench_al_ilqg_vs_nlp(repeats: int) -> list[dict]:
         "al_ilqg": lambda: al_ilqg(alp, x0, U0, P, passes=passes),
         "ipopt": lambda: nlp["ipopt"].solve(x0, U0, P),
         "fatrop": lambda: nlp["fatrop"].solve(x0, U0, P),
-    }, max(repeats, 5))
+    }, max(repeats, 11))
     nlp_costs = {n: res[n][1].cost for n in ("ipopt", "fatrop")}
     worst = _check_agree("hard-constrained tracking", nlp_costs, 1e-6)
     al = res["al_ilqg"][1]
