@@ -92,6 +92,8 @@ def report_markdown(records: list[dict], man: dict) -> str:
             notes.append(f"objectives agree to {p['max_rel_cost_difference']:.1e}")
         if "max_rel_err_vs_kernel_on_kernel_noise" in p:
             notes.append(f"baseline = kernel to {p['max_rel_err_vs_kernel_on_kernel_noise']:.0e}")
+        if "nlp_max_rel_cost_difference" in p:
+            notes.append(f"IPOPT/FATROP objectives agree to {p['nlp_max_rel_cost_difference']:.1e}")
         if "al_rel_cost_gap_vs_fatrop" in p:
             notes.append(f"AL cost gap {p['al_rel_cost_gap_vs_fatrop']:.1e}")
         lines.append(f"| {r['name']} | {_fmt(r['value'])} | {r['unit']} | "
