@@ -1,14 +1,19 @@
-"""``python -m benchmarks --out reports/bench/bench.json`` (``make bench``).
+"""``python -m benchmarks --out reports/bench/bench.json`` (``make bench``), also writes
+``report.md`` beside it.
 
-Each record: name, value, unit, baseline, baseline_value, ratio, params. Times are medians of
-repeats; every ratio compares two things measured in this process, so noisy machines still give
-comparable figures.
+Each record: name, value, unit, baseline, baseline_value, ratio (= baseline_value / value),
+params. Times are medians of repeats; every ratio compares two things measured in this process,
+so noisy machines still give comparable figures. Baselines: a vectorised NumPy implementation
+(sampler kernels), IPOPT and FATROP on the same multiple-shooting NLP (iLQG variants), a fresh
+qpsolvers call (ECBF step), pytorch_mppi (optional ``bench`` extra), the NumPy iLQG twin (per
+iteration). A record without a measured baseline has ratio None.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import statistics
 import time
 from pathlib import Path
@@ -18,7 +23,6 @@ import numpy as np
 from workbench.barrier import BarrierOptions
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.io import atomic_write_json, manifest
-from workbench.ipopt_oracle import solve_ipopt
 from workbench.models import double_integrator
 from workbench.scenes import TrackingScene
 from workbench.tracking import TrackingWeights, tracking_params, tracking_problem
@@ -37,29 +41,6 @@ def record(name, value, unit, baseline, baseline_value, params):
     ratio = baseline_value / value if value else None
     return {"name": name, "value": value, "unit": unit, "baseline": baseline,
             "baseline_value": baseline_value, "ratio": ratio, "params": params}
-
-
-def bench_bas_ilqg_vs_ipopt(repeats: int) -> dict:
-    scene = TrackingScene()
-    model = double_integrator(obstacles=(scene.obstacle,), u_limit=scene.u_limit)
-    problem = tracking_problem(model, TrackingWeights(), barrier=BarrierOptions())
-    P = tracking_params(problem, scene.reference(), scene.target)
-    U0 = np.zeros((scene.horizon, 2))
-    ilqg(problem, scene.start, U0, P)  # load the cached library once
-    runs = [ilqg(problem, scene.start, U0, P) for _ in range(repeats)]
-    t_ilqg, res = statistics.median(r.solve_time_s for r in runs), runs[-1]
-    t_build, ora = _median_time(lambda: solve_ipopt(problem, scene.start, U0, P), 3)
-    oracle_runs = [solve_ipopt(problem, scene.start, U0, P) for _ in range(2)] + [ora]
-    t_ipopt = statistics.median(o.solve_time_s for o in oracle_runs)
-    return record("bas_ilqg_vs_ipopt_tracking", 1e3 * t_ilqg, "ms", "ipopt_solve_ms",
-                  1e3 * t_ipopt, {
-                      "T": scene.horizon, "ilqg_iterations": res.iterations,
-                      "ipopt_iterations": ora.iterations, "ilqg_cost": res.cost,
-                      "ipopt_cost": ora.cost,
-                      "rel_cost_difference": (res.cost - ora.cost) / abs(ora.cost),
-                      "ipopt_time": "solve call only (IPOPT, exact Hessian, tol 1e-10)",
-                      "ipopt_nlp_construction_plus_solve_ms": 1e3 * t_build,
-                      "goal_ratio": 10.0})
 
 
 def bench_ilqg_iteration(repeats: int) -> dict:
@@ -82,23 +63,64 @@ def bench_ilqg_iteration(repeats: int) -> dict:
                              "outer loop", "goal_ms": 1.0})
 
 
+def _fmt(v, spec: str = ".3g") -> str:
+    return "—" if v is None else format(v, spec)
+
+
+def report_markdown(records: list[dict], man: dict) -> str:
+    """The benchmark table: every ratio is baseline_value / value, both measured in this run."""
+    lines = ["# Benchmarks (`make bench`)", "",
+             "Medians of repeats in one process; every ratio = baseline / value, both measured "
+             "in this run (alternating where both are timed in a loop). Machine: "
+             f"{man.get('platform', '?')}, {os.cpu_count()} CPUs; "
+             f"git {str(man.get('git_revision', '?'))[:10]}.", "",
+             "| benchmark | value | unit | baseline | baseline value | ratio | notes |",
+             "|---|---:|---|---|---:|---:|---|"]
+    for r in records:
+        p = r.get("params", {})
+        notes = []
+        if r.get("skipped"):
+            notes.append(f"skipped: {r['skipped']}")
+        for key in ("goal_ratio", "goal_ms"):
+            if p.get(key) is not None:
+                notes.append(f"{key} {p[key]}")
+        if isinstance(p.get("iterations"), dict):
+            notes.append("iterations " + ", ".join(f"{k} {v}" for k, v in p["iterations"].items()))
+        if p.get("threads") is not None:
+            notes.append(f"threads {p['threads']}")
+        if "max_rel_cost_difference" in p:
+            notes.append(f"objectives agree to {p['max_rel_cost_difference']:.1e}")
+        if "max_rel_err_vs_kernel_on_kernel_noise" in p:
+            notes.append(f"baseline = kernel to {p['max_rel_err_vs_kernel_on_kernel_noise']:.0e}")
+        if "nlp_max_rel_cost_difference" in p:
+            notes.append(f"IPOPT/FATROP objectives agree to {p['nlp_max_rel_cost_difference']:.1e}")
+        if "al_rel_cost_gap_vs_fatrop" in p:
+            notes.append(f"AL cost gap {p['al_rel_cost_gap_vs_fatrop']:.1e}")
+        lines.append(f"| {r['name']} | {_fmt(r['value'])} | {r['unit']} | "
+                     f"{r['baseline'] or '—'} | {_fmt(r['baseline_value'])} | "
+                     f"{_fmt(r['ratio'], '.1f')} | {'; '.join(notes)} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", type=Path, default=Path("reports/bench/bench.json"))
     ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args(argv)
-    records = [bench_bas_ilqg_vs_ipopt(args.repeats), bench_ilqg_iteration(args.repeats)]
-    for module in ("benchmarks.tracking", "benchmarks.sampling"):
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError:
-            continue
-        records += mod.records(args.repeats)
+    records = []
+    for module in ("benchmarks.tracking", "benchmarks.sampling", "benchmarks.torch_mppi"):
+        records += importlib.import_module(module).records(args.repeats)
+    records.append(bench_ilqg_iteration(args.repeats))
     for r in records:
-        print(f"{r['name']:32s} {r['value']:10.4f} {r['unit']:14s} baseline "
-              f"{r['baseline']} = {r['baseline_value']:.4f}  ratio {r['ratio']:.1f}x")
-    atomic_write_json(args.out, {"records": records, "manifest": manifest()})
-    print(f"wrote {args.out}")
+        print(f"{r['name']:44s} {_fmt(r['value'], '10.4f')} {r['unit']:12s} baseline "
+              f"{r['baseline']} = {_fmt(r['baseline_value'], '.4f')}  ratio "
+              f"{_fmt(r['ratio'], '.1f')}x" + (f"  [skipped: {r['skipped']}]"
+                                             if r.get("skipped") else ""))
+    man = manifest()
+    atomic_write_json(args.out, {"records": records, "manifest": man})
+    report = args.out.with_name("report.md")
+    report.write_text(report_markdown(records, man))
+    print(f"wrote {args.out} and {report}")
 
 
 if __name__ == "__main__":

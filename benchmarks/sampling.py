@@ -1,4 +1,6 @@
-"""Sampler benchmarks: one SAIS iteration, compiled vs the NumPy twin, and the SA-RMPPI step."""
+"""Sampler benchmarks: one SAIS and one MPPI iteration, compiled kernel vs a well-vectorised NumPy
+implementation (benchmarks/numpy_sampling.py), each checked equal to the kernel on the kernel's
+noise before it is timed; the SA-RMPPI control step (no baseline: a goal, not a measurement)."""
 
 from __future__ import annotations
 
@@ -7,60 +9,150 @@ import time
 
 import numpy as np
 
+from benchmarks.numpy_sampling import VectorisedNavigation, mppi_numpy, sais_numpy
 from workbench.navigation import navigation_setup
 from workbench.sampling.constants import SamplerConstants
-from workbench.sampling.reference import sais_reference
 from workbench.sampling.sampler import Sampler
 from workbench.sampling.weights import importance_weights, weighted_controls
 from workbench.sim import Disturbance, closed_loop
 
-
-def _iteration_compiled(sampler, x0, U, K, N, c, seed):
-    b = sampler.sais(x0, x0, U, K, N, c, seed)
-    wn, wr = importance_weights(b.S_nom, c.lam), importance_weights(b.S_real, c.lam)
-    return weighted_controls(b.v_nom, wn.w), weighted_controls(b.v_real, wr.w)
+RTOL = 1e-10  # as tests/test_sampler_kernels.py: |a - b| <= RTOL * max(|a|, |b|, 1)
 
 
-def _iteration_numpy(sp, x0, U, K, N, c, seed):
-    T = U.shape[0]
-    Z = np.random.default_rng(seed).standard_normal((N, T, sp.nu))
-    r = sais_reference(sp, np.tile(x0, (N, 1)), np.tile(x0, (N, 1)), U, K, Z, c)
-    wn, wr = importance_weights(r["S_nom"], c.lam), importance_weights(r["S_real"], c.lam)
-    return (np.einsum("n,ntj->tj", wn.w, r["v_nom"]), np.einsum("n,ntj->tj", wr.w, r["v_real"]))
+def _rel_err(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.max(np.abs(a - b) / np.maximum(np.maximum(np.abs(a), np.abs(b)), 1.0)))
 
 
-def sais_batch_records(repeats: int) -> list[dict]:
+def _record(name, value, unit, baseline, baseline_value, params) -> dict:
+    ratio = baseline_value / value if (value and baseline_value is not None) else None
+    return {"name": name, "value": value, "unit": unit, "baseline": baseline,
+            "baseline_value": baseline_value, "ratio": ratio, "params": params}
+
+
+def _setup():
     nav = navigation_setup()
     sp = nav.problem
-    sampler = Sampler(sp, "compiled")
     T = 100
-    x0 = sp.model.lift(nav.x0)
     rng = np.random.default_rng(0)
     U = rng.normal(0, 1.0, (T, sp.nu))
     K = rng.normal(0, 1.0, (T, sp.nu, sp.nx))
     c = SamplerConstants(sigma=np.array(nav.mppi.sigma), lam=nav.mppi.lam, nu_mix=0.0,
                          u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=1e6,
                          p=sp.model.lift(nav.goal), alpha=2e4)
+    return nav, sp, U, K, c
+
+
+def _sais_compiled(sampler, x0, U, K, N, c, seed):
+    b = sampler.sais(x0, x0, U, K, N, c, seed)
+    wn, wr = importance_weights(b.S_nom, c.lam), importance_weights(b.S_real, c.lam)
+    return weighted_controls(b.v_nom, wn.w), weighted_controls(b.v_real, wr.w)
+
+
+def _sais_vectorised(nav, x0, U, K, N, c, seed):
+    T, nu = U.shape
+    Z = np.random.default_rng(seed).standard_normal((T, nu, N))
+    r = sais_numpy(nav, x0, x0, U, K, Z, c)
+    wn, wr = importance_weights(r["S_nom"], c.lam), importance_weights(r["S_real"], c.lam)
+    return weighted_controls(r["v_nom"], wn.w), weighted_controls(r["v_real"], wr.w)
+
+
+def _mppi_compiled(sampler, x0, U, N, c, seed):
+    b = sampler.mppi(x0, U, N, c, seed)
+    return weighted_controls(b.v, importance_weights(b.S, c.lam).w)
+
+
+def _mppi_vectorised(nav, x0, U, N, c, seed):
+    T, nu = U.shape
+    Z = np.random.default_rng(seed).standard_normal((T, nu, N))
+    r = mppi_numpy(nav, x0, U, Z, c)
+    return weighted_controls(r["v"], importance_weights(r["S"], c.lam).w)
+
+
+def _interleaved(fast, slow, n_fast: int, n_slow: int) -> tuple[float, float]:
+    """Medians of the two, timed in alternation so load changes hit both."""
+    tf, ts = [], []
+    for i in range(max(n_fast, n_slow)):
+        for fn, out, n in ((fast, tf, n_fast), (slow, ts, n_slow)):
+            if i < n:
+                t0 = time.perf_counter()
+                fn(i)
+                out.append(time.perf_counter() - t0)
+    return statistics.median(tf), statistics.median(ts)
+
+
+def sais_batch_records(repeats: int) -> list[dict]:
+    nav_setup, sp, U, K, c = _setup()
+    sampler = Sampler(sp, "compiled")
+    vec = VectorisedNavigation(sp)
+    x0 = sp.model.lift(nav_setup.x0)
+    T = U.shape[0]
     out = []
-    for N in (256, 1024, 4096):
-        _iteration_compiled(sampler, x0, U, K, N, c, 1)
-        times = []
-        for i in range(max(repeats, 5) * 4):
-            t0 = time.perf_counter()
-            _iteration_compiled(sampler, x0, U, K, N, c, i)
-            times.append(time.perf_counter() - t0)
-        t_fast = statistics.median(times)
-        t0 = time.perf_counter()
-        _iteration_numpy(sp, x0, U, K, N, c, 0)
-        t_slow = time.perf_counter() - t0
-        out.append({
-            "name": f"sais_batch_N{N}_T100", "value": 1e3 * t_fast, "unit": "ms",
-            "baseline": "numpy_twin_ms", "baseline_value": 1e3 * t_slow,
-            "ratio": t_slow / t_fast,
-            "params": {"N": N, "T": T, "obstacles": len(nav.scene.obstacles()),
-                       "threads": sampler.lib.cdll.wb_get_threads(),
-                       "includes": "noise draw + dual rollout + 3 costs + both weightings "
-                       "and updates", "goal_ratio": 20, "goal_ms_N1024": 1.5}})
+    for N, threads in ((256, None), (1024, None), (4096, None), (1024, 1)):
+        if threads is not None:  # one thread: robust to other processes on the machine
+            default_threads = sampler.lib.cdll.wb_get_threads()
+            sampler.lib.set_threads(threads)
+        # exactness first: the vectorised baseline on the kernel's noise equals the kernel
+        b = sampler.sais(x0, x0, U, K, N, c, 1)
+        r = sais_numpy(vec, x0, x0, U, K, sampler.lib.normals(N, T, sp.nu, 1), c)
+        err = max(_rel_err(getattr(b, n), r[n])
+                  for n in ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "v_nom", "v_real"))
+        if not (np.array_equal(b.crashed_real, r["crashed_real"])
+                and np.array_equal(b.crashed_nom, r["crashed_nom"])):
+            err = np.inf
+        if err > RTOL:
+            raise AssertionError(f"vectorised NumPy SAIS differs from the kernel: {err:.2e}")
+        t_fast, t_slow = _interleaved(
+            lambda i, N=N: _sais_compiled(sampler, x0, U, K, N, c, i),
+            lambda i, N=N: _sais_vectorised(vec, x0, U, K, N, c, i),
+            max(repeats, 5) * 4, max(3, repeats // 2))
+        used = sampler.lib.cdll.wb_get_threads()
+        if threads is not None:
+            sampler.lib.set_threads(default_threads)
+        out.append(_record(
+            f"sais_batch_N{N}_T100" + ("_1thread" if threads else ""), 1e3 * t_fast, "ms",
+            "vectorised_numpy_sais_ms",
+            1e3 * t_slow, {
+                "N": N, "T": T, "obstacles": len(nav_setup.scene.obstacles()),
+                "threads": used,
+                "includes": "noise draw + dual rollout + 3 costs + both weightings and updates "
+                "(both sides)", "max_rel_err_vs_kernel_on_kernel_noise": err,
+                "crashed_real_fraction": float(np.mean(r["crashed_real"])),
+                "baseline_code": "benchmarks/numpy_sampling.py:sais_numpy"}))
+    return out
+
+
+def mppi_batch_records(repeats: int) -> list[dict]:
+    """BaS-MPPI and plain MPPI (crash cost only) iterations, N=1024, T=100."""
+    nav_setup, sp_bas, U, _, c_bas = _setup()
+    out = []
+    N, T = 1024, U.shape[0]
+    for label, sp in (("bas_mppi", sp_bas), ("mppi_plain", nav_setup.physical_problem())):
+        sampler = Sampler(sp, "compiled")
+        vec = VectorisedNavigation(sp)
+        x0 = sp.model.lift(nav_setup.x0)
+        c = SamplerConstants(sigma=c_bas.sigma, lam=c_bas.lam, nu_mix=0.0, u_min=c_bas.u_min,
+                             u_max=c_bas.u_max, crash_cost=1e6, p=sp.model.lift(nav_setup.goal))
+        b = sampler.mppi(x0, U, N, c, 1)
+        r = mppi_numpy(vec, x0, U, sampler.lib.normals(N, T, sp.nu, 1), c)
+        err = max(_rel_err(b.S, r["S"]), _rel_err(b.v, r["v"]))
+        if not np.array_equal(b.crashed, r["crashed"]):
+            err = np.inf
+        if err > RTOL:
+            raise AssertionError(f"vectorised NumPy MPPI differs from the kernel: {err:.2e}")
+        t_fast, t_slow = _interleaved(lambda i, s=sampler, x=x0, cc=c: _mppi_compiled(
+                                          s, x, U, N, cc, i),
+                                      lambda i, v=vec, x=x0, cc=c: _mppi_vectorised(
+                                          v, x, U, N, cc, i),
+                                      max(repeats, 5) * 4, max(3, repeats // 2))
+        out.append(_record(
+            f"{label}_batch_N{N}_T100", 1e3 * t_fast, "ms", "vectorised_numpy_mppi_ms",
+            1e3 * t_slow, {"N": N, "T": T, "nx": sp.nx,
+                           "threads": sampler.lib.cdll.wb_get_threads(),
+                           "includes": "noise draw + rollout + costs + weights + update "
+                           "(both sides)", "max_rel_err_vs_kernel_on_kernel_noise": err,
+                           "crashed_fraction": float(np.mean(r["crashed"])),
+                           "baseline_code": "benchmarks/numpy_sampling.py:mppi_numpy"}))
     return out
 
 
@@ -72,14 +164,13 @@ def sa_rmppi_step_record(steps: int = 80) -> dict:
                      np.random.default_rng(3), Disturbance(10.0))
     split = {k: 1e3 * statistics.median(i.timing[k] for i in ep.infos)
              for k in ep.infos[0].timing}
-    return {"name": "sa_rmppi_step_N1024_T100", "value": 1e3 * statistics.median(ep.step_time_s),
-            "unit": "ms", "baseline": "goal_ms", "baseline_value": 5.0,
-            "ratio": 5.0 / (1e3 * statistics.median(ep.step_time_s)),
-            "params": {"split_median_ms": split, "steps": steps, "N": 1024, "T": 100,
-                       "candidates": "9 x 64",
-                       "K_safe": "one derivative evaluation + one backward pass",
-                       "disturbance_variance": 10.0}}
+    return _record("sa_rmppi_step_N1024_T100", 1e3 * statistics.median(ep.step_time_s), "ms",
+                   None, None, {"split_median_ms": split, "steps": steps, "N": 1024, "T": 100,
+                                "candidates": "9 x 64", "goal_ms": 4.0,
+                                "K_safe": "one derivative evaluation + one backward pass",
+                                "disturbance_variance": 10.0,
+                                "baseline": "none measured (issue 13 item 3 owns this step)"})
 
 
 def records(repeats: int) -> list[dict]:
-    return [*sais_batch_records(repeats), sa_rmppi_step_record()]
+    return [*sais_batch_records(repeats), *mppi_batch_records(repeats), sa_rmppi_step_record()]

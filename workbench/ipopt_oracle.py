@@ -1,7 +1,9 @@
 """IPOPT (through ``casadi.nlpsol``) on exactly the problem iLQG solves: the independent oracle.
 
-Single shooting over U with the problem's own dynamics and costs, the control box as variable
-bounds, and optionally hard path constraints h(x_k) >= 0 (for AL-iLQG's constrained problem).
+``solve_ipopt``: single shooting over U with the problem's own dynamics and costs, the control
+box as variable bounds, and optionally hard path constraints h(x_k) >= 0 (for AL-iLQG's
+constrained problem). ``MultipleShootingNLP``: the same problem as a multiple-shooting NLP,
+built once, for IPOPT or FATROP (the speed baselines of ``make bench``).
 """
 
 from __future__ import annotations
@@ -60,3 +62,94 @@ def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = Fa
         X=problem.rollout(x0, U), U=U, cost=float(sol["f"]), status=stats["return_status"],
         success=bool(stats["success"]), solve_time_s=elapsed, iterations=int(stats["iter_count"]),
     )
+
+
+@dataclass(frozen=True)
+class NLPResult:
+    X: np.ndarray
+    U: np.ndarray
+    cost: float
+    status: str
+    success: bool
+    solve_time_s: float
+    iterations: int
+    solver: str
+
+
+class MultipleShootingNLP:
+    """The problem as a multiple-shooting NLP, built once, solved by IPOPT or FATROP.
+
+    Variables stage-wise [x_0, u_0, x_1, u_1, ..., x_T]; constraints, stage by stage, the gap
+    x_{k+1} - F(x_k, u_k) = 0 and (``hard_constraints``) the margins h(x_k) >= 0, k >= 1; x_0
+    and the control box are variable bounds. x_0 and the parameters P are NLP parameters, so
+    one solver serves every solve. FATROP detects the stage structure from this layout
+    (``structure_detection="auto"``). Exact Hessians, CasADi's virtual machine for the
+    functions (no code generation), ``solve`` times the solver call only.
+    """
+
+    def __init__(self, problem: Problem, T: int, solver: str = "ipopt", *,
+                 hard_constraints: bool = False, tol: float = 1e-8, max_iter: int = 3000):
+        if solver not in ("ipopt", "fatrop"):
+            raise ValueError(f"solver: {solver!r} is not one of ('ipopt', 'fatrop')")
+        self.problem, self.T, self.solver_name = problem, T, solver
+        nx, nu, n_p = problem.nx, problem.nu, problem.n_p
+        f = problem.functions
+        xs = [ca.SX.sym(f"x{k}", nx) for k in range(T + 1)]
+        us = [ca.SX.sym(f"u{k}", nu) for k in range(T)]
+        x0 = ca.SX.sym("x0", nx)
+        Ps = [ca.SX.sym(f"p{k}", n_p) for k in range(T + 1)]
+        w, g, eq, J = [], [], [], ca.SX(0)
+        nh = problem.nh if hard_constraints else 0
+        for k in range(T):
+            w += [xs[k], us[k]]
+            J += f["stage"](xs[k], us[k], Ps[k])
+            g.append(xs[k + 1] - f["dyn"](xs[k], us[k]))
+            eq += [True] * nx
+            if nh and k >= 1:
+                g.append(f["margins"](xs[k]))
+                eq += [False] * nh
+        w.append(xs[T])
+        J += f["term"](xs[T], Ps[T])
+        if nh:
+            g.append(f["margins"](xs[T]))
+            eq += [False] * nh
+        self._eq = np.array(eq)
+        nlp = {"x": ca.vertcat(*w), "f": J, "g": ca.vertcat(*g),
+               "p": ca.vertcat(x0, *Ps)}
+        if solver == "ipopt":
+            opts = {"print_time": False, "ipopt": {"print_level": 0, "tol": tol,
+                                                   "max_iter": max_iter, "sb": "yes"}}
+        else:
+            opts = {"print_time": False, "structure_detection": "auto", "equality": eq,
+                    "fatrop": {"print_level": 0, "tol": tol, "max_iter": max_iter}}
+        self._solver = ca.nlpsol(f"ms_{solver}", solver, nlp, opts)
+        # x_0 is fixed through its bounds (filled per solve), controls boxed, states free
+        lb = [np.full(nx, -np.inf)] + [problem.model.u_min, np.full(nx, -np.inf)] * T
+        ub = [np.full(nx, np.inf)] + [problem.model.u_max, np.full(nx, np.inf)] * T
+        self._lbx, self._ubx = np.concatenate(lb), np.concatenate(ub)
+        self._lbg = np.zeros(len(eq))
+        self._ubg = np.where(self._eq, 0.0, np.inf)
+
+    def solve(self, x0, U0, P=None) -> NLPResult:
+        """Solve from the initial guess U0 (states: its rollout); times the solver call."""
+        p = self.problem
+        x0 = p.check_initial_state(x0)
+        U0 = p.check_controls(U0, self.T)
+        P = p.check_params(P, self.T)
+        X0 = p.rollout(x0, U0)
+        nx, nu, T = p.nx, p.nu, self.T
+        w0 = np.concatenate([np.r_[X0[k], U0[k]] for k in range(T)] + [X0[T]])
+        lbx, ubx = self._lbx.copy(), self._ubx.copy()
+        lbx[:nx] = ubx[:nx] = x0
+        t0 = time.perf_counter()
+        sol = self._solver(x0=w0, p=np.r_[x0, P.ravel()], lbx=lbx, ubx=ubx, lbg=self._lbg,
+                           ubg=self._ubg)
+        elapsed = time.perf_counter() - t0
+        stats = self._solver.stats()
+        z = np.asarray(sol["x"]).ravel()
+        XU = z[: T * (nx + nu)].reshape(T, nx + nu)
+        X = np.vstack([XU[:, :nx], z[T * (nx + nu):][None]])
+        status = str(stats.get("return_status", stats.get("unified_return_status", "")))
+        return NLPResult(X=X, U=XU[:, nx:].copy(), cost=float(sol["f"]), status=status,
+                         success=bool(stats["success"]), solve_time_s=elapsed,
+                         iterations=int(stats.get("iter_count", -1)), solver=self.solver_name)

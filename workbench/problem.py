@@ -8,6 +8,7 @@ name         inputs                 outputs
 ===========  =====================  =====================================
 dyn          x, u                   x_next
 dyn_jac      x, u                   A (nx,nx), B (nx,nu)
+dyn_hess     x, u, lam              fxx, fuu, fux (nu,nx): Hessians of lam'F(x,u)
 stage        x, u, p                l
 stage_quad   x, u, p                l, lx, lu, lxx, luu, lux (nu,nx)
 term         x, p                   l
@@ -15,7 +16,9 @@ term_quad    x, p                   l, lx, lxx
 margins      x                      h (nh)
 ===========  =====================  =====================================
 
-iLQG is Gauss-Newton in the dynamics (no second derivatives of F) and exact in the costs.
+iLQG is Gauss-Newton in the dynamics and exact in the costs; full DDP (``ILQGOptions(
+second_order=True)``) adds the dynamics' second derivatives contracted with the value gradient,
+``dyn_hess(x, u, V_x')``, exact from CasADi.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ from workbench.costs import Cost
 from workbench.models import Model
 from workbench.validation import as_array, fail
 
-FUNCTION_NAMES = ("dyn", "dyn_jac", "stage", "stage_quad", "term", "term_quad", "margins")
+FUNCTION_NAMES = ("dyn", "dyn_jac", "dyn_hess", "stage", "stage_quad", "term", "term_quad",
+                  "margins")
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,6 +65,10 @@ class Problem:
         luu, lu = ca.hessian(ls, u)
         lux = ca.jacobian(lu, x)
         lTxx, lTx = ca.hessian(lT, x)
+        lam = ca.SX.sym("lam", model.nx)
+        fxx = ca.hessian(ca.dot(lam, model.x_next), x)[0]
+        fuu, fu_lam = ca.hessian(ca.dot(lam, model.x_next), u)
+        fux = ca.jacobian(fu_lam, x)
         nx = model.nx
         for name, override in (("cost.stage_hessian_x", cost.stage_hessian_x),
                                ("cost.terminal_hessian_x", cost.terminal_hessian_x)):
@@ -76,6 +84,9 @@ class Problem:
                 "dyn_jac", [x, u],
                 [d(ca.jacobian(model.x_next, x)), d(ca.jacobian(model.x_next, u))],
                 ["x", "u"], ["A", "B"], opts),
+            "dyn_hess": ca.Function(
+                "dyn_hess", [x, u, lam], [d(fxx), d(fuu), d(fux)], ["x", "u", "lam"],
+                ["fxx", "fuu", "fux"], opts),
             "stage": ca.Function("stage", [x, u, p], [d(ls)], ["x", "u", "p"], ["l"], opts),
             "stage_quad": ca.Function(
                 "stage_quad", [x, u, p], [d(ls), d(lx), d(lu), d(lxx), d(luu), d(lux)],

@@ -37,7 +37,19 @@ def _macros(problem: Problem, fns: list[ca.Function]) -> str:
     lines = [f"#define NX {problem.nx}", f"#define NU {problem.nu}",
              f"#define NP {max(problem.n_p, 1)}", f"#define NH {problem.nh}"]
     lines += [f"#define WB_SZ_{k} {v}" for k, v in sz.items()]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n" + _jacobian_patterns(problem)
+
+
+def _jacobian_patterns(problem: Problem) -> str:
+    """Structural nonzeros of A = dF/dx and B = dF/du (compressed columns) for the backward
+    pass: its products skip the structural zeros (same sums, same order, so the same results)."""
+    m = problem.model
+    out = []
+    for name, wrt in (("A", m.x), ("B", m.u)):
+        sp = ca.jacobian(m.x_next, wrt).sparsity()
+        for arr, vals in (("COLIND", sp.colind()), ("ROW", sp.row() or [0])):
+            out.append(f"static const int WB_{name}_{arr}[] = {{{', '.join(map(str, vals))}}};")
+    return "\n".join(out) + "\n"
 
 
 def problem_library(problem: Problem) -> Library | None:
@@ -62,7 +74,7 @@ def _declare(c: ctypes.CDLL) -> None:
     c.wb_line_search.restype = i
     c.wb_line_search.argtypes = [i] + [_dp] * 6 + [d, _dp, _dp, i, d, _dp, _dp, _dp, _dp, _dp]
     c.wb_backward.restype = i
-    c.wb_backward.argtypes = [i] + [_dp] * 10 + [d, i, i, _dp, _dp, _dp]
+    c.wb_backward.argtypes = [i] + [_dp] * 10 + [d, i, i, _dp, _dp, _dp, _dp, i]
     c.wb_solve.restype = None
     c.wb_solve.argtypes = [i] + [_dp] * 9 + [i] + [_dp] * 16
     c.wb_box_qp.restype = i
@@ -97,11 +109,13 @@ class CompiledPasses:
             "X": (T + 1, nx), "U": (T, nu), "P": (T + 1, max(problem.n_p, 1)), "x0": (nx,),
             "k": (T, nu), "K": (T, nu, nx), "dV": (2,), "umin": (nu,), "umax": (nu,),
             "Xn": (T + 1, nx), "Un": (T, nu), "out": (3,), "alphas": (32,),
-            "k2": (T, nu), "K2": (T, nu, nx), "J": (1,), "opt": (11,), "sout": (4,),
+            "k2": (T, nu), "K2": (T, nu, nx), "J": (1,), "opt": (12,), "sout": (4,),
+            "Xd": (T + 1, nx),
         }
         self._b = {n: np.zeros(s) for n, s in shapes.items()}
         self._a = {n: _ptr(v) for n, v in self._b.items()}
         self._d = {n: self._b[n] for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")}
+        self._d["X"] = self._b["Xd"]  # the trajectory of the derivatives (second order)
         self._pd = [self._a[n] for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")]
 
     def _put(self, name: str, value) -> int:
@@ -113,16 +127,17 @@ class CompiledPasses:
     def derivatives(self, X, U, P):
         self._c.wb_derivatives(self.T, self._put("X", X), self._put("U", U), self._put("P", P),
                                *self._pd)
+        np.copyto(self._b["Xd"], self._b["X"])
         return self._d
 
-    def backward(self, d, U, umin, umax, mu, reg, boxed):
+    def backward(self, d, U, umin, umax, mu, reg, boxed, second_order=False):
         if d is not self._d:
             for n in self._d:
                 np.copyto(self._d[n], d[n])
         status = self._c.wb_backward(
             self.T, *self._pd, self._put("U", U), self._put("umin", umin),
             self._put("umax", umax), float(mu), int(reg), int(boxed), self._a["k"],
-            self._a["K"], self._a["dV"])
+            self._a["K"], self._a["dV"], self._a["Xd"], int(second_order))
         return status, self._b["k"].copy(), self._b["K"].copy(), self._b["dV"].copy()
 
     def _policy(self, x0, X, U, k, K, P) -> list[int]:

@@ -3,7 +3,9 @@
  * Included after the generated code and a block of macros written by workbench/ilqg/compiled.py:
  *   NX NU NP NH              dimensions
  *   WB_SZ_ARG WB_SZ_RES WB_SZ_IW WB_SZ_W   shared work sizes (max over functions)
- * and the generated functions wb_dyn, wb_dyn_jac, wb_stage, wb_stage_quad, wb_term,
+ *   WB_A_COLIND WB_A_ROW WB_B_COLIND WB_B_ROW   structural nonzeros of A and B (compressed
+ *                            columns): the backward pass sums over them only
+ * and the generated functions wb_dyn, wb_dyn_jac, wb_dyn_hess, wb_stage, wb_stage_quad, wb_term,
  * wb_term_quad, wb_margins, whose matrix outputs are row-major.
  *
  * All arrays are row-major, batch dimension first: X (T+1,NX), U (T,NU), P (T+1,NP),
@@ -14,6 +16,10 @@
  */
 #include <math.h>
 #include <string.h>
+
+/* Full unrolling of the sparse products: after it, the pattern arrays are constants and the
+ * loops straight-line code over the structural nonzeros only. */
+#define WB_UNROLL _Pragma("GCC unroll 64")
 
 typedef int (*wb_fn)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 
@@ -110,8 +116,9 @@ static int chol(double* a, int n, int ld) {
   return 0;
 }
 
-/* Solve (L L') y = b in place, L lower triangular n x n with stride ld. */
-static void chol_solve(const double* L, int n, int ld, double* b) {
+/* Solve (L L') y = b in place, L lower triangular n x n with stride ld. Inlined: the
+ * backward pass calls it per column of K with n, ld known at compile time. */
+static inline __attribute__((always_inline)) void chol_solve(const double* L, int n, int ld, double* b) {
   for (int i = 0; i < n; ++i) {
     double s = b[i];
     for (int p = 0; p < i; ++p) s -= L[i * ld + p] * b[p];
@@ -220,11 +227,13 @@ int wb_box_qp(int n, const double* H, const double* g, const double* lo, const d
 
 /* Backward pass. Returns 0 on success, t+1 if Quu (or the box QP) failed at step t.
  * reg: 0 = control-space (Quu + mu I), 1 = state-space (Vxx + mu I). boxed: use the box QP.
- * dV[0] = sum k'Qu, dV[1] = sum ½ k'Quu k. */
+ * dV[0] = sum k'Qu, dV[1] = sum ½ k'Quu k.
+ * second_order: full DDP, Qxx, Quu, Qux also get sum_i V'_x,i Hess F_i at (X[t], U[t])
+ * (wb_dyn_hess with lam = the next value gradient); X is read only then. */
 int wb_backward(int T, const double* A, const double* B, const double* lx, const double* lu,
                 const double* lxx, const double* luu, const double* lux, const double* U,
                 const double* umin, const double* umax, double mu, int reg, int boxed,
-                double* k, double* K, double* dV) {
+                double* k, double* K, double* dV, const double* X, int second_order) {
   double Vx[NX], Vxx[NX * NX], Qx[NX], Qu[NU], Qxx[NX * NX], Quu[NU * NU], Qux[NU * NX];
   double Quu_r[NU * NU], Qux_r[NU * NX], VA[NX * NX], VB[NX * NU], L[NU * NU];
   double lo[NU], hi[NU], warm[NU], kk[NU];
@@ -235,45 +244,77 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
   for (int t = T - 1; t >= 0; --t) {
     const double* At = A + (size_t)t * NX * NX;
     const double* Bt = B + (size_t)t * NX * NU;
-    /* VA = Vxx A, VB = Vxx B */
-    for (int i = 0; i < NX; ++i) {
-      for (int j = 0; j < NX; ++j) {
+    /* VA = Vxx A, VB = Vxx B; every sum over p runs over the structural nonzeros of column
+     * j of A (or B) in increasing p, which adds the same terms in the same order as the dense
+     * sum without its exact zeros. */
+    WB_UNROLL
+    for (int j = 0; j < NX; ++j)
+      WB_UNROLL
+      for (int i = 0; i < NX; ++i) {
         double s = 0.0;
-        for (int p = 0; p < NX; ++p) s += Vxx[i * NX + p] * At[p * NX + j];
+        WB_UNROLL
+        for (int q = WB_A_COLIND[j]; q < WB_A_COLIND[j + 1]; ++q)
+          s += Vxx[i * NX + WB_A_ROW[q]] * At[WB_A_ROW[q] * NX + j];
         VA[i * NX + j] = s;
       }
-      for (int j = 0; j < NU; ++j) {
+    WB_UNROLL
+    for (int j = 0; j < NU; ++j)
+      WB_UNROLL
+      for (int i = 0; i < NX; ++i) {
         double s = 0.0;
-        for (int p = 0; p < NX; ++p) s += Vxx[i * NX + p] * Bt[p * NU + j];
+        WB_UNROLL
+        for (int q = WB_B_COLIND[j]; q < WB_B_COLIND[j + 1]; ++q)
+          s += Vxx[i * NX + WB_B_ROW[q]] * Bt[WB_B_ROW[q] * NU + j];
         VB[i * NU + j] = s;
       }
-    }
+    WB_UNROLL
     for (int i = 0; i < NX; ++i) {
       double s = lx[(size_t)t * NX + i];
-      for (int p = 0; p < NX; ++p) s += At[p * NX + i] * Vx[p];
+      WB_UNROLL
+      for (int q = WB_A_COLIND[i]; q < WB_A_COLIND[i + 1]; ++q)
+        s += At[WB_A_ROW[q] * NX + i] * Vx[WB_A_ROW[q]];
       Qx[i] = s;
-      for (int j = 0; j < NX; ++j) {
-        double q = lxx[((size_t)t * NX + i) * NX + j];
-        for (int p = 0; p < NX; ++p) q += At[p * NX + i] * VA[p * NX + j];
-        Qxx[i * NX + j] = q;
+      WB_UNROLL
+      for (int j = i; j < NX; ++j) { /* symmetric: upper triangle, mirrored below */
+        double v = lxx[((size_t)t * NX + i) * NX + j];
+        WB_UNROLL
+        for (int q = WB_A_COLIND[i]; q < WB_A_COLIND[i + 1]; ++q)
+          v += At[WB_A_ROW[q] * NX + i] * VA[WB_A_ROW[q] * NX + j];
+        Qxx[i * NX + j] = Qxx[j * NX + i] = v;
       }
     }
+    WB_UNROLL
     for (int i = 0; i < NU; ++i) {
       double s = lu[(size_t)t * NU + i];
-      for (int p = 0; p < NX; ++p) s += Bt[p * NU + i] * Vx[p];
+      WB_UNROLL
+      for (int q = WB_B_COLIND[i]; q < WB_B_COLIND[i + 1]; ++q)
+        s += Bt[WB_B_ROW[q] * NU + i] * Vx[WB_B_ROW[q]];
       Qu[i] = s;
+      WB_UNROLL
       for (int j = 0; j < NX; ++j) {
-        double q = lux[((size_t)t * NU + i) * NX + j];
-        for (int p = 0; p < NX; ++p) q += Bt[p * NU + i] * VA[p * NX + j];
-        Qux[i * NX + j] = q;
-        Qux_r[i * NX + j] = q;
+        double v = lux[((size_t)t * NU + i) * NX + j];
+        WB_UNROLL
+        for (int q = WB_B_COLIND[i]; q < WB_B_COLIND[i + 1]; ++q)
+          v += Bt[WB_B_ROW[q] * NU + i] * VA[WB_B_ROW[q] * NX + j];
+        Qux[i * NX + j] = v;
+        Qux_r[i * NX + j] = v;
       }
+      WB_UNROLL
       for (int j = 0; j < NU; ++j) {
-        double q = luu[((size_t)t * NU + i) * NU + j];
-        for (int p = 0; p < NX; ++p) q += Bt[p * NU + i] * VB[p * NU + j];
-        Quu[i * NU + j] = q;
-        Quu_r[i * NU + j] = q;
+        double v = luu[((size_t)t * NU + i) * NU + j];
+        WB_UNROLL
+        for (int q = WB_B_COLIND[i]; q < WB_B_COLIND[i + 1]; ++q)
+          v += Bt[WB_B_ROW[q] * NU + i] * VB[WB_B_ROW[q] * NU + j];
+        Quu[i * NU + j] = v;
+        Quu_r[i * NU + j] = v;
       }
+    }
+    if (second_order) {
+      double Hxx[NX * NX], Huu[NU * NU], Hux[NU * NX];
+      wb_call(wb_dyn_hess, X + (size_t)t * NX, U + (size_t)t * NU, Vx, Hxx, Huu, Hux, 0, 0, 0);
+      for (int i = 0; i < NX * NX; ++i) Qxx[i] += Hxx[i];
+      for (int i = 0; i < NU * NU; ++i) { Quu[i] += Huu[i]; Quu_r[i] = Quu[i]; }
+      for (int i = 0; i < NU * NX; ++i) { Qux[i] += Hux[i]; Qux_r[i] = Qux[i]; }
     }
     if (reg == 0) {
       for (int i = 0; i < NU; ++i) Quu_r[i * NU + i] += mu;
@@ -330,31 +371,25 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
       dV[0] += kt[i] * Qu[i];
       dV[1] += 0.5 * kt[i] * Quuk[i];
     }
-    double QuuK[NU * NX];
+    double QuuK[NU * NX]; /* Quu K + Qux: V_xx = Qxx + K'(Quu K + Qux) + Qux' K */
     for (int i = 0; i < NU; ++i)
       for (int j = 0; j < NX; ++j) {
         double s = 0.0;
         for (int p = 0; p < NU; ++p) s += Quu[i * NU + p] * Kt[p * NX + j];
-        QuuK[i * NX + j] = s;
+        QuuK[i * NX + j] = s + Qux[i * NX + j];
       }
     for (int i = 0; i < NX; ++i) {
       double s = Qx[i];
       for (int p = 0; p < NU; ++p)
         s += Kt[p * NX + i] * Quuk[p] + Kt[p * NX + i] * Qu[p] + Qux[p * NX + i] * kt[p];
       Vx[i] = s;
-      for (int j = 0; j < NX; ++j) {
+      for (int j = i; j < NX; ++j) { /* symmetric: upper triangle, mirrored below */
         double v = Qxx[i * NX + j];
         for (int p = 0; p < NU; ++p)
-          v += Kt[p * NX + i] * QuuK[p * NX + j] + Kt[p * NX + i] * Qux[p * NX + j]
-               + Qux[p * NX + i] * Kt[p * NX + j];
-        Vxx[i * NX + j] = v;
+          v += Kt[p * NX + i] * QuuK[p * NX + j] + Qux[p * NX + i] * Kt[p * NX + j];
+        Vxx[i * NX + j] = Vxx[j * NX + i] = v;
       }
     }
-    for (int i = 0; i < NX; ++i)
-      for (int j = i + 1; j < NX; ++j) {
-        double m = 0.5 * (Vxx[i * NX + j] + Vxx[j * NX + i]);
-        Vxx[i * NX + j] = Vxx[j * NX + i] = m;
-      }
   }
   return 0;
 }
@@ -362,7 +397,7 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
 /* The outer loop of workbench/ilqg/solver.py (ilqg, python loop) in C, for small problems where
  * the Python loop costs more than the passes. Keep the two in step; tests compare them.
  * opt = [max_iter, mu_init, mu_factor, mu_min, mu_max, reg, boxed, z_min, tol_abs, tol_rel,
- *        tol_grad]; X, U hold the initial (accepted) rollout and are updated in place; *J its
+ *        tol_grad, second_order]; X, U hold the initial (accepted) rollout and are updated in place; *J its
  * cost. hist rows (max_iter, 7): cost, dJ, expected, alpha, mu, grad_norm, accepted.
  * out = [stop code (0 max_iter, 1 regularization_limit, 2 gradient, 3 cost_change,
  * 4 line_search_failed), converged, n_hist, final mu]. Work: derivative arrays (7, as
@@ -375,6 +410,7 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
   const int max_iter = (int)opt[0], reg = (int)opt[5], boxed = (int)opt[6];
   const double f = opt[2], mu_min = opt[3], mu_max = opt[4], z_min = opt[7];
   const double tol_abs = opt[8], tol_rel = opt[9], tol_grad = opt[10];
+  const int second_order = (int)opt[11];
   double mu = opt[1], delta = 1.0, dV[2];
   int d_valid = 0, stop = 0, converged = 0, n_hist = 0;
   for (int it = 1; it <= max_iter; ++it) {
@@ -384,7 +420,7 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
     }
     for (;;) {
       if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k, K,
-                      dV) == 0)
+                      dV, X, second_order) == 0)
         break;
       delta = delta * f > f ? delta * f : f;
       mu = mu * delta > mu_min ? mu * delta : mu_min;
@@ -435,7 +471,7 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
   if (!d_valid) { /* gains about the returned trajectory */
     wb_derivatives(T, X, U, P, A, B, lx, lu, lxx, luu, lux);
     if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k2, K2,
-                    dV) == 0) {
+                    dV, X, second_order) == 0) {
       memcpy(k, k2, sizeof(double) * (size_t)T * NU);
       memcpy(K, K2, sizeof(double) * (size_t)T * NU * NX);
     }

@@ -110,10 +110,12 @@ class NumpyPasses:
         self._jac = f["dyn_jac"].map(T)
         self._quad = f["stage_quad"].map(T)
         self._tquad = f["term_quad"]
+        self._hess = f["dyn_hess"]
         self._step, self._term = step_function(problem), f["term"]
 
     def derivatives(self, X, U, P):
-        """A (T,nx,nx), B (T,nx,nu), lx (T+1,nx), lu, lxx (T+1,nx,nx), luu, lux (T,nu,nx)."""
+        """A (T,nx,nx), B (T,nx,nu), lx (T+1,nx), lu, lxx (T+1,nx,nx), luu, lux (T,nu,nx) and
+        the trajectory X (T+1,nx) they were taken along (for the second-order backward pass)."""
         T, nx, nu = self.T, self.problem.nx, self.problem.nu
         A, B = (np.asarray(m) for m in self._jac(X[:-1].T, U.T))
         A = A.reshape(nx, T, nx).transpose(1, 0, 2)
@@ -127,10 +129,14 @@ class NumpyPasses:
             "lxx": np.concatenate([lxx.reshape(nx, T, nx).transpose(1, 0, 2), lxxT[None]]),
             "luu": luu.reshape(nu, T, nu).transpose(1, 0, 2),
             "lux": lux.reshape(nu, T, nx).transpose(1, 0, 2),
+            "X": np.array(X, dtype=float),
         }
 
-    def backward(self, d, U, umin, umax, mu, reg, boxed):
-        """Returns (status, k, K, dV); status 0 ok or t+1 where Quu failed."""
+    def backward(self, d, U, umin, umax, mu, reg, boxed, second_order=False):
+        """Returns (status, k, K, dV); status 0 ok or t+1 where Quu failed.
+
+        second_order: full DDP, Q's second derivatives include sum_i V'_x,i Hess F_i (the
+        dynamics' Hessians contracted with the next value gradient, ``dyn_hess``)."""
         T, nx, nu = self.T, self.problem.nx, self.problem.nu
         k = np.zeros((T, nu))
         K = np.zeros((T, nu, nx))
@@ -143,6 +149,9 @@ class NumpyPasses:
             Qxx = d["lxx"][t] + A.T @ Vxx @ A
             Qux = d["lux"][t] + B.T @ Vxx @ A
             Quu = d["luu"][t] + B.T @ Vxx @ B
+            if second_order:
+                fxx, fuu, fux = (np.asarray(m) for m in self._hess(d["X"][t], U[t], Vx))
+                Qxx, Quu, Qux = Qxx + fxx, Quu + fuu, Qux + fux
             if reg == 0:
                 Quu_r, Qux_r = Quu + mu * np.eye(nu), Qux
             else:

@@ -37,6 +37,8 @@ class ILQGOptions:
     tol_rel: float = 1e-7
     tol_grad: float = 1e-4
     box_qp: bool = True
+    # full DDP: add the dynamics' second derivatives contracted with the value gradient
+    second_order: bool = False
     backend: Backend = "auto"
     outer_loop: Literal["compiled", "python"] = "compiled"  # compiled: wb_solve, when available
 
@@ -147,7 +149,8 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
         if d is None:
             d = passes.derivatives(X, U, P)
         while True:
-            status, k, K, dV = passes.backward(d, U, umin, umax, mu, reg, boxed)
+            status, k, K, dV = passes.backward(d, U, umin, umax, mu, reg, boxed,
+                                               opts.second_order)
             if status == 0:
                 break
             delta = max(delta * opts.mu_factor, opts.mu_factor)
@@ -187,7 +190,7 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
                 break
     if d is None:  # gains about the returned trajectory, for use as a feedback policy
         d = passes.derivatives(X, U, P)
-        status, k2, K2, _ = passes.backward(d, U, umin, umax, mu, reg, boxed)
+        status, k2, K2, _ = passes.backward(d, U, umin, umax, mu, reg, boxed, opts.second_order)
         if status == 0:
             k, K = k2, K2
     return ILQGResult(
@@ -204,7 +207,8 @@ def _compiled_loop(passes, opts: ILQGOptions, x0, X, U, J, P, reg, boxed, t_star
     """The same outer loop in C (core.c ``wb_solve``); per-iteration times are the mean."""
     problem = passes.problem
     opt = np.array([opts.max_iter, opts.mu_init, opts.mu_factor, opts.mu_min, opts.mu_max, reg,
-                    int(boxed), opts.z_min, opts.tol_abs, opts.tol_rel, opts.tol_grad])
+                    int(boxed), opts.z_min, opts.tol_abs, opts.tol_rel, opts.tol_grad,
+                    int(opts.second_order)])
     X, U, k, K, J, stop, converged, hist, _ = passes.solve(
         x0, X, U, J, P, problem.model.u_min, problem.model.u_max, opt, opts.alphas,
         opts.max_iter)
