@@ -4,6 +4,10 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 PROFILE ?= quick
+WORKERS ?= 2
+# SCHEDULER=tcp://host:8786 runs the study tasks on a Dask cluster instead of local workers
+SCHEDULER ?=
+STUDY_EXEC = --workers $(WORKERS) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
@@ -29,7 +33,8 @@ study-tracking-demo: $(STAMP)
 	$(PY) -m studies.tracking_demo --profile $(PROFILE) --out reports/tracking_demo
 
 study-tracking: $(STAMP)
-	$(PY) -m studies.tracking_comparison --profile $(PROFILE) --out reports/tracking_comparison
+	$(PY) -m studies.tracking_comparison --profile $(PROFILE) --out reports/tracking_comparison \
+		$(STUDY_EXEC)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks --out reports/bench/bench.json

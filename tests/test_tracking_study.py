@@ -1,18 +1,19 @@
 """The tracking comparison study: config validation, statistics, seeding, the vectorised
-rollouts against the CasADi model, and a small end-to-end run (resume, worker count)."""
+rollouts against the CasADi model, and small end-to-end runs on the study framework (report
+numbers recomputed from the tidy data, claims, resume, in-process / 2 workers / Dask)."""
 
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
-import pandas as pd
 import pytest
 from scipy.stats import binomtest
 
 from studies.tracking_comparison.config import StudyConfig, Variant
+from studies.tracking_comparison.findings import NAMES, all_claims
 from studies.tracking_comparison.methods import Setup, solve_nominal
-from studies.tracking_comparison.report import write_report
 from studies.tracking_comparison.rollouts import (
     LinearDynamics,
     ecbf_rollouts,
@@ -21,23 +22,26 @@ from studies.tracking_comparison.rollouts import (
     noise_generator,
 )
 from studies.tracking_comparison.run import run
+from studies.tracking_comparison.tasks import plan
 from workbench.barrier import BarrierOptions, embed_barrier
 from workbench.ecbf import ECBFFilter
 from workbench.problem import Problem
 from workbench.stats import wilson_interval
+from workbench.study import Rate, RunStore, fmt_rate
 from workbench.tracking import tracking_problem
 
 TINY = dict(n_rollouts=6, n_seeds=2, sweep_rollouts=4, sweep_seeds=1, sweep_q_beta=(1e-2, 1.0),
-            sweep_pole=(5.0,), sweep_q_scale=(1.0,), sweep_ecbf_noise=("before",), workers=1)
+            sweep_pole=(5.0,), sweep_q_scale=(1.0,), sweep_ecbf_noise=("before", "after"),
+            sweep_noise_std=(10.0,), radii=(0.3, 0.5, 1.0))
 
 
 @pytest.mark.parametrize("overrides, field", [
     ({"methods": ("ecbf", "mpc")}, "methods"),
     ({"methods": ()}, "methods"),
-    ({"noise_std": -1.0}, "noise_std"),
+    ({"radii": (0.5, -1.0)}, "radii"),
+    ({"sweep_noise_std": (float("nan"),)}, "sweep_noise_std"),
     ({"n_rollouts": 0}, "n_rollouts"),
     ({"n_seeds": 0}, "n_seeds"),
-    ({"workers": 0}, "workers"),
     ({"target_radius": 0.0}, "target_radius"),
     ({"sweep_pole": (5.0, -2.0)}, "sweep_pole"),
     ({"sweep_ecbf_noise": ("during",)}, "sweep_ecbf_noise"),
@@ -52,6 +56,8 @@ def test_bad_profile_and_variant_name_the_field():
         StudyConfig.for_profile("huge")
     with pytest.raises(ValueError, match=r"^ecbf_noise"):
         Variant(ecbf_noise="sometimes")
+    with pytest.raises(ValueError, match=r"^noise_std"):
+        Variant(noise_std=-1.0)
     cfg = StudyConfig.for_profile("quick", methods=("bas", "ecbf"))
     assert cfg.methods == ("ecbf", "bas") and cfg.n_rollouts == 100
     assert StudyConfig.for_profile("full").n_rollouts * StudyConfig().n_seeds == 5000
@@ -142,52 +148,139 @@ def test_ecbf_rollouts_equal_a_stepwise_filter_loop(setup_and_nominals, rng):
     assert r.qp_steps.sum() > 0
 
 
-def test_study_smoke_run_writes_outputs_and_resumes(tmp_path):
-    out = tmp_path / "tc"
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny run in this process (workers = 0), its config and outcome."""
+    out = tmp_path_factory.mktemp("tc")
     cfg = StudyConfig.for_profile("quick", **TINY)
-    summary = run(cfg, out, progress=False)
-    report = write_report(out)
-    data = json.loads((out / "summary.json").read_text())
-    for m in ("ecbf", "al", "bas"):
-        s = data["methods"][m]
-        for key in ("unsafe_rate", "unsafe_ci_low", "unsafe_ci_high", "failure_rate",
-                    "failure_ci_low", "failure_ci_high", "n_rollouts", "mean_final_distance",
-                    "infeasible_qp_steps"):
-            assert key in s, (m, key)
-        assert s["n_rollouts"] == 12
-        assert s["unsafe_ci_low"] <= s["unsafe_rate"] <= s["unsafe_ci_high"]
-        assert s["failure_rate"] >= s["unsafe_rate"]
-    rows = pd.read_csv(out / "rollouts.csv")
-    assert len(rows[rows["study"] == "main"]) == 3 * 12
-    sweep = rows[rows["study"] == "sweep"]
-    # the base point (3 methods) and q_beta = 1 (BaS only: it changes no other method's task)
-    assert len(sweep) == 4 * 4 and set(sweep["q_beta"]) == {1e-2, 1.0}
-    assert set(sweep.loc[sweep["q_beta"] == 1.0, "method"]) == {"bas"}
-    assert {r["parameter"] for r in data["sweep"]} == {"q_beta", "pole", "q_scale",
-                                                       "ecbf_noise"}
+    return cfg, out, run(cfg, out, workers=0, progress=False)
+
+
+def test_tiny_run_writes_the_tidy_data_figures_and_report(tiny_run):
+    cfg, out, outcome = tiny_run
+    rows = RunStore(out).table("rollouts")
+    p = plan(cfg)
+    # main: 3 methods x 2 seeds x 6; sweep: q_beta = 1 (BaS only), ECBF noise after (ECBF only),
+    # the base point's 4-rollout batches (shared by every point that changes nothing)
+    assert len(rows) == 3 * 12 + 3 * 4 + 4 + 4
+    assert len(p.tasks) == 3 + 6 + 3 + 2 and outcome.run.computed == len(p.tasks)
+    assert set(rows.loc[rows["q_beta"] == 1.0, "method"]) == {"bas"}
+    assert set(rows.loc[rows["ecbf_noise"] == "after", "method"]) == {"ecbf"}
     for name in ("trajectories_ecbf.png", "trajectories_al.png", "trajectories_bas.png",
-                 "min_h_hist.png", "final_distance_hist.png", "sweep.png"):
+                 "min_h_hist.png", "final_distance_hist.png", "sweep.png", "radius.png"):
         assert (out / name).stat().st_size > 1000, name
-    text = report.read_text()
-    assert "27%" in text and "60%" in text and "Assumed" in text
-    assert data["tasks"]["computed"] == data["tasks"]["total"] == 6 + 4
-
-    again = run(cfg, out, progress=False)  # everything resumed from the task files
-    assert again["tasks"]["computed"] == 0
-    assert again["methods"] == summary["methods"]
-    task_files = sorted((out / ".cache" / "tasks").glob("al-s1-*.npz"))
-    task_files[0].unlink()  # an interrupted run lost one task; another one is corrupt
-    sorted((out / ".cache" / "tasks").glob("bas-s0-*.npz"))[0].write_bytes(b"not a npz")
-    third = run(cfg, out, progress=False)
-    assert third["tasks"]["computed"] == 2
-    assert third["methods"] == summary["methods"]
+    assert (out / "rollouts.csv").read_text().count("\n") == len(rows) + 1
+    data = json.loads((out / "summary.json").read_text())
+    assert {o["method"] for o in data["methods"]} == {"ecbf", "al", "bas"}
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config"]["n_rollouts"] == 6 and manifest["git_revision"]
 
 
-def test_results_do_not_depend_on_the_worker_count(tmp_path):
-    base = dict(TINY, sweep=False, methods=("ecbf", "bas"))
-    run(StudyConfig.for_profile("quick", **base), tmp_path / "one", progress=False)
-    run(StudyConfig.for_profile("quick", **{**base, "workers": 2}), tmp_path / "two",
-        progress=False)
-    one = (tmp_path / "one" / "rollouts.csv").read_text()
-    assert one == (tmp_path / "two" / "rollouts.csv").read_text()
-    assert len(one.splitlines()) == 1 + 2 * 12
+def _independent_rates(cfg, out):
+    """Unsafe and failure counts of the main rollouts, recomputed from the Parquet table."""
+    rows = RunStore(out).table("rollouts")
+    main = rows[(rows["n_rollouts"] == cfg.n_rollouts) & (rows["q_beta"] == cfg.base.q_beta)
+                & (rows["ecbf_noise"] == "before") & (rows["noise_std"] == cfg.noise_std)]
+    out_ = {}
+    for m, g in main.groupby("method"):
+        unsafe = g["min_h"].to_numpy() < 0
+        radii = {r: int((unsafe | (g["final_distance"].to_numpy() > r)).sum())
+                 for r in cfg.radii}
+        out_[m] = (len(g), int(unsafe.sum()), radii)
+    return out_
+
+
+def test_report_numbers_are_the_data(tiny_run):
+    """Every rate in the headline table and the radius table equals the rate recomputed here
+    from the tidy data; each method shows both unsafe and failure."""
+    cfg, out, outcome = tiny_run
+    text = outcome.report.read_text()
+    for m, (n, k_unsafe, radii) in _independent_rates(cfg, out).items():
+        assert n == cfg.n_seeds * cfg.n_rollouts
+        line = next(ln for ln in text.splitlines() if ln.startswith(f"| {NAMES[m]} | "))
+        cells = line.split(" | ")
+        assert cells[1] == fmt_rate(Rate(k_unsafe, n))
+        assert cells[3] == fmt_rate(Rate(radii[cfg.target_radius], n))
+        for r, k in radii.items():
+            row = next(ln for ln in text.splitlines() if ln.startswith(f"| {r:g} | "))
+            assert fmt_rate(Rate(k, n)) in row, (m, r)
+    assert re.search(r"\| AL-iLQG \| .* \| 60% \| .* \| not given \|", text)
+
+
+def test_report_prints_exactly_the_claims_that_hold(tiny_run):
+    outcome = tiny_run[2]
+    text = outcome.report.read_text()
+    claims = [c for cs in all_claims(outcome.summary).values() for c in cs]
+    assert any(c.holds for c in claims) and any(not c.holds for c in claims)
+    for c in claims:
+        assert (f"- {c.text}" in text) == c.holds, c.text
+    # mutually exclusive alternatives: exactly one ranking sentence is printed
+    ranking = [c for c in all_claims(outcome.summary)["ranking"][:3] if c.holds]
+    assert len(ranking) == 1
+
+
+def test_rerun_resumes_and_recomputes_only_lost_tasks(tiny_run, tmp_path):
+    cfg, out, first = tiny_run
+    again = run(cfg, out, workers=0, progress=False)
+    assert again.run.computed == 0 and again.summary == first.summary
+    tasks = sorted((out / "tasks").glob("*.npz"))
+    tasks[0].unlink()  # a task lost; another one corrupt
+    tasks[1].write_bytes(b"not a npz")
+    parquet = (out / "rollouts.parquet").read_bytes()
+    third = run(cfg, out, workers=0, progress=False)
+    assert third.run.computed == 2 and third.summary == first.summary
+    assert (out / "rollouts.parquet").read_bytes() == parquet
+
+
+def test_same_bytes_in_process_with_two_workers_and_on_a_dask_cluster(tiny_run, tmp_path):
+    from distributed import LocalCluster
+
+    cfg, out, _ = tiny_run
+    run(cfg, tmp_path / "two", workers=2, progress=False)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                      host="127.0.0.1", dashboard_address=None) as cluster:
+        run(cfg, tmp_path / "dask", scheduler=cluster.scheduler_address, progress=False)
+    for name in ("rollouts.parquet", "rollouts.csv", "summary.json"):
+        ref = (out / name).read_bytes()
+        assert (tmp_path / "two" / name).read_bytes() == ref, name
+        assert (tmp_path / "dask" / name).read_bytes() == ref, name
+
+
+def test_sigint_during_ecbf_tasks_then_rerun_equals_an_uninterrupted_run(tmp_path):
+    """Issue 9, class 1: a real SIGINT while ECBF tasks run in the study's own process (where
+    the QP solver may swallow the interrupt) stops the run within seconds; the rerun gives the
+    same bytes as an uninterrupted run, so no silently altered task was recorded."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    overrides = dict(methods=("ecbf",), n_rollouts=40, n_seeds=4, sweep=False, radii=(0.5,))
+    cfg = StudyConfig.for_profile("quick", **overrides)
+    run(cfg, tmp_path / "ref", workers=0, progress=False)
+    out = tmp_path / "run"
+    code = ("import sys; from pathlib import Path\n"
+            "from studies.tracking_comparison.config import StudyConfig\n"
+            "from studies.tracking_comparison.run import run\n"
+            "from workbench.study import StudyInterrupted\n"
+            f"cfg = StudyConfig.for_profile('quick', **{overrides!r})\n"
+            f"try:\n    run(cfg, Path({str(out)!r}), workers=0, progress=False)\n"
+            "except StudyInterrupted:\n    sys.exit(130)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE,
+                            cwd=Path(__file__).parents[1])
+    t_end = time.monotonic() + 60
+    while len(list((out / "tasks").glob("*.npz")) if (out / "tasks").exists() else []) < 2:
+        assert time.monotonic() < t_end and proc.poll() is None
+        time.sleep(0.01)
+    time.sleep(0.05)  # inside the next ECBF batch
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err.decode()
+    assert time.monotonic() - t0 < 3.0
+    done = len(list((out / "tasks").glob("*.npz")))
+    rerun = run(cfg, out, workers=0, progress=False)
+    assert rerun.run.loaded == done and rerun.run.computed == 5 - done
+    for name in ("rollouts.parquet", "summary.json"):
+        assert (out / name).read_bytes() == (tmp_path / "ref" / name).read_bytes(), name

@@ -51,7 +51,8 @@ def manifest() -> dict[str, object]:
     except (OSError, subprocess.TimeoutExpired):
         rev = None
     versions = {}
-    for pkg in ("casadi", "numpy", "scipy", "osqp", "qpsolvers", "pandas", "matplotlib"):
+    for pkg in ("casadi", "numpy", "scipy", "osqp", "qpsolvers", "daqp", "pandas", "matplotlib",
+                "pyarrow", "tqdm", "dask", "distributed"):
         try:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:

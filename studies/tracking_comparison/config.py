@@ -1,9 +1,7 @@
-"""Study configuration: frozen, validated at construction, hashed per (method, seed) task."""
+"""Study configuration: frozen, validated at construction (errors name the field)."""
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import asdict, dataclass, field, replace
 from numbers import Integral, Real
 
@@ -14,11 +12,11 @@ from workbench.validation import fail, one_of
 METHODS: tuple[str, ...] = ("ecbf", "al", "bas")
 PROFILES: tuple[str, ...] = ("quick", "full")
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
-SWEPT = ("q_beta", "pole", "q_scale", "ecbf_noise")
+SWEPT = ("q_beta", "pole", "q_scale", "ecbf_noise", "noise_std")
 NOISE_PLACEMENTS = ("before", "after")
 # the swept values each method's results depend on
-RELEVANT = {"ecbf": ("pole", "q_scale", "ecbf_noise"), "al": ("q_scale",),
-            "bas": ("q_beta", "q_scale")}
+RELEVANT = {"ecbf": ("pole", "q_scale", "ecbf_noise", "noise_std"),
+            "al": ("q_scale", "noise_std"), "bas": ("q_beta", "q_scale", "noise_std")}
 
 
 def _int(name: str, value, minimum: int) -> int:
@@ -47,23 +45,31 @@ class Variant:
 
     q_beta: BaS barrier-state weight; pole: ECBF poles p1 = p2 = pole; q_scale: factor on the
     tracking weight Q = diag(10, 10, 1, 1) (R and S unchanged); ecbf_noise: whether the control
-    noise enters before the ECBF filter (SPEC 6.3 default) or after it (SPEC 13 E7).
+    noise enters before the ECBF filter (SPEC 6.3 default) or after it (SPEC 13 E7); noise_std:
+    control-noise standard deviation (paper [P]: 10).
     """
 
     q_beta: float = 1e-2
     pole: float = 5.0
     q_scale: float = 1.0
     ecbf_noise: str = "before"
+    noise_std: float = 10.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "q_beta", _real("q_beta", self.q_beta, strict=False))
         object.__setattr__(self, "pole", _real("pole", self.pole))
         object.__setattr__(self, "q_scale", _real("q_scale", self.q_scale))
         one_of("ecbf_noise", self.ecbf_noise, NOISE_PLACEMENTS)
+        object.__setattr__(self, "noise_std", _real("noise_std", self.noise_std, strict=False))
 
     def relevant(self, method: str) -> dict[str, float | str]:
-        """The values that change a method's results (others do not enter its task key)."""
+        """The values that change a method's results."""
         return {k: getattr(self, k) for k in RELEVANT[method]}
+
+    def for_method(self, method: str, base: Variant) -> Variant:
+        """This variant with the values ``method`` does not depend on set to ``base``'s, so
+        that points of the sweep that cannot change a method share its tasks."""
+        return replace(base, **self.relevant(method))
 
 
 @dataclass(frozen=True)
@@ -72,24 +78,25 @@ class StudyConfig:
     ValueError naming the field.
 
     Main study: n_seeds x n_rollouts per method at ``base``. Sweep: for each [A] parameter and each
-    of its values (others at base), sweep_seeds x sweep_rollouts per method. Noise std in the
-    control channel; failure = unsafe or final distance > target_radius [A].
+    of its values (others at base), sweep_seeds x sweep_rollouts per method. failure = unsafe or
+    final distance > target_radius [A]; ``radii``: the success radii of the radius sweep
+    (computed from the same rollouts).
     """
 
     profile: str = "full"
     methods: tuple[str, ...] = METHODS
-    noise_std: float = 10.0
     n_rollouts: int = 500
     n_seeds: int = 10
     seed: int = 2022
     target_radius: float = 0.5
-    workers: int = 2
+    radii: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0)
     base: Variant = field(default_factory=Variant)
     sweep: bool = True
     sweep_q_beta: tuple[float, ...] = (1e-3, 1e-2, 1e-1, 1.0)
     sweep_pole: tuple[float, ...] = (2.0, 5.0, 10.0)
     sweep_q_scale: tuple[float, ...] = (0.1, 1.0, 10.0)
     sweep_ecbf_noise: tuple[str, ...] = NOISE_PLACEMENTS
+    sweep_noise_std: tuple[float, ...] = (5.0, 10.0, 15.0)
     sweep_rollouts: int = 250
     sweep_seeds: int = 2
 
@@ -104,18 +111,17 @@ class StudyConfig:
         if len(set(methods)) != len(methods):
             raise fail("methods", methods, "must not repeat a method")
         object.__setattr__(self, "methods", tuple(m for m in METHODS if m in methods))
-        object.__setattr__(self, "noise_std",
-                           _real("noise_std", self.noise_std, strict=False))
         object.__setattr__(self, "n_rollouts", _int("n_rollouts", self.n_rollouts, 1))
         object.__setattr__(self, "n_seeds", _int("n_seeds", self.n_seeds, 1))
         object.__setattr__(self, "seed", _int("seed", self.seed, 0))
         object.__setattr__(self, "target_radius", _real("target_radius", self.target_radius))
-        object.__setattr__(self, "workers", _int("workers", self.workers, 1))
+        object.__setattr__(self, "radii", tuple(sorted(_values("radii", self.radii))))
         if not isinstance(self.base, Variant):
             raise fail("base", self.base, "must be a Variant")
-        for name in SWEPT[:3]:
+        for name in ("q_beta", "pole", "q_scale", "noise_std"):
             object.__setattr__(self, f"sweep_{name}", _values(
-                f"sweep_{name}", getattr(self, f"sweep_{name}"), strict=name != "q_beta"))
+                f"sweep_{name}", getattr(self, f"sweep_{name}"),
+                strict=name not in ("q_beta", "noise_std")))
         placements = self.sweep_ecbf_noise
         if isinstance(placements, str) or len(placements) == 0 or any(
                 p not in NOISE_PLACEMENTS for p in placements):
@@ -141,23 +147,9 @@ class StudyConfig:
         return [(name, v, replace(self.base, **{name: v}))
                 for name in SWEPT for v in getattr(self, f"sweep_{name}")]
 
+    @property
+    def noise_std(self) -> float:
+        return self.base.noise_std
+
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-def task_key(config: StudyConfig, method: str, variant: Variant, seed_index: int,
-             n_rollouts: int, fixed: dict) -> str:
-    """Content hash of everything a (method, variant, seed) task's results depend on."""
-    payload = {"version": RESULT_VERSION, "method": method, "variant": variant.relevant(method),
-               "seed": config.seed, "seed_index": seed_index, "n_rollouts": n_rollouts,
-               "noise_std": config.noise_std, "fixed": fixed}
-    text = json.dumps(payload, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def nominal_key(method: str, variant: Variant, fixed: dict) -> str:
-    """Content hash of a nominal solution's inputs."""
-    text = json.dumps({"version": RESULT_VERSION, "method": method,
-                       "variant": variant.relevant(method), "fixed": fixed},
-                      sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -1,9 +1,9 @@
-"""Figures and report.md from the study's data (summary.json, rollouts.csv, trajectories)."""
+"""Figures and report.md from a run's summary, tidy table and stored paths (formatting only:
+numbers come from the summary, sentences that interpret them from ``findings``)."""
 
 from __future__ import annotations
 
 import io
-import json
 from pathlib import Path
 
 import matplotlib
@@ -13,30 +13,18 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from studies.tracking_comparison.config import RELEVANT
+from studies.tracking_comparison.findings import NAMES, PARAM_NAMES, all_claims, drivers
+from studies.tracking_comparison.paper import PAPER_BY_METHOD
+from studies.tracking_comparison.summary import Outcome, TrackingSummary
 from workbench.io import atomic_write_bytes, atomic_write_text
+from workbench.scenes import TrackingScene
+from workbench.study import RunStore, fmt_rate, md_table, supported
 
-NAMES = {"ecbf": "ECBF-filtered iLQG", "al": "AL-iLQG", "bas": "BaS-iLQG"}
 COLORS = {"ecbf": "tab:blue", "al": "tab:red", "bas": "tab:green"}
-PARAM_NAMES = {"q_beta": "q_beta (BaS)", "pole": "ECBF poles p1 = p2", "q_scale": "Q scale",
-               "ecbf_noise": "ECBF noise vs filter"}
 
 
 def _fmt(v) -> str:
-    try:
-        return f"{float(v):g}"
-    except ValueError:
-        return str(v)
-
-
-def _by_value(sel: pd.DataFrame) -> pd.DataFrame:
-    """Rows in the order of the swept values (numeric if they are numbers)."""
-    try:
-        order = sel["value"].astype(float)
-    except ValueError:
-        return sel
-    return sel.assign(_v=order).sort_values("_v").drop(columns="_v")
-HEADLINE = {"ecbf": "failure_rate", "al": "unsafe_rate", "bas": "unsafe_rate"}
+    return v if isinstance(v, str) else f"{v:g}"
 
 
 def _png(fig) -> bytes:
@@ -47,13 +35,9 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-def _obstacle(summary: dict) -> tuple[float, float, float]:
-    scene = summary["scene"]
-    return (*scene["obstacle_center"], scene["obstacle_radius"])
-
-
-def _scene(ax, summary: dict, ref: np.ndarray) -> None:
-    cx, cy, r = _obstacle(summary)
+def _scene(ax, scene: TrackingScene) -> None:
+    (cx, cy), r = scene.obstacle.center, scene.obstacle.radius
+    ref = scene.reference()[:, :2]
     ax.add_patch(plt.Circle((cx, cy), r, color="0.75", zorder=0))
     ax.plot(ref[:, 0], ref[:, 1], "--", color="tab:orange", lw=1.2, label="reference (unsafe)")
     ax.plot(ref[0, 0], ref[0, 1], "kx", ms=9, mew=2)
@@ -63,20 +47,19 @@ def _scene(ax, summary: dict, ref: np.ndarray) -> None:
     ax.set_ylabel("p_y [m]")
 
 
-def trajectory_figure(summary: dict, traj, method: str) -> bytes:
+def trajectory_figure(scene: TrackingScene, nominal: np.ndarray, mc: np.ndarray,
+                      method: str) -> bytes:
     """Paper Figs. 1-3: the noise-free closed loop (left) and the Monte Carlo overlay (right)."""
     fig, axes = plt.subplots(1, 2, figsize=(12, 3.6), sharey=True)
-    ref = traj["reference"]
-    nominal, mc = traj[f"{method}_nominal"], traj[f"{method}_mc"]
     for ax in axes:
-        _scene(ax, summary, ref)
+        _scene(ax, scene)
     axes[0].plot(nominal[:, 0], nominal[:, 1], color=COLORS[method], lw=2, label="nominal")
     axes[0].set_title(f"{NAMES[method]}: noise-free closed loop")
     axes[0].legend(fontsize=8, loc="upper left")
-    cx, cy, r = _obstacle(summary)
+    (cx, cy), r = scene.obstacle.center, scene.obstacle.radius
     h = ((mc[:, :, 0] - cx) ** 2 + (mc[:, :, 1] - cy) ** 2 - r**2).min(axis=1)
-    for path, unsafe in zip(mc, h < 0, strict=True):
-        axes[1].plot(path[:, 0], path[:, 1], color="tab:red" if unsafe else COLORS[method],
+    for path, bad in zip(mc, h < 0, strict=True):
+        axes[1].plot(path[:, 0], path[:, 1], color="tab:red" if bad else COLORS[method],
                      lw=0.4, alpha=0.25)
     axes[1].plot(nominal[:, 0], nominal[:, 1], "k", lw=1)
     axes[1].set_title(f"{len(mc)} Monte Carlo rollouts (seed 0), unsafe in red: "
@@ -88,8 +71,8 @@ def histogram_figure(rows: pd.DataFrame, column: str, xlabel: str, line: float) 
     methods = [m for m in NAMES if m in set(rows["method"])]
     fig, axes = plt.subplots(1, len(methods), figsize=(4 * len(methods), 3.2), squeeze=False)
     for ax, m in zip(axes[0], methods, strict=True):
-        v = rows.loc[rows["method"] == m, column].to_numpy()
-        ax.hist(v, bins=60, color=COLORS[m], alpha=0.85)
+        ax.hist(rows.loc[rows["method"] == m, column].to_numpy(), bins=60, color=COLORS[m],
+                alpha=0.85)
         ax.axvline(line, color="k", lw=1, ls="--")
         ax.set_title(NAMES[m])
         ax.set_xlabel(xlabel)
@@ -97,254 +80,212 @@ def histogram_figure(rows: pd.DataFrame, column: str, xlabel: str, line: float) 
     return _png(fig)
 
 
-def sweep_figure(sweep: pd.DataFrame) -> bytes:
-    params = list(dict.fromkeys(sweep["parameter"]))
+def _errorbar(ax, x, rates, **kw) -> None:
+    y = np.array([100 * r.value for r in rates])
+    err = np.array([[100 * (r.value - r.low) for r in rates],
+                    [100 * (r.high - r.value) for r in rates]])
+    ax.errorbar(x, y, yerr=err, marker="o", capsize=3, **kw)
+
+
+def _points(s: TrackingSummary, parameter: str) -> list:
+    pts = [p for p in s.sweep if p.parameter == parameter]
+    return pts if isinstance(pts[0].value, str) else sorted(pts, key=lambda p: p.value)
+
+
+def sweep_figure(s: TrackingSummary) -> bytes:
+    params = list(dict.fromkeys(p.parameter for p in s.sweep))
     fig, axes = plt.subplots(2, len(params), figsize=(4.2 * len(params), 6), squeeze=False)
-    for j, p in enumerate(params):
-        sel = sweep[sweep["parameter"] == p]
+    for j, name in enumerate(params):
+        pts = _points(s, name)
         for i, metric in enumerate(("unsafe", "failure")):
             ax = axes[i][j]
             for m in NAMES:
-                s = _by_value(sel[sel["method"] == m])
-                if len(s) == 0:
+                outs = [p.get(m) for p in pts]
+                if any(o is None for o in outs):
                     continue
-                y = 100 * s[f"{metric}_rate"].to_numpy()
-                err = 100 * np.vstack([s[f"{metric}_rate"] - s[f"{metric}_ci_low"],
-                                       s[f"{metric}_ci_high"] - s[f"{metric}_rate"]])
-                ax.errorbar(np.arange(len(s)), y, yerr=err, marker="o", capsize=3,
-                            color=COLORS[m], label=NAMES[m])
-                ax.set_xticks(np.arange(len(s)), [_fmt(v) for v in s["value"]])
-            ax.set_xlabel(PARAM_NAMES.get(p, p))
+                _errorbar(ax, np.arange(len(pts)), [getattr(o, metric) for o in outs],
+                          color=COLORS[m], label=NAMES[m])
+            ax.set_xticks(np.arange(len(pts)), [_fmt(p.value) for p in pts])
+            ax.set_xlabel(PARAM_NAMES.get(name, name))
             ax.set_ylabel(f"{metric} rate [%]")
             ax.set_ylim(-3, 103)
     axes[0][0].legend(fontsize=8)
     return _png(fig)
 
 
-def _pct(s: dict, name: str) -> str:
-    return (f"{100 * s[f'{name}_rate']:.1f}% [{100 * s[f'{name}_ci_low']:.1f}, "
-            f"{100 * s[f'{name}_ci_high']:.1f}]")
+def radius_figure(s: TrackingSummary) -> bytes:
+    """Failure against the assumed success radius, beside unsafe/failure against the noise
+    level."""
+    noise = [p for p in s.sweep if p.parameter == "noise_std"]
+    fig, axes = plt.subplots(1, 2 if noise else 1, figsize=(11 if noise else 5.5, 3.8),
+                             squeeze=False)
+    ax = axes[0][0]
+    for (source, m), style in [((src, m), "-" if src == "main" else "--")
+                               for src, m in dict.fromkeys((p.source, p.method)
+                                                           for p in s.radius)]:
+        pts = [p for p in s.radius if (p.source, p.method) == (source, m)]
+        label = NAMES[m] + ("" if source == "main" else ", noise after the filter")
+        _errorbar(ax, [p.radius for p in pts], [p.failure for p in pts], color=COLORS[m],
+                  ls=style, label=label)
+    ax.axvline(s.config["target_radius"], color="k", lw=1, ls=":")
+    ax.set_xlabel("success radius around the target [m] (assumed)")
+    ax.set_ylabel("failure rate [%]")
+    ax.set_ylim(-3, 103)
+    ax.legend(fontsize=7)
+    if noise:
+        ax = axes[0][1]
+        pts = sorted(noise, key=lambda p: p.value)
+        for m in NAMES:
+            outs = [p.get(m) for p in pts]
+            if any(o is None for o in outs):
+                continue
+            x = [p.value for p in pts]
+            _errorbar(ax, x, [o.failure for o in outs], color=COLORS[m], label=f"{NAMES[m]} "
+                      "failure")
+            _errorbar(ax, x, [o.unsafe for o in outs], color=COLORS[m], ls="--", mfc="none",
+                      label=f"{NAMES[m]} unsafe")
+        ax.set_xlabel("control noise std")
+        ax.set_ylabel("rate [%]")
+        ax.set_ylim(-3, 103)
+        ax.legend(fontsize=7)
+    return _png(fig)
 
 
-def _drivers(sweep: pd.DataFrame, method: str, metric: str) -> list[tuple[str, float, str]]:
-    """(parameter, range of the rate, text) per swept parameter, largest range first."""
-    out = []
-    for p in dict.fromkeys(sweep["parameter"]):
-        if p not in RELEVANT[method]:
-            continue
-        s = _by_value(sweep[(sweep["parameter"] == p) & (sweep["method"] == method)])
-        if len(s) == 0:
-            continue
-        rates = s[metric].to_numpy()
-        text = ", ".join(f"{_fmt(v)}: {100 * r:.1f}%" for v, r in zip(s["value"], rates,
-                                                                        strict=True))
-        out.append((p, float(rates.max() - rates.min()), text))
-    return sorted(out, key=lambda t: -t[1])
+def _paper_cell(m: str, metric: str) -> str:
+    p = PAPER_BY_METHOD.get(m)
+    return f"{100 * p.value:g}%" if p and p.metric == metric else "not given"
 
 
-def _comparison(summary: dict, sweep: pd.DataFrame) -> list[str]:
-    lines = ["| method | paper [P] | our unsafe % [95% CI] | our failure % [95% CI] | "
-             "SPEC 14.4 band (headline) | in band |", "|---|---|---|---|---|---|"]
-    notes = []
-    for m, s in summary["methods"].items():
-        paper = summary["paper"][m]
-        metric = paper["metric"]
-        lo, hi = paper["band"]
-        value = s[metric]
-        inside = lo <= value <= hi
-        lines.append(f"| {NAMES[m]} | {paper['text']} | {_pct(s, 'unsafe')} | "
-                     f"{_pct(s, 'failure')} | {metric.split('_')[0]} "
-                     f"{100 * lo:g}-{100 * hi:g}% | {'yes' if inside else 'NO'} |")
-        drivers = _drivers(sweep, m, metric) if len(sweep) else []
-        sens = "; ".join(f"{PARAM_NAMES.get(p, p)} ({t})" for p, _, t in drivers)
-        if not inside:
-            top = drivers[0] if drivers else None
-            why = (f" The swept assumption that moves it most is **{PARAM_NAMES.get(top[0])}** "
-                   f"(range {100 * top[1]:.0f} points)." if top else
-                   " No sweep was run, so no assumption can be singled out.")
-            notes.append(f"- **{NAMES[m]}: {metric.replace('_', ' ')} "
-                         f"{100 * value:.1f}% lies outside {100 * lo:g}-{100 * hi:g}%.**{why}"
-                         f" Sweep ({metric.replace('_', ' ')}): {sens}.")
-        elif drivers:
-            notes.append(f"- {NAMES[m]}: {metric.replace('_', ' ')} {100 * value:.1f}% is inside "
-                         f"the band. Sensitivity ({metric.replace('_', ' ')}): {sens}.")
-    return [*lines, "", *notes]
+def _comparison(s: TrackingSummary) -> list[str]:
+    rows = []
+    for o in s.methods:
+        p = PAPER_BY_METHOD[o.method]
+        ours = getattr(o, p.metric)
+        rows.append([NAMES[o.method], fmt_rate(o.unsafe), _paper_cell(o.method, "unsafe"),
+                     fmt_rate(o.failure), _paper_cell(o.method, "failure"),
+                     f"{p.metric} {100 * p.band[0]:g}-{100 * p.band[1]:g}%",
+                     "yes" if p.band[0] <= ours.value <= p.band[1] else "NO"])
+    return md_table(["method", "unsafe % [95% CI]", "paper unsafe", "failure % [95% CI]",
+                     "paper failure", "SPEC 14.4 band", "in band"], rows)
 
 
-def _point(sweep: pd.DataFrame, method: str, parameter: str, value) -> pd.Series | None:
-    sel = sweep[(sweep["method"] == method) & (sweep["parameter"] == parameter)]
-    sel = sel[[_fmt(v) == _fmt(value) for v in sel["value"]]]
-    return sel.iloc[0] if len(sel) else None
-
-
-def _discussion(summary: dict, sweep: pd.DataFrame) -> list[str]:
-    """What the numbers say about each method, from this run's data only."""
-    methods, lines = summary["methods"], []
-    sw = sweep if len(sweep) else pd.DataFrame(columns=["method", "parameter", "value"])
-    if "ecbf" in methods:
-        s, radius = methods["ecbf"], summary["config"]["target_radius"]
-        text = (f"- **ECBF**: {s['n_unsafe']} of {s['n_rollouts']} rollouts unsafe and "
-                f"{s['n_not_reached']} farther than {radius:g} m from the target at the end")
-        if s["n_unsafe"] == 0 and summary["config"]["base"]["ecbf_noise"] == "before":
-            text += (": with the noise entering before the filter, the QP removes the unsafe "
-                     "part of every perturbation, so every failure is a missed target (the "
-                     "robot slides around the obstacle and falls behind the reference)")
-        after = _point(sw, "ecbf", "ecbf_noise", "after")
-        if after is not None:
-            text += (f". With the noise after the filter (SPEC 13 E7) "
-                     f"{100 * after['unsafe_rate']:.1f}% of rollouts are unsafe and "
-                     f"{100 * after['failure_rate']:.1f}% fail; the paper's remark that the "
-                     "filter 'is unable to maintain safety with large control deviations' fits "
-                     "that placement better than ours")
-        lines.append(text + ".")
-    if "al" in methods:
-        s, nom = methods["al"], summary["nominal"].get("al", {})
-        text = (f"- **AL-iLQG**: the nominal trajectory touches the constraint (closed-loop min h "
-                f"{nom.get('closed_loop_min_h', float('nan')):.1e} m²), so a perturbation towards "
-                f"the obstacle near the contact arc makes a run unsafe: "
-                f"{100 * s['unsafe_rate']:.1f}% here vs ≈60% in the paper")
-        al = sw[(sw["method"] == "al") & sw["parameter"].isin(RELEVANT["al"])]
-        if len(al):
-            lo, hi = al["unsafe_rate"].min(), al["unsafe_rate"].max()
-            best = al.loc[al["unsafe_rate"].idxmin()]
-            text += (f". Over the sweep it ranges {100 * lo:.1f}-{100 * hi:.1f}%, lowest at "
-                     f"{PARAM_NAMES.get(best['parameter'])} = {_fmt(best['value'])}")
-            if lo > 0.6:
-                text += ("; no swept value brings it down to 60%, so the remaining gap comes "
-                         "from an assumption not swept here (the scene geometry of SPEC 3.3, "
-                         "R, or how tightly the paper's AL converged onto the boundary)")
-        lines.append(text + ".")
-    if "bas" in methods:
-        s = methods["bas"]
-        text = (f"- **BaS-iLQG**: {s['n_unsafe']} of {s['n_rollouts']} rollouts unsafe "
-                f"({100 * s['unsafe_rate']:.2f}%, paper: 0 of 500)")
-        qb = _by_value(sw[(sw["method"] == "bas") & (sw["parameter"] == "q_beta")])
-        if len(qb):
-            text += "; by q_beta: " + ", ".join(
-                f"{_fmt(v)}: {100 * r:.1f}%" for v, r in zip(qb["value"], qb["unsafe_rate"],
-                                                             strict=True))
-            text += " (a heavier barrier weight keeps the feedback further from the obstacle)"
-        lines.append(text + ".")
+def _sensitivity(s: TrackingSummary) -> list[str]:
+    lines = []
+    for o in s.methods:
+        for metric in ("unsafe", "failure"):
+            d = drivers(s, o.method, metric)
+            if d:
+                lines.append(f"- {NAMES[o.method]}, {metric}: " + "; ".join(
+                    f"{PARAM_NAMES[p]} ({t})" for p, _, t in d))
     return lines
 
 
-def _details(summary: dict) -> list[str]:
-    lines = ["| method | n | unsafe | not at target | unsafe and not at target | "
-             "mean / median final distance [m] | min h: min, 5%, median [m²] | "
-             "infeasible QP steps (rollouts) | unsafe with an infeasible QP step | "
-             "QP solves (fallbacks) |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for m, s in summary["methods"].items():
-        mh = s["min_h"]
-        lines.append(
-            f"| {NAMES[m]} | {s['n_rollouts']} | {s['n_unsafe']} | {s['n_not_reached']} | "
-            f"{s['n_unsafe_and_not_reached']} | {s['mean_final_distance']:.3f} / "
-            f"{s['median_final_distance']:.3f} | {mh['min']:.3f}, {mh['p05']:.3f}, "
-            f"{mh['median']:.3f} | {s['infeasible_qp_steps']} ({s['rollouts_with_infeasible_qp']})"
-            f" | {s['unsafe_with_infeasible_qp']} | {s['qp_steps']} ({s['fallback_steps']}) |")
+def _details(s: TrackingSummary) -> list[str]:
+    def row(o: Outcome):
+        return [NAMES[o.method], o.n, o.unsafe.k, o.not_reached.k, o.n_unsafe_and_not_reached,
+                f"{o.final_distance.mean:.3f} / {o.final_distance.median:.3f}",
+                f"{o.min_h.min:.3f}, {o.min_h_p05:.3f}, {o.min_h.median:.3f}",
+                f"{o.infeasible_qp_steps} ({o.rollouts_with_infeasible_qp})",
+                o.unsafe_with_infeasible_qp, f"{o.qp_steps} ({o.fallback_steps})"]
+
+    def spread(p):
+        return f"{100 * p.mean:.1f} ± {100 * p.std:.1f}% [{100 * p.min:.1f}, {100 * p.max:.1f}]"
+
+    lines = md_table(["method", "n", "unsafe", "not at target", "unsafe and not at target",
+                      "mean / median final distance [m]", "min h: min, 5%, median [m²]",
+                      "infeasible QP steps (rollouts)", "unsafe with an infeasible QP step",
+                      "QP solves (fallbacks)"], [row(o) for o in s.methods])
     lines += ["", "Per-seed spread (rate over each seed's rollouts):", "",
-              "| method | unsafe: mean ± std [min, max] | failure: mean ± std [min, max] |",
-              "|---|---|---|"]
-    for m, s in summary["methods"].items():
-        cells = []
-        for name in ("unsafe_rate", "failure_rate"):
-            p = s[f"per_seed_{name}"]
-            cells.append(f"{100 * p['mean']:.1f} ± {100 * p['std']:.1f}% "
-                         f"[{100 * p['min']:.1f}, {100 * p['max']:.1f}]")
-        lines.append(f"| {NAMES[m]} | {cells[0]} | {cells[1]} |")
-    lines += ["", "Nominal (noise-free) closed loops:", ""]
-    for m, info in summary["nominal"].items():
-        extra = ""
-        if m == "al":
-            extra = (f", {info['outer_iterations']} outer iterations, max violation "
-                     f"{info['max_violation']:.1e} m²")
-        if m == "ecbf":
-            extra = (f", ECBF initial condition met: {info['ecbf_initial_condition_ok']}, "
-                     f"infeasible QP steps {info['closed_loop_infeasible_qp_steps']}")
-        lines.append(f"- {NAMES[m]}: planner cost {info['cost']:.2f} (converged "
-                     f"{info['converged']}, {info['iterations']} iLQG iterations{extra}); "
-                     f"closed loop min h {info['closed_loop_min_h']:.2e} m², final distance "
-                     f"{info['closed_loop_final_distance']:.3f} m")
+              *md_table(["method", "unsafe: mean ± std [min, max]",
+                         "failure: mean ± std [min, max]"],
+                        [[NAMES[o.method], spread(o.per_seed_unsafe), spread(o.per_seed_failure)]
+                         for o in s.methods]), "", "Nominal (noise-free) closed loops:", ""]
+    for n in s.nominal:
+        i = n.info
+        extra = (f", {i['outer_iterations']} outer iterations, max violation "
+                 f"{i['max_violation']:.1e} m²" if n.method == "al" else
+                 f", ECBF initial condition met: {i['ecbf_initial_condition_ok']}, infeasible QP "
+                 f"steps {i['closed_loop_infeasible_qp_steps']}" if n.method == "ecbf" else "")
+        lines.append(f"- {NAMES[n.method]}: planner cost {i['cost']:.2f} (converged "
+                     f"{i['converged']}, {i['iterations']} iLQG iterations{extra}); closed loop "
+                     f"min h {i['closed_loop_min_h']:.2e} m², final distance "
+                     f"{i['closed_loop_final_distance']:.3f} m")
     return lines
 
 
-def _sweep_section(summary: dict, sweep: pd.DataFrame) -> list[str]:
-    if not len(sweep):
-        return ["No sensitivity sweep in this run."]
-    cfg = summary["config"]
-    methods = summary["methods"]
-    lines = [f"{cfg['sweep_seeds']} seeds x {cfg['sweep_rollouts']} rollouts per method and "
-             "point, one [A] value changed at a time (others at their defaults), the same noise "
-             "draws at every point. The paper's numbers imply the ranking BaS < ECBF < AL by "
-             "failure rate (0%, ≈27%, ≥60%); it gives no unsafe-only rate for ECBF, so the "
-             "unsafe ordering is shown for information.", "",
-             "| parameter | value | " + " | ".join(
-                 f"{NAMES[m]} unsafe / failure %" for m in methods) +
-             " | order by failure | order by unsafe |",
-             "|---|---|" + "---|" * len(methods) + "---|---|"]
-    ranks = {(r["parameter"], _fmt(r["value"])): r for r in summary["sweep_ranking"]}
-    for (p, v), grp in sweep.groupby(["parameter", "value"], sort=False):
-        cells = []
-        for m in methods:
-            s = grp[grp["method"] == m].iloc[0]
-            cells.append(f"{100 * s['unsafe_rate']:.1f} / {100 * s['failure_rate']:.1f}")
-        r = ranks.get((p, _fmt(v)), {})
-        rk = [f"{r[k + '_order']}" + (" (paper's)" if r[k] else "") if k in r else "-"
-              for k in ("failure_rate", "unsafe_rate")]
-        lines.append(f"| {PARAM_NAMES.get(p, p)} | {_fmt(v)} | " + " | ".join(cells) +
-                     f" | {rk[0]} | {rk[1]} |")
-    n = len(summary["sweep_ranking"])
-    held = sum(bool(r.get("failure_rate")) for r in summary["sweep_ranking"])
-    lines += ["", f"The paper's ranking BaS < ECBF < AL by failure rate holds at {held} of {n} "
-              "sweep points (strict order of point estimates; ties count as not holding).",
-              "", "![sweep](sweep.png)"]
-    return lines
+def _radius_table(s: TrackingSummary) -> list[str]:
+    series = list(dict.fromkeys((p.source, p.method) for p in s.radius))
+    radii = sorted({p.radius for p in s.radius})
+    get = {(p.source, p.method, p.radius): p.failure for p in s.radius}
+    head = ["success radius [m]"] + [NAMES[m] + ("" if src == "main" else " (noise after)")
+                                      for src, m in series]
+    return md_table(head, [[f"{r:g}"] + [fmt_rate(get[(src, m, r)]) for src, m in series]
+                           for r in radii])
 
 
-def write_report(out: Path) -> Path:
-    """Read the run's data in ``out`` and write the figures and report.md."""
-    out = Path(out)
-    summary = json.loads((out / "summary.json").read_text())
-    rows = pd.read_csv(out / "rollouts.csv")
-    main = rows[rows["study"] == "main"]
-    sweep = pd.read_csv(out / "sweep.csv") if (out / "sweep.csv").stat().st_size > 1 else \
-        pd.DataFrame()
-    with np.load(out / ".cache" / "trajectories.npz") as traj:
-        for m in summary["methods"]:
-            atomic_write_bytes(out / f"trajectories_{m}.png", trajectory_figure(summary, traj, m))
+def _sweep_table(s: TrackingSummary) -> list[str]:
+    methods = [o.method for o in s.methods]
+    rows = [[PARAM_NAMES.get(p.parameter, p.parameter), _fmt(p.value)] +
+            [f"{100 * p.get(m).unsafe.value:.1f} / {100 * p.get(m).failure.value:.1f}"
+             for m in methods] for p in s.sweep]
+    return md_table(["parameter", "value"] + [f"{NAMES[m]} unsafe / failure %" for m in methods],
+                    rows)
+
+
+def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene: TrackingScene,
+                 assumed: list[dict], run_line: str) -> Path:
+    """Write the figures and report.md into the run directory."""
+    out = store.root
+    for m, tid in s.mc_paths.items():
+        nominal = store.arrays(next(n.path_task for n in s.nominal if n.method == m))["path"]
+        atomic_write_bytes(out / f"trajectories_{m}.png", trajectory_figure(
+            scene, nominal, store.arrays(tid)["positions"], m))
+    cfg = s.config
     atomic_write_bytes(out / "min_h_hist.png",
                        histogram_figure(main, "min_h", "min over k of h [m²]", 0.0))
     atomic_write_bytes(out / "final_distance_hist.png", histogram_figure(
-        main, "final_distance", "final distance to the target [m]",
-        summary["config"]["target_radius"]))
-    if len(sweep):
-        atomic_write_bytes(out / "sweep.png", sweep_figure(sweep))
-    cfg = summary["config"]
+        main, "final_distance", "final distance to the target [m]", cfg["target_radius"]))
+    atomic_write_bytes(out / "radius.png", radius_figure(s))
+    if s.sweep:
+        atomic_write_bytes(out / "sweep.png", sweep_figure(s))
+    claims = all_claims(s)
     lines = [
         "# Tracking comparison: ECBF-filtered iLQG, AL-iLQG, BaS-iLQG (paper Sec. III)", "",
         f"Profile `{cfg['profile']}`: {cfg['n_seeds']} seeds x {cfg['n_rollouts']} Monte Carlo "
-        f"rollouts per method, control noise std {cfg['noise_std']:g}, limits ±15, one "
-        f"obstacle on the reference (SPEC 3.3, 6, 7, 12.1). Rates are pooled over seeds with "
-        f"95% Wilson intervals. Wall time {summary['wall_time_s']:.1f} s "
-        f"({summary['tasks']['computed']} of {summary['tasks']['total']} tasks computed, the "
-        f"rest resumed from `.cache/`; {cfg['workers']} workers).", "",
-        "## Paper vs this run", "",
-        *_comparison(summary, sweep), "",
+        f"rollouts per method, control noise std {cfg['base']['noise_std']:g}, limits ±15, one "
+        "obstacle on the reference (SPEC 3.3, 6, 7, 12.1). Rates are pooled over seeds with 95% "
+        f"Wilson intervals. {run_line}", "",
+        "## Paper vs this run", "", *_comparison(s), "",
         "Unsafe: min over steps k = 0..N of h(x_k) < 0. Failure: unsafe, or the final position "
-        f"more than {cfg['target_radius']:g} m from the target. The paper's ECBF figure is a "
-        "failure rate ('unable to remain safe and reach the target'), its AL and BaS figures "
-        "are unsafe rates (SPEC 13 E7).", "",
-        "## What drives the numbers", "", *_discussion(summary, sweep), "",
-        "## Details", "", *_details(summary), "",
+        f"more than {cfg['target_radius']:g} m (assumed) from the target. The paper gives a "
+        "failure rate for ECBF and unsafe rates for AL and BaS (SPEC 13 E7); both rates are "
+        "shown for every method and each is compared with the paper's number of the same kind.",
+        "", "## Findings", "",
+        "Each sentence below is printed only if this run's numbers support it (conditions in "
+        "`studies/tracking_comparison/findings.py`).", "",
+        *supported(claims["ecbf"] + claims["al"] + claims["bas"] + claims["ranking"]), "",
+        "## Success radius and noise level", "",
+        "Failure rate against the assumed success radius (same rollouts), beside the rates "
+        "against the control-noise level:", "", *_radius_table(s), "", "![radius](radius.png)",
+        "", "## Details", "", *_details(s), "",
         "![min h](min_h_hist.png)", "", "![final distance](final_distance_hist.png)", "",
         "## Trajectories (paper Figs. 1-3)", "",
-        *[f"![{NAMES[m]}](trajectories_{m}.png)" for m in summary["methods"]], "",
-        "## Sensitivity sweep over assumed values", "", *_sweep_section(summary, sweep), "",
-        "## Assumed and sourced values used", "",
-        "| quantity | value | source |", "|---|---|---|",
-        *[f"| {a['name']} | {a['value']} | {a['source']} |" for a in summary["assumed"]], "",
-        "Data: `summary.json` (per-method rates, intervals, per-seed spread, sweep), "
-        "`rollouts.csv` (one row per rollout, main study and sweep), `sweep.csv`.", "",
-    ]
+        *[f"![{NAMES[m]}](trajectories_{m}.png)" for m in s.mc_paths], "",
+        "## Sensitivity sweep over assumed values", ""]
+    if s.sweep:
+        lines += [f"{cfg['sweep_seeds']} seeds x {cfg['sweep_rollouts']} rollouts per method and "
+                  "point, one value changed at a time (others at base), the same noise draws "
+                  "at every point.", "", *_sweep_table(s), "",
+                  "Range of each rate over each swept parameter (largest first):", "",
+                  *_sensitivity(s), "", "![sweep](sweep.png)"]
+    else:
+        lines.append("No sensitivity sweep in this run.")
+    lines += ["", "## Assumed and sourced values used", "",
+              *md_table(["quantity", "value", "source"],
+                        [[a["name"], a["value"], a["source"]] for a in assumed]), "",
+              "Data: `rollouts.parquet` / `rollouts.csv` (one row per rollout, every task), "
+              "`summary.json` (this report's numbers), `tasks/*.npz` (per-task rows and paths), "
+              "`manifest.json` (versions, revision, machine).", ""]
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path

@@ -17,17 +17,20 @@ import numpy as np
 from studies.tracking_comparison.config import METHODS
 from workbench.ecbf import ECBFFilter
 from workbench.models import Model
+from workbench.study import seed_sequence
 from workbench.validation import fail
 
 
-def noise_generator(root_seed: int, method: str, seed_index: int) -> np.random.Generator:
-    """Generator of one (method, seed) task: SeedSequence(root).spawn per method, then per seed.
+def stream_key(method: str, seed_index: int) -> tuple[int, int]:
+    """The (method, seed) words of a task's noise stream: SeedSequence(root, spawn_key=...) is
+    SeedSequence(root).spawn per method, then per seed. It depends only on (root seed, method,
+    seed index), not on the task list, the order or the worker count; different sample counts,
+    noise levels and variants share the same draws (prefixes)."""
+    return METHODS.index(method), seed_index
 
-    It depends only on (root_seed, method, seed_index), not on which other tasks run, their
-    order or the worker count. Different sample counts share a prefix of the same draws.
-    """
-    per_method = np.random.SeedSequence(root_seed).spawn(len(METHODS))[METHODS.index(method)]
-    return np.random.default_rng(per_method.spawn(seed_index + 1)[seed_index])
+
+def noise_generator(root_seed: int, method: str, seed_index: int) -> np.random.Generator:
+    return np.random.default_rng(seed_sequence(root_seed, stream_key(method, seed_index)))
 
 
 def control_noise(rng: np.random.Generator, n: int, T: int, nu: int, std: float) -> np.ndarray:

@@ -1,0 +1,236 @@
+"""One directory per study run.
+
+Layout of ``root``::
+
+    manifest.json          written first (study, config, seed, versions, git revision, machine)
+    tasks/<id>.npz         one finished task, written atomically: record, table rows, arrays
+    tasks/<id>.error.json  a task that raised: its description and traceback (retried on rerun)
+    <table>.parquet/.csv   tidy tables, rows in the study's task order (written when complete)
+    errors.json            the errors of the last run (absent when there were none)
+
+A task counts as finished only if its ``.npz`` loads and carries the expected id.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import platform
+import time
+import zipfile
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from workbench.io import _default, atomic_write_bytes, atomic_write_json, manifest
+from workbench.study.tasks import Study, TaskOutput, columns, describe
+from workbench.validation import fail
+
+_RECORD, _TABLE, _ARRAY = "record", "table:", "array:"
+
+
+@dataclass(frozen=True)
+class TaskRecord:
+    """A task's outcome as sent back by a worker: ``output`` when it finished, ``error`` (the
+    traceback text) when it raised. ``elapsed_s`` and ``worker`` are not part of the results."""
+
+    task_id: str
+    output: TaskOutput | None = None
+    error: str | None = None
+    elapsed_s: float = 0.0
+    worker: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+@dataclass(frozen=True)
+class TaskError:
+    """A task that raised: its id, description and traceback."""
+
+    task_id: str
+    task: Mapping[str, Any]
+    traceback: str
+
+    def headline(self) -> str:
+        last = self.traceback.strip().splitlines()[-1] if self.traceback.strip() else "?"
+        return f"task {self.task_id} {dict(self.task)}: {last}"
+
+
+@dataclass
+class RunStore:
+    """Files of one study run under ``root``."""
+
+    root: Path
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root)
+        if self.root.exists() and not self.root.is_dir():
+            raise fail("out", str(self.root), "must be a directory (it is a file)")
+        try:
+            (self.root / "tasks").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise fail("out", str(self.root), f"cannot create the run directory ({exc})") from exc
+        if not os.access(self.root, os.W_OK):
+            raise fail("out", str(self.root), "must be a writable directory")
+
+    # ------------------------------------------------------------------ manifest
+    def write_manifest(self, study: Study, execution: Mapping[str, Any]) -> dict:
+        """Provenance of this invocation, written before any task runs."""
+        data = {"study": study.name, "version": study.version, "seed": study.seed,
+                "config": study.config, "fingerprint": study.fingerprint,
+                "n_tasks": len(study.tasks), "execution": dict(execution),
+                "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                **manifest(), "machine": machine()}
+        atomic_write_json(self.root / "manifest.json", data)
+        return data
+
+    def manifest(self) -> dict:
+        return json.loads((self.root / "manifest.json").read_text())
+
+    # ------------------------------------------------------------------ tasks
+    def task_path(self, task_id: str) -> Path:
+        return self.root / "tasks" / f"{task_id}.npz"
+
+    def error_path(self, task_id: str) -> Path:
+        return self.root / "tasks" / f"{task_id}.error.json"
+
+    def save(self, task: Any, record: TaskRecord) -> None:
+        """Write a finished task atomically (one file: record, rows, arrays)."""
+        out = record.output
+        header = {"task_id": record.task_id, "task": describe(task), "meta": dict(out.meta),
+                  "tables": {t: list(cols) for t, cols in out.tables.items()},
+                  "arrays": list(out.arrays)}
+        entries = {_RECORD: np.array(json.dumps(header, default=_default))}
+        for t, cols in out.tables.items():
+            for c, v in cols.items():
+                entries[f"{_TABLE}{t}:{c}"] = np.asarray(v)
+        for name, v in out.arrays.items():
+            entries[f"{_ARRAY}{name}"] = np.asarray(v)
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **entries)
+        atomic_write_bytes(self.task_path(record.task_id), buf.getvalue())
+        self.error_path(record.task_id).unlink(missing_ok=True)
+
+    def save_error(self, task: Any, record: TaskRecord) -> TaskError:
+        err = TaskError(record.task_id, describe(task), record.error or "")
+        atomic_write_json(self.error_path(record.task_id),
+                          {"task_id": err.task_id, "task": err.task, "traceback": err.traceback,
+                           "worker": record.worker})
+        return err
+
+    def _load(self, task_id: str, header_only: bool = False) -> dict[str, Any] | None:
+        try:
+            with np.load(self.task_path(task_id), allow_pickle=False) as data:
+                names = [_RECORD] if header_only else data.files
+                entries = {name: data[name] for name in names}
+            header = json.loads(str(entries[_RECORD]))
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+            return None
+        if header.get("task_id") != task_id:
+            return None
+        entries[_RECORD] = header
+        return entries
+
+    def is_done(self, task_id: str) -> bool:
+        """True if the task's file loads and carries its id (a corrupt file does not count)."""
+        return self._load(task_id, header_only=True) is not None
+
+    def meta(self, task_id: str) -> dict[str, Any]:
+        return self._require(task_id)[_RECORD]["meta"]
+
+    def arrays(self, task_id: str) -> dict[str, np.ndarray]:
+        """The arrays a finished task kept (e.g. trajectories)."""
+        entries = self._require(task_id)
+        return {k[len(_ARRAY):]: v for k, v in entries.items() if k.startswith(_ARRAY)}
+
+    def _require(self, task_id: str) -> dict:
+        entries = self._load(task_id)
+        if entries is None:
+            raise fail("task_id", task_id, f"no finished task with this id in {self.root}")
+        return entries
+
+    def errors(self) -> list[TaskError]:
+        """The errors recorded by the last run (``errors.json``)."""
+        path = self.root / "errors.json"
+        if not path.exists():
+            return []
+        return [TaskError(e["task_id"], e["task"], e["traceback"])
+                for e in json.loads(path.read_text())]
+
+    def write_errors(self, errors: list[TaskError]) -> None:
+        path = self.root / "errors.json"
+        if errors:
+            atomic_write_json(path, [{"task_id": e.task_id, "task": e.task,
+                                      "traceback": e.traceback} for e in errors])
+        else:
+            path.unlink(missing_ok=True)
+
+    # ------------------------------------------------------------------ tidy tables
+    def build_tables(self, study: Study) -> dict[str, pa.Table]:
+        """Concatenate every task's rows, in the study's task order, task columns first."""
+        parts: dict[str, list[pa.Table]] = {}
+        for task, tid in zip(study.tasks, study.task_ids(), strict=True):
+            entries = self._require(tid)
+            for t, cols in entries[_RECORD]["tables"].items():
+                data = {c: entries[f"{_TABLE}{t}:{c}"] for c in cols}
+                n = len(next(iter(data.values()))) if data else 0
+                head = {"task_id": np.full(n, tid),
+                        **{c: np.full(n, v) for c, v in columns(task).items()}}
+                clash = set(head) & set(data)
+                if clash:
+                    raise fail(f"tables[{t!r}]", sorted(clash),
+                               "a task output column has the name of a task column")
+                parts.setdefault(t, []).append(pa.table({**head, **data}))
+        out = {}
+        for t, tables in parts.items():
+            try:
+                out[t] = pa.concat_tables(tables)
+            except pa.ArrowInvalid as exc:
+                raise fail(f"tables[{t!r}]", t, f"tasks disagree on its columns ({exc})") from exc
+        return out
+
+    def write_tables(self, tables: Mapping[str, pa.Table]) -> list[Path]:
+        """``<name>.parquet`` (byte-stable for the same data) and ``<name>.csv`` per table."""
+        paths = []
+        for name, table in tables.items():
+            sink = pa.BufferOutputStream()
+            pq.write_table(table, sink, compression="zstd")
+            atomic_write_bytes(self.root / f"{name}.parquet", sink.getvalue().to_pybytes())
+            buf = io.StringIO()
+            table.to_pandas().to_csv(buf, index=False)
+            atomic_write_bytes(self.root / f"{name}.csv", buf.getvalue().encode())
+            paths.append(self.root / f"{name}.parquet")
+        return paths
+
+    def table(self, name: str) -> pd.DataFrame:
+        """A tidy table written by a complete run."""
+        path = self.root / f"{name}.parquet"
+        if not path.exists():
+            raise fail("table", name, f"no {path.name} in {self.root} (has the run completed?)")
+        return pq.read_table(path).to_pandas()
+
+    def finished(self, ids: Iterable[str]) -> set[str]:
+        return {i for i in ids if self.is_done(i)}
+
+
+def machine() -> dict[str, Any]:
+    """Host facts for the manifest: CPU model, core count, architecture."""
+    model = None
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"node": platform.node(), "machine": platform.machine(), "cpu_model": model,
+            "cpu_count": os.cpu_count()}
