@@ -121,9 +121,9 @@ class StudyConfig:
         """tiny: tests; quick: ``make study`` (<= 15 min on 2 cores); paper: Table I."""
         one_of("profile", profile, PROFILES)
         sizes = {
-            "tiny": dict(variances=(0.0, 50.0), realisations=2, steps=40, sweep_variances=(50.0,),
-                         sweep_rules=(AlphaRule(kappa=0.0, calibration_steps=40),),
-                         sweep_realisations=2, rule=AlphaRule(kappa=0.1, calibration_steps=40),
+            "tiny": dict(variances=(50.0,), realisations=2, steps=20, sweep_variances=(50.0,),
+                         sweep_rules=(AlphaRule(kappa=0.0, calibration_steps=30),),
+                         sweep_realisations=2, rule=AlphaRule(kappa=0.1, calibration_steps=30),
                          illustration=False, velocity_stride=5),
             "quick": dict(variances=(0.0, 10.0, 100.0), realisations=20, sweep_realisations=10,
                           sweep_rules=(AlphaRule(kappa=0.0), AlphaRule(kappa=0.25))),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -63,10 +64,13 @@ class MapSpec:
         return NavigationScene(start=self.start, goal=self.goal, seed=self.seed,
                                u_limit=self.u_limit)
 
+    def obstacles(self) -> tuple[Circle, ...]:
+        return _obstacles(self)
+
     def check(self) -> None:
         """Start and goal must lie outside every obstacle (h > 0)."""
         try:
-            obstacles = self.scene().obstacles()
+            obstacles = self.obstacles()
         except ValueError as exc:
             raise fail("scene.seed", self.seed, str(exc)) from exc
         for name in ("start", "goal"):
@@ -79,4 +83,9 @@ class MapSpec:
 
     def circle_array(self) -> np.ndarray:
         """The map as an (n, 3) array of (cx, cy, r)."""
-        return np.array([(*o.center, o.radius) for o in self.scene().obstacles()])
+        return np.array([(*o.center, o.radius) for o in self.obstacles()])
+
+
+@cache
+def _obstacles(spec: MapSpec) -> tuple[Circle, ...]:
+    return spec.scene().obstacles()  # the generator rejection-samples in Python: once
