@@ -109,44 +109,52 @@ def _errorbar(ax, x, cells, **kw) -> None:
     y = np.array([100 * c.safety for c in cells])
     err = np.array([[100 * (c.safety - c.ci_low) for c in cells],
                     [100 * (c.ci_high - c.safety) for c in cells]])
-    ax.errorbar(x, y, yerr=err, marker="o", capsize=3, **kw)
+    ax.errorbar(x, y, yerr=err, capsize=3, **{"marker": "o", **kw})
 
 
 def safety_figure(s: NavigationSummary, table_i: dict) -> bytes:
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    for c in NAMES:
+    """Safety vs variance, 95% intervals; controllers side by side at each variance."""
+    vs = sorted({x.variance for x in s.cells if x.main} | set(table_i))
+    pos = {v: i for i, v in enumerate(vs)}
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for k, c in enumerate(NAMES):
         cells = sorted((x for x in s.cells if x.main and x.controller == c),
                        key=lambda x: x.variance)
         if cells:
-            _errorbar(ax, [x.variance for x in cells], cells, color=COLORS[c], label=NAMES[c])
+            _errorbar(ax, [pos[x.variance] + 0.08 * (k - 1.5) for x in cells], cells,
+                      color=COLORS[c], label=NAMES[c])
     for c in ("sa_rmppi", "bas_mppi"):
-        vs = sorted(table_i)
-        ax.plot(vs, [table_i[v][c][0] for v in vs], "--", marker="s", mfc="none",
-                color=COLORS[c], label=f"{NAMES[c]} (Table I)")
-    ax.set_xscale("symlog", linthresh=5)
-    ax.set_xlabel("disturbance variance")
+        ref = sorted(table_i)
+        ax.plot([pos[v] for v in ref], [table_i[v][c][0] for v in ref], "--", marker="s",
+                mfc="none", color=COLORS[c], alpha=0.7, label=f"{NAMES[c]} (Table I)")
+    ax.set_xticks(range(len(vs)), [f"{v:g}" for v in vs])
+    ax.set_xlabel("disturbance variance (categorical axis)")
     ax.set_ylabel("safety [%] (95% Wilson)")
     ax.set_ylim(-3, 103)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="lower left")
     return png(fig)
 
 
 def alpha_figure(s: NavigationSummary) -> bytes:
+    """Safety (95% interval) against RMSE over safe runs, one marker per alpha rule."""
     vs = s.config["sweep_variances"]
-    fig, axes = plt.subplots(1, len(vs), figsize=(5.5 * len(vs), 4), squeeze=False)
+    rules = list(dict.fromkeys(x.rule for x in s.cells if x.controller ==
+                               s.config["sweep_controller"] and x.variance in vs))
+    marks = "ovsD^P*X"
+    fig, axes = plt.subplots(1, len(vs), figsize=(5.5 * len(vs), 4.2), squeeze=False)
     for ax, v in zip(axes[0], vs, strict=True):
-        cells = [x for x in s.cells if x.controller == s.config["sweep_controller"]
-                 and x.variance == v]
-        for x in cells:
-            _errorbar(ax, [x.rmse], [x], color=COLORS[x.controller])
-            ax.annotate(x.rule, (x.rmse, 100 * x.safety), fontsize=7, xytext=(4, 4),
-                        textcoords="offset points")
+        for x in (x for x in s.cells if x.controller == s.config["sweep_controller"]
+                  and x.variance == v):
+            i = rules.index(x.rule)
+            _errorbar(ax, [x.rmse], [x], color=plt.cm.tab10(i + 2), marker=marks[i % 8],
+                      label=f"{NAMES[x.controller]} {x.rule}")
         b = s.cell("bas_mppi", v)
         if b is not None:
-            _errorbar(ax, [b.rmse], [b], color=COLORS["bas_mppi"])
-            ax.annotate("BaS-MPPI", (b.rmse, 100 * b.safety), fontsize=7, xytext=(4, -10),
-                        textcoords="offset points")
+            _errorbar(ax, [b.rmse], [b], color=COLORS["bas_mppi"], marker="s",
+                      label=NAMES["bas_mppi"])
         ax.set_xlabel("RMSE over safe realisations [m]")
-        ax.set_ylabel("safety [%]")
+        ax.set_ylabel("safety [%] (95% Wilson)")
+        ax.set_ylim(-3, 103)
         ax.set_title(f"alpha trade-off at variance {v:g}", fontsize=9)
+        ax.legend(fontsize=7, loc="lower right")
     return png(fig)

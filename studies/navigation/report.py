@@ -117,7 +117,8 @@ def write_report(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
               "Printed only where the numbers support the sentence "
               "(`studies/navigation/evidence.py`).", ""]
     for name, cs in evidence.items():
-        lines += [f"### {name}", "", *supported(cs), ""]
+        lines += [f"### {name}", "", *(supported(cs) or ["No sentence of this group is "
+                                                       "supported by this run."]), ""]
     lines += ["## All cells", "", *cells_table(s), "", "## Figures", "",
               *[f"![{f}]({f})" for f in figs], "",
               "Fig. 5: every realisation's path per cell, crash points marked x. Fig. 6: mean "

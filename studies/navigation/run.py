@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict, dataclass
 from functools import partial
@@ -48,7 +49,7 @@ def run(config: StudyConfig, out: Path, *, workers: int = 2, scheduler: str | No
         progress: bool = True) -> Outcome:
     """Run (or continue) the study in ``out``; write summary.json, map.json, the figures and
     report.md. Raises RuntimeError listing the tasks that raised."""
-    t0 = time.perf_counter()
+    t0, load0 = time.perf_counter(), os.getloadavg()[0]
     out = Path(out)
     decl, p = study(config)
     result = run_study(decl, out, workers=workers, scheduler=scheduler, progress=progress)
@@ -65,10 +66,14 @@ def run(config: StudyConfig, out: Path, *, workers: int = 2, scheduler: str | No
                                              "assumed": assumed})
     wall = time.perf_counter() - t0
     where = f"scheduler {scheduler}" if scheduler else f"{workers} workers"
+    cpu = os.cpu_count()
+    load = (load0, os.getloadavg()[0])
     atomic_write_json(out / "run.json", {
         "tasks": {"total": result.n_tasks, "computed": result.computed, "loaded": result.loaded},
-        "wall_time_s": wall, "backend": where})
+        "wall_time_s": wall, "backend": where, "cpu_count": cpu, "load_average_1min": load})
     run_line = (f"Wall time {wall:.0f} s ({result.computed} of {result.n_tasks} tasks computed, "
-                f"the rest resumed from `tasks/`; {where}).")
+                f"the rest resumed from `tasks/`; {where}; {cpu} cores, 1-min load average "
+                f"{load[0]:.1f} at the start and {load[1]:.1f} at the end: compute times per "
+                "step are wall-clock and grow with the load).")
     report = write_report(summary, store, p, ids, config.scene, assumed, run_line)
     return Outcome(summary, result, report)

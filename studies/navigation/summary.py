@@ -3,7 +3,8 @@
 Metrics, each defined once here: safe = no crash in the episode; RMSE (SPEC 12.2) =
 sqrt(mean over SAFE realisations of the squared final distance to the goal); rmse_all = the same
 over all realisations (a crashed run's final position is its crash point); rmse_time =
-sqrt(mean over safe realisations of the time-averaged squared distance); reached = final distance
+sqrt(mean over safe realisations of the time-averaged squared distance); rmse_reached = over
+safe realisations that ended within the goal radius; reached = final distance
 <= goal radius (over safe realisations); fractions of control steps are pooled over the cell.
 """
 
@@ -43,6 +44,7 @@ class Cell:
     rmse: float
     rmse_all: float
     rmse_time: float
+    rmse_reached: float  # over safe realisations that ended within the goal radius
     reached: Rate
     time_to_goal_s: Spread
     final_error_safe: Spread
@@ -73,7 +75,8 @@ class Cell:
         return cls(
             *key, main, safe.n, safe.value, safe.low, safe.high, safe,
             _rmse(err[safe_mask] ** 2), _rmse(err ** 2),
-            _rmse(s["mean_sq_distance"].to_numpy(float)), Rate.of(reached_safe),
+            _rmse(s["mean_sq_distance"].to_numpy(float)),
+            _rmse(s["final_error"].to_numpy(float)[reached_safe] ** 2), Rate.of(reached_safe),
             Spread.of(t_goal[np.isfinite(t_goal)]), Spread.of(err[safe_mask]),
             Spread.of(rows["mean_speed"]),
             int(crashed["crash_obstacle"].isin(GATES).sum()),
