@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from studies.navigation.paired import Paired
 from workbench.sampling.feedback import FALLBACK_REASONS
-from workbench.stats import mcnemar_exact, paired_difference_interval
 from workbench.study import Rate, RunStore, Spread
 
 GATES = (0, 1)  # the generated map's first two circles form the central vertical passage
@@ -88,37 +88,6 @@ class Cell:
             {r: int(rows[f"ksafe_{r}"].sum()) for r in FALLBACK_REASONS},
             int(rows["nominal_unsafe_steps"].sum()) / steps,
             float(rows["ess_nom_mean"].mean()), float(rows["ess_real_mean"].mean()))
-
-
-@dataclass(frozen=True)
-class Paired:
-    """Safety of ``first`` minus ``second`` on the same realisations at one variance:
-    counts a (both safe), b (only first), c (only second), d (neither); exact McNemar p and
-    Newcombe's 95% interval of the difference."""
-
-    first: str
-    second: str
-    variance: float
-    n: int
-    a: int
-    b: int
-    c: int
-    d: int
-    difference: float
-    low: float
-    high: float
-    p_value: float
-
-    @classmethod
-    def of(cls, first: str, second: str, variance: float, x: pd.DataFrame,
-           y: pd.DataFrame) -> Paired:
-        m = x.merge(y, on="realisation", suffixes=("_1", "_2"))
-        s1, s2 = ~m["crashed_1"].to_numpy(bool), ~m["crashed_2"].to_numpy(bool)
-        a, b, c, d = (int(v) for v in (np.sum(s1 & s2), np.sum(s1 & ~s2), np.sum(~s1 & s2),
-                                       np.sum(~s1 & ~s2)))
-        diff, lo, hi = paired_difference_interval(a, b, c, d)
-        return cls(first, second, variance, a + b + c + d, a, b, c, d, diff, lo, hi,
-                   mcnemar_exact(b, c))
 
 
 PAIRS = (("sa_rmppi", "bas_mppi"), ("sa_rmppi", "rmppi"), ("rmppi", "bas_mppi"),
