@@ -57,6 +57,19 @@ def cells_table(s: NavigationSummary) -> list[str]:
                      "alpha fallback %", "K_safe fallback %", "ESS nom / real"], rows)
 
 
+def _illustration(s: NavigationSummary) -> list[str]:
+    m = s.illustration
+    if not m:
+        return []
+    return [f"Fig. 4 data: SA-RMPPI with limits ±{m['u_limit']:g} under velocity variance "
+            f"{m['variance']:g}, SAIS batch at step {m['step']} (the first step >= 5 with the "
+            f"nominal state away from the real one); within the horizon "
+            f"{100 * m['real_samples_crashed']:.0f}% of the feedback samples and "
+            f"{100 * m['nominal_samples_crashed']:.0f}% of the nominal samples crash "
+            f"(paper: feedback samples often collide near the end of the horizon); the episode "
+            f"{'crashed' if m['crashed'] else 'did not crash'} within its steps.", ""]
+
+
 def write_figures(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
                   crashed_by_task: dict) -> list[str]:
     out, circles = store.root, scene.circle_array()
@@ -125,7 +138,7 @@ def write_report(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
               "± std of vx, vy over the realisations still running at each time. Fig. 4: one "
               "SAIS batch (nominal samples blue, feedback samples red). Safety vs variance "
               "with 95% intervals (Table I dashed). Alpha trade-off: safety vs RMSE per rule.",
-              "", "## Assumed and sourced values", "",
+              "", *_illustration(s), "## Assumed and sourced values", "",
               *md_table(["quantity", "value", "source"],
                         [[a["name"], a["value"], a["source"]] for a in assumed]), "",
               "Data: `episodes.parquet/.csv` (one row per realisation), `velocity.parquet/.csv`"
