@@ -1,6 +1,6 @@
 """The study's tasks, the pure task function, and the plan (which tasks make up which cell).
 
-Common random numbers: an :class:`Realisation`'s stream key is (variance, realisation j) and
+Common random numbers: a :class:`Realisation`'s stream key is (variance, realisation j) and
 nothing else, so the controller stream ``ctx.rng(0)`` and the plant-disturbance stream
 ``ctx.rng(1)`` of realisation j at a variance are the same for every controller and alpha rule.
 """
