@@ -11,7 +11,8 @@ STUDY_EXEC = --workers $(WORKERS) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
-.PHONY: venv test study study-tracking-demo study-tracking study-alpha-rules bench lint clean-cache clean
+.PHONY: venv test study study-tracking-demo study-tracking study-navigation study-alpha-rules \
+	bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -27,7 +28,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check workbench studies tests benchmarks
 
-study: study-tracking-demo study-tracking
+study: study-tracking-demo study-tracking study-navigation
 
 study-tracking-demo: $(STAMP)
 	$(PY) -m studies.tracking_demo --profile $(PROFILE) --out reports/tracking_demo
@@ -35,6 +36,9 @@ study-tracking-demo: $(STAMP)
 study-tracking: $(STAMP)
 	$(PY) -m studies.tracking_comparison --profile $(PROFILE) --out reports/tracking_comparison \
 		$(STUDY_EXEC)
+
+study-navigation: $(STAMP)
+	$(PY) -m studies.navigation --profile $(PROFILE) --out reports/navigation $(STUDY_EXEC)
 
 # SA-RMPPI activation per alpha rule (issue 8): 20 episodes per cell at variance 10 and 100
 study-alpha-rules: $(STAMP)

@@ -1,0 +1,135 @@
+"""Study configuration: frozen, validated at construction (errors name the field)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from numbers import Integral, Real
+
+import numpy as np
+
+from studies.navigation.scene import MapSpec
+from workbench.navigation import CONTROLLERS
+from workbench.sampling.threshold import AlphaRule
+from workbench.validation import fail, one_of
+
+PROFILES: tuple[str, ...] = ("tiny", "quick", "paper")
+ROBUST = ("sa_rmppi", "rmppi")  # controllers that use an alpha rule
+RESULT_VERSION = 1  # bump when the meaning of stored task results changes
+DEFAULT_RULE = AlphaRule(kappa=0.1)  # [A] chosen by make study-alpha-rules (NOTES.md, SPEC 10.3)
+
+
+def _int(name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
+        raise fail(name, value, f"must be an integer >= {minimum}")
+    return int(value)
+
+
+def _real(name: str, value, minimum: float = 0.0, strict: bool = True) -> float:
+    ok = isinstance(value, Real) and not isinstance(value, bool) and np.isfinite(value) and (
+        value > minimum if strict else value >= minimum)
+    if not ok:
+        raise fail(name, value, f"must be a finite number {'>' if strict else '>='} {minimum}")
+    return float(value)
+
+
+def _variances(name: str, values, allow_empty: bool = False) -> tuple[float, ...]:
+    if isinstance(values, str) or not hasattr(values, "__iter__") or (
+            len(values) == 0 and not allow_empty):
+        raise fail(name, values, "must be a non-empty sequence of variances >= 0")
+    out = tuple(_real(f"{name}[{i}]", v, strict=False) for i, v in enumerate(values))
+    if len(set(out)) != len(out):
+        raise fail(name, values, "must not repeat a variance")
+    if len({variance_key(v) for v in out}) != len(out):
+        raise fail(name, values, "variances must differ by at least 0.001")
+    return out
+
+
+def variance_key(variance: float) -> int:
+    """The variance as an integer stream word (milli-units)."""
+    return round(variance * 1000)
+
+
+def _rules(name: str, rules) -> tuple[AlphaRule, ...]:
+    if isinstance(rules, AlphaRule) or not hasattr(rules, "__iter__"):
+        raise fail(name, rules, "must be a sequence of AlphaRule")
+    for i, r in enumerate(rules):
+        if not isinstance(r, AlphaRule):
+            raise fail(f"{name}[{i}]", r, "must be an AlphaRule")
+    return tuple(rules)
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """Everything a run depends on (SPEC 12.2). Main cells: every controller at every variance,
+    robust controllers with ``rule``; alpha sweep: ``sweep_controller`` with each of
+    ``sweep_rules`` at each of ``sweep_variances``. ``steps``: episode length (20 s = 1000
+    steps of 0.02 s [A]); ``goal_radius``: "reached" radius [P, 1 m]; ``velocity_stride``: steps
+    between rows of the velocity table; ``illustration``: run the Fig. 4 task (limits +-50,
+    velocity variance 5000)."""
+
+    profile: str = "paper"
+    controllers: tuple[str, ...] = CONTROLLERS
+    variances: tuple[float, ...] = (0.0, 5.0, 10.0, 50.0, 100.0)
+    realisations: int = 100
+    steps: int = 1000
+    seed: int = 2023
+    rule: AlphaRule = DEFAULT_RULE
+    sweep_controller: str = "sa_rmppi"
+    sweep_variances: tuple[float, ...] = (10.0, 100.0)
+    sweep_rules: tuple[AlphaRule, ...] = (
+        AlphaRule(kappa=0.0), AlphaRule(kappa=0.25), AlphaRule(kind="quantile", quantile=0.9),
+        AlphaRule(kind="start", factor=1.5))
+    sweep_realisations: int = 100
+    goal_radius: float = 1.0
+    velocity_stride: int = 10
+    illustration: bool = True
+    illustration_steps: int = 60
+    scene: MapSpec = field(default_factory=MapSpec)
+
+    def __post_init__(self) -> None:
+        one_of("profile", self.profile, PROFILES)
+        ctrls = self.controllers
+        if isinstance(ctrls, str) or not hasattr(ctrls, "__iter__") or len(ctrls) == 0:
+            raise fail("controllers", ctrls, f"must be a non-empty subset of {CONTROLLERS}")
+        for c in ctrls:
+            if c not in CONTROLLERS:
+                raise fail("controllers", c, f"unknown controller; allowed values are "
+                           f"{CONTROLLERS}")
+        if len(set(ctrls)) != len(ctrls):
+            raise fail("controllers", ctrls, "must not repeat a controller")
+        object.__setattr__(self, "controllers", tuple(c for c in CONTROLLERS if c in ctrls))
+        object.__setattr__(self, "variances", _variances("variances", self.variances))
+        for name, lo in (("realisations", 1), ("steps", 1), ("seed", 0),
+                         ("sweep_realisations", 1), ("velocity_stride", 1),
+                         ("illustration_steps", 2)):
+            object.__setattr__(self, name, _int(name, getattr(self, name), lo))
+        if not isinstance(self.rule, AlphaRule):
+            raise fail("rule", self.rule, "must be an AlphaRule")
+        one_of("sweep_controller", self.sweep_controller, ROBUST)
+        object.__setattr__(self, "sweep_variances",
+                           _variances("sweep_variances", self.sweep_variances, True))
+        object.__setattr__(self, "sweep_rules", _rules("sweep_rules", self.sweep_rules))
+        object.__setattr__(self, "goal_radius", _real("goal_radius", self.goal_radius))
+        if not isinstance(self.illustration, bool):
+            raise fail("illustration", self.illustration, "must be True or False")
+        if not isinstance(self.scene, MapSpec):
+            raise fail("scene", self.scene, "must be a MapSpec")
+        self.scene.check()  # start / goal inside an obstacle -> names scene.start / scene.goal
+
+    @classmethod
+    def for_profile(cls, profile: str, **overrides) -> StudyConfig:
+        """tiny: tests; quick: ``make study`` (<= 15 min on 2 cores); paper: Table I."""
+        one_of("profile", profile, PROFILES)
+        sizes = {
+            "tiny": dict(variances=(50.0,), realisations=2, steps=20, sweep_variances=(50.0,),
+                         sweep_rules=(AlphaRule(kappa=0.0, calibration_steps=30),),
+                         sweep_realisations=2, rule=AlphaRule(kappa=0.1, calibration_steps=30),
+                         illustration=False, velocity_stride=5),
+            "quick": dict(variances=(0.0, 10.0, 100.0), realisations=20, sweep_realisations=10,
+                          sweep_rules=(AlphaRule(kappa=0.0), AlphaRule(kappa=0.25))),
+            "paper": {},
+        }[profile]
+        return cls(profile=profile, **{**sizes, **overrides})
+
+    def as_dict(self) -> dict:
+        return asdict(self)

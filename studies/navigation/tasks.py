@@ -1,0 +1,122 @@
+"""The study's tasks, the pure task function, and the plan (which tasks make up which cell).
+
+Common random numbers: a :class:`Realisation`'s stream key is (variance, realisation j) and
+nothing else, so the controller stream ``ctx.rng(0)`` and the plant-disturbance stream
+``ctx.rng(1)`` of realisation j at a variance are the same for every controller and alpha rule.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+
+from studies.navigation.config import ROBUST, StudyConfig, variance_key
+from studies.navigation.illustration import illustrate
+from studies.navigation.metrics import episode_row, timing_row, velocity_rows
+from studies.navigation.scene import MapSpec
+from workbench.navigation import NavigationSetup, navigation_setup
+from workbench.sampling.threshold import AlphaRule
+from workbench.sim import Disturbance, closed_loop
+from workbench.study import TaskContext, TaskOutput
+
+NO_RULE = AlphaRule(kind="fixed")  # placeholder rule of the MPPI controllers (no selection)
+ILLUSTRATION_KEY = 2**32 - 1  # stream word of the Fig. 4 task (one word: no episode has it)
+
+
+def rule_label(controller: str, rule: AlphaRule) -> str:
+    return rule.label() if controller in ROBUST else "-"
+
+
+@dataclass(frozen=True)
+class Realisation:
+    """Realisation j of one controller (with its alpha rule) at one disturbance variance."""
+
+    controller: str
+    rule: AlphaRule
+    variance: float
+    realisation: int
+
+    def stream_key(self) -> tuple[int, int]:
+        return variance_key(self.variance), self.realisation  # not the controller: CRN
+
+    def columns(self) -> dict[str, object]:
+        return {"controller": self.controller, "rule": rule_label(self.controller, self.rule),
+                "variance": self.variance, "realisation": self.realisation}
+
+
+@dataclass(frozen=True)
+class Illustration:
+    """Fig. 4: one SAIS batch of SA-RMPPI with limits +-u_limit under velocity variance."""
+
+    rule: AlphaRule
+    variance: float = 5000.0
+    u_limit: float = 50.0
+    steps: int = 60
+
+    def stream_key(self) -> tuple[int]:
+        return (ILLUSTRATION_KEY,)
+
+
+@cache
+def setup(scene: MapSpec) -> NavigationSetup:
+    """One navigation set-up per process and map (its calibration runs are cached in it)."""
+    return navigation_setup(scene.scene())
+
+
+@cache
+def controller(scene: MapSpec, name: str, rule: AlphaRule):
+    """One controller per process; controllers keep no state between episodes."""
+    return setup(scene).controller(name, rule)
+
+
+def run_task(task: Realisation | Illustration, ctx: TaskContext, config: StudyConfig) \
+        -> TaskOutput:
+    scene = config.scene
+    if isinstance(task, Illustration):
+        big = MapSpec(scene.start, scene.goal, scene.seed, scene.circles, task.u_limit)
+        return illustrate(setup(big), controller(big, "sa_rmppi", task.rule), task, ctx)
+    nav = setup(scene)
+    ctrl = controller(scene, task.controller, task.rule)
+    if ctrl.sampler.lib is not None:
+        ctrl.sampler.lib.set_threads(ctx.threads)
+    ep = closed_loop(ctrl, nav.plant, nav.x0, config.steps, ctx.rng(0), ctx.rng(1),
+                     Disturbance(task.variance))
+    dt = nav.plant.dt
+    tables = {"episodes": episode_row(ep, nav.goal, dt, config.goal_radius,
+                                      scene.circle_array()),
+              "velocity": velocity_rows(ep, dt, config.velocity_stride),
+              "timing": timing_row(ep)}
+    return TaskOutput(tables=tables, arrays={"X": ep.X, "U": np.asarray(ep.U)})
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Tasks in dispatch order (slow first); main cells and the alpha-sweep cells."""
+
+    tasks: tuple[Realisation | Illustration, ...]
+    main: dict[tuple[str, float], tuple[Realisation, ...]]
+    sweep: dict[tuple[str, float], tuple[Realisation, ...]]  # (rule label, variance)
+    illustration: Illustration | None
+
+
+SPEED = {"sa_rmppi": 0, "rmppi": 1, "bas_mppi": 2, "mppi_crash": 3}  # slowest first
+
+
+def plan(config: StudyConfig) -> Plan:
+    def rule(c: str) -> AlphaRule:
+        return config.rule if c in ROBUST else NO_RULE
+
+    main = {(c, v): tuple(Realisation(c, rule(c), v, j) for j in range(config.realisations))
+            for v in config.variances for c in config.controllers}
+    sc = config.sweep_controller
+    sweep = {(r.label(), v): tuple(Realisation(sc, r, v, j)
+                                   for j in range(config.sweep_realisations))
+             for v in config.sweep_variances for r in (config.rule, *config.sweep_rules)}
+    unique = dict.fromkeys(t for ts in (*main.values(), *sweep.values()) for t in ts)
+    ordered = sorted(unique, key=lambda t: (SPEED[t.controller], t.variance, t.realisation))
+    illu = (Illustration(config.rule, steps=config.illustration_steps)
+            if config.illustration else None)
+    tasks = ((illu,) if illu else ()) + tuple(ordered)
+    return Plan(tasks, main, sweep, illu)
