@@ -72,7 +72,10 @@ class MapSpec:
         try:
             obstacles = self.obstacles()
         except ValueError as exc:
-            raise fail("scene.seed", self.seed, str(exc)) from exc
+            # the scene itself rejects a start or goal inside an obstacle: name that field
+            field = next((f"scene.{n}" for n in ("start", "goal")
+                          if f"NavigationScene.{n} =" in str(exc)), "scene.seed")
+            raise fail(field, getattr(self, field.split(".")[1]), str(exc)) from exc
         for name in ("start", "goal"):
             p = np.array(getattr(self, name))
             for i, o in enumerate(obstacles):
