@@ -11,7 +11,8 @@ STUDY_EXEC = --workers $(WORKERS) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
-.PHONY: venv test study study-tracking-demo study-tracking study-alpha-rules bench lint clean-cache clean
+.PHONY: venv test study study-tracking-demo study-tracking study-bound study-alpha-rules bench lint \
+	clean-cache clean
 
 venv: $(STAMP)
 
@@ -27,13 +28,19 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check workbench studies tests benchmarks
 
-study: study-tracking-demo study-tracking
+study: study-tracking-demo study-tracking study-bound
 
 study-tracking-demo: $(STAMP)
 	$(PY) -m studies.tracking_demo --profile $(PROFILE) --out reports/tracking_demo
 
 study-tracking: $(STAMP)
 	$(PY) -m studies.tracking_comparison --profile $(PROFILE) --out reports/tracking_comparison \
+		$(STUDY_EXEC)
+
+# Lemma 1 checked on SA-RMPPI episodes (issue 12): PROFILE=tiny, quick or paper (full = paper)
+study-bound: $(STAMP)
+	$(PY) -m studies.free_energy_bound --profile $(if $(filter full,$(PROFILE)),paper,$(PROFILE)) \
+		--out reports/free_energy_bound \
 		$(STUDY_EXEC)
 
 # SA-RMPPI activation per alpha rule (issue 8): 20 episodes per cell at variance 10 and 100
