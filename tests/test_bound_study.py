@@ -148,3 +148,28 @@ def test_resume_computes_only_what_is_missing(tiny):
     tasks[0].unlink()
     third = run(cfg, out, workers=0, progress=False)
     assert third.run.computed == 1 and (out / "summary.json").read_bytes() == before
+
+
+def test_failures_are_classified_from_the_table():
+    from studies.free_energy_bound.failures import TransitionFailures, t1_failures_when_safe
+
+    base = {f"{t}_{c}_{p}": 1.0 for t in ("T1", "T1s", "T3") for c in ("local", "global")
+            for p in ("holds", "slack", "lhs", "rhs")}
+    rows = []
+    for i, (secant_ok, crashed_nom, safe) in enumerate(
+            [(False, 0, True), (True, 3, True), (True, 0, True), (True, 0, False)]):
+        rows.append({**base, "T1_local_holds": 0.0, "T1_local_slack": -1.0, "variance": 10.0,
+                     "episode": 0, "step": i, "all_real_safe": safe, "secant_ok": secant_ok,
+                     "n_crashed_nom": crashed_nom, "R": 0.1, "L_q": 5.0, "secant_q": 6.0})
+    df = pd.DataFrame(rows)
+    got = [(f.step, f.cause) for f in t1_failures_when_safe(df)]
+    # the step with a crashed real sample is not in the safe stratum
+    assert got == [(0, "secant_exceeds"), (1, "nominal_crashed"), (2, "unexplained")]
+    df = pd.DataFrame({"T3_local_holds": [0.0, 0.0, 1.0, np.nan], "step": [0, 1, 2, 3],
+                       "nominal_admissible": [False, True, True, True],
+                       "nominal_admissible_next": [True, True, True, False],
+                       "fallback_used": [True, False, False, False],
+                       "fallback_next": [False, False, False, False]})
+    f = TransitionFailures.of(df, "T3", "local", 10.0)
+    assert (f.n_evaluated, f.n_failed, f.n_premise_fails, f.n_fallback, f.n_first_step) == \
+        (3, 2, 1, 1, 1)

@@ -14,7 +14,7 @@ PROFILES: tuple[str, ...] = ("tiny", "quick", "paper")
 TESTS: tuple[str, ...] = ("T1", "T1s", "T2", "T2E", "T3", "T3b", "T3c", "T3d")
 STEP_TESTS = ("T1", "T1s", "T2", "T2E")
 CONSTANTS: tuple[str, ...] = ("local", "global")
-RESULT_VERSION = 1  # bump when the meaning of stored task results changes
+RESULT_VERSION = 2  # bump when the meaning of stored task results changes
 
 
 def _int(name: str, value, minimum: int) -> int:
@@ -45,7 +45,7 @@ class StudyConfig:
 
     profile: str = "quick"
     variances: tuple[float, ...] = (0.0, 10.0, 100.0)
-    episodes: int = 2
+    episodes: int = 3
     steps: int = 150
     seed: int = 2026
     tests: tuple[str, ...] = TESTS
@@ -93,7 +93,7 @@ class StudyConfig:
     @classmethod
     def for_profile(cls, profile: str, **overrides) -> StudyConfig:
         """tiny (tests): 2 variances x 1 episode x 6 steps, N = 128, T = 30, coarse grid;
-        quick (make study): {0, 10, 100} x 2 x 150 steps; paper: {0, 5, 10, 50, 100} x 10 x 1000."""
+        quick (make study): {0, 10, 100} x 3 x 150 steps; paper: {0, 5, 10, 50, 100} x 10 x 1000."""
         one_of("profile", profile, PROFILES)
         sizes = {
             "tiny": dict(variances=(0.0, 10.0), episodes=1, steps=6, n_samples=128, horizon=30,

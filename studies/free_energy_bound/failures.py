@@ -59,21 +59,50 @@ def t1_failures_when_safe(df: pd.DataFrame) -> list[Failure]:
 
 @dataclass(frozen=True)
 class TransitionFailures:
-    """Failures of one T3-family check (t, t+1) at one variance and what they share: a fallback
-    at t+1 (no admissible nominal state: the lemma's premise fails), or t = 0 (the first call
-    takes the real state by construction)."""
+    """Failures of one T3-family check (t, t+1) at one variance and what they share. The
+    lemma's premise is an admissible nominal state, F̂_nom <= alpha (at t for T3, T3b, where
+    alpha − F̂_nom(t) < 0 otherwise; at t+1 for T3c, T3d, which use F̂_nom(t+1)).
+    ``fallback``: the selection found no candidate below alpha (its own 64-sample estimate) at
+    t or t+1; step 0: the first call takes the real state by construction."""
 
     test: str
     constants: str
     variance: float
     n_evaluated: int
     n_failed: int
-    n_fallback_next: int
+    n_premise_fails: int
+    n_fallback: int
     n_first_step: int
 
     @classmethod
     def of(cls, df: pd.DataFrame, test: str, c: str, variance: float) -> TransitionFailures:
         h = df[f"{test}_{c}_holds"]
         bad = df[h == 0.0]
-        return cls(test, c, variance, int(h.notna().sum()), len(bad),
-                   int(bad["fallback_next"].sum()), int((bad["step"] == 0).sum()))
+        adm = bad["nominal_admissible_next" if test in ("T3c", "T3d") else "nominal_admissible"]
+        return cls(test, c, variance, int(h.notna().sum()), len(bad), int((~adm).sum()),
+                   int((bad["fallback_used"] | bad["fallback_next"]).sum()),
+                   int((bad["step"] == 0).sum()))
+
+
+@dataclass(frozen=True)
+class T2EFailures:
+    """T2E failures at one variance: how many at R = 0 (the nominal state is the real state, so
+    the two independent batches estimate the same free energy), the median gap between the two
+    estimates there and 2Ê, and the median ESS of the real batch."""
+
+    variance: float
+    n_evaluated: int
+    n_failed: int
+    n_failed_R0: int
+    gap_median: float  # |F̂_real − F̂'_nom| over the failures at R = 0
+    two_E_median: float
+    ess_median: float
+
+    @classmethod
+    def of(cls, df: pd.DataFrame, variance: float) -> T2EFailures:
+        h = df["T2E_local_holds"]
+        bad = df[h == 0.0]
+        r0 = bad[bad["R"] == 0.0]
+        return cls(variance, int(h.notna().sum()), len(bad), len(r0),
+                   float((r0["F_real"] - r0["F_nom_ind"]).abs().median()),
+                   float((2 * r0["E"]).median()), float(df["ess_real"].median()))

@@ -11,7 +11,12 @@ import numpy as np
 import pandas as pd
 
 from studies.free_energy_bound.config import CONSTANTS
-from studies.free_energy_bound.failures import Failure, TransitionFailures, t1_failures_when_safe
+from studies.free_energy_bound.failures import (
+    Failure,
+    T2EFailures,
+    TransitionFailures,
+    t1_failures_when_safe,
+)
 from workbench.study import Rate, Spread
 
 # SPEC 11.3 (a), (b) and issue 12's nominal-differs split; a transition check (t, t+1) belongs
@@ -113,6 +118,7 @@ class BoundSummary:
     variances: tuple[VarianceFacts, ...]
     t1_failures_safe: tuple[Failure, ...]
     transition_failures: tuple[TransitionFailures, ...]
+    t2e_failures: tuple[T2EFailures, ...]
 
     def row(self, test, constants, variance, stratum="all") -> Row | None:
         return next((r for r in self.rows if (r.test, r.constants, r.variance, r.stratum)
@@ -129,5 +135,7 @@ def summarise(config, steps: pd.DataFrame, episodes: pd.DataFrame) -> BoundSumma
     trans = tuple(TransitionFailures.of(steps[steps["variance"] == v], t, c, v)
                   for v in config.variances for t in config.tests if t.startswith("T3")
                   for c in CONSTANTS)
+    t2e = tuple(T2EFailures.of(steps[steps["variance"] == v], v) for v in config.variances
+                if "T2E" in config.tests)
     return BoundSummary(config.as_dict(), tuple(rows), tuple(facts),
-                        tuple(t1_failures_when_safe(steps)), trans)
+                        tuple(t1_failures_when_safe(steps)), trans, t2e)

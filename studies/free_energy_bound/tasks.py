@@ -91,8 +91,11 @@ def step_rows(records: list[BoundStep]) -> dict[str, np.ndarray]:
                     "nominal_admissible": lambda s: s.nominal_admissible,
                     "secant_ok": lambda s: s.local.secant_ok}.items():
         put(name, f, bool)
-    nxt = [records[i + 1].fallback_used if i + 1 < n else False for i in range(n)]
-    col["fallback_next"] = np.array(nxt, dtype=bool)
+    # step t+1's flags on row t (False at the last step): the T3d premise and selection
+    col["fallback_next"] = np.array([records[i + 1].fallback_used if i + 1 < n else False
+                                     for i in range(n)], dtype=bool)
+    col["nominal_admissible_next"] = np.array([records[i + 1].nominal_admissible if i + 1 < n
+                                               else False for i in range(n)], dtype=bool)
     for t in TESTS:
         for c in CONSTANTS:
             for part in ("holds", "slack", "lhs", "rhs", "term"):
