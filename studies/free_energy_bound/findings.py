@@ -8,6 +8,10 @@ from studies.free_energy_bound.paper import LOOSE_FACTOR, USEFUL_LOCALISATION
 from studies.free_energy_bound.summary import BoundSummary
 from workbench.study import Claim, Rate
 
+FORMS = {"T3": "the lemma as printed", "T3b": "the lemma with the proof's δ",
+         "T3c": "a variant with α_t and F̂_nom(t+1), not implied by the lemma",
+         "T3d": "the implied absolute form"}
+
 
 def _v(v: float) -> str:
     return f"{v:g}"
@@ -103,7 +107,7 @@ def transition_claims(s: BoundSummary) -> list[Claim]:
                          f"or t+1, and {first} are at step 0 (the first call takes the real "
                          f"state by construction).", n > 0 and p == n))
         out.append(Claim(f"{n - p} of the {n} {t} failures with local constants occur with an "
-                         f"admissible nominal state at {at}: the printed bound fails with its "
+                         f"admissible nominal state at {at}: {t} ({FORMS[t]}) fails with its "
                          "premise met.", n > p))
     for e in s.t2e_failures:
         out.append(Claim(

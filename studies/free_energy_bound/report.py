@@ -45,6 +45,7 @@ def slack_figure(df: pd.DataFrame, tests=("T2", "T3", "T3b")) -> bytes:
                     ax.plot(g["step"], g[f"{t}_{c}_slack"], ls, lw=0.8,
                             label=f"ep {e} {c}" if i == j == 0 else None)
             ax.set_yscale("symlog", linthresh=1.0)
+            ax.set_yticks([-1e4, -1e2, 0, 1e2, 1e4, 1e8, 1e12, 1e16])
             ax.axhline(0, color="k", lw=0.6)
             ax.set_title(f"{t} slack (RHS − LHS), variance {v:g}", fontsize=9)
     axes[-1][0].set_xlabel("step")
@@ -71,10 +72,13 @@ def radius_figure(df: pd.DataFrame) -> bytes:
     fig, ax = plt.subplots(figsize=(5.5, 4))
     data = [df.loc[(df["variance"] == v) & (df["R"] > 0), "R"].to_numpy() for v in vs]
     ax.boxplot([d if d.size else [np.nan] for d in data], tick_labels=[f"{v:g}" for v in vs])
-    ax.plot(range(1, len(vs) + 1), [df.loc[df["variance"] == v, "R99"].median() for v in vs],
-            "rs", label="median R99")
+    ax.plot(range(1, len(vs) + 1), [df.loc[(df["variance"] == v) & (df["R"] > 0), "R99"].median()
+                                    for v in vs], "rs", label="median R99 (same steps)")
     ax.set_xlabel("velocity variance")
     ax.set_ylabel("tube radius R (steps with R > 0)")
+    ax.set_title("steps with R > 0: " + ", ".join(
+        f"{(df.loc[df['variance'] == v, 'R'] > 0).sum()} of {(df['variance'] == v).sum()}"
+        for v in vs), fontsize=8)
     ax.legend(fontsize=7)
     return _png(fig)
 
