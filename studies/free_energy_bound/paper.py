@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from studies.free_energy_bound.config import StudyConfig
 from studies.free_energy_bound.shared import Shared
+from workbench.sampling.threshold import AlphaRule
 
 LEMMA = r"""Let $\mathcal{F}_{MC}(S,\mathbb{P},x_0,\lambda)$ be the estimate of the free energy of
 the real system, $\mathcal{F}_{MC}(S,\mathbb{P},x_0^*,\lambda)$ that of the nominal system, and
@@ -61,7 +62,8 @@ def assumed_values(config: StudyConfig, shared: Shared) -> list[dict[str, str]]:
     return [
         {"name": "alpha rule", "value": f"progress, kappa = {c.kappa:g} (alpha = (1 + kappa) x "
          f"undisturbed free energy at the distance to the goal; {c.calibration_steps} "
-         "calibration steps)", "source": "[A] NOTES 'SA-RMPPI that acts'"},
+         "calibration steps)", "source": "[A] NOTES 'SA-RMPPI that acts' (kappa = 0.1); "
+         f"note: AlphaRule() in the code defaults to kappa = {AlphaRule().kappa:g}"},
         {"name": "SAIS batch", "value": f"N = {c.n_samples}, T = {c.horizon}, sigma = (5, 5), "
          "lambda = 10, q_beta = 0.01", "source": "[A] workbench.navigation"},
         {"name": "episodes", "value": f"{c.episodes} per variance, up to {c.steps} steps "
