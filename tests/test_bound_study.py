@@ -173,3 +173,4 @@ def test_failures_are_classified_from_the_table():
     f = TransitionFailures.of(df, "T3", "local", 10.0)
     assert (f.n_evaluated, f.n_failed, f.n_premise_fails, f.n_fallback, f.n_first_step) == \
         (3, 2, 1, 1, 1)
+    assert f.last_step == 1

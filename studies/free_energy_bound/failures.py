@@ -73,6 +73,7 @@ class TransitionFailures:
     n_premise_fails: int
     n_fallback: int
     n_first_step: int
+    last_step: int  # the latest step t of a failure (-1: none)
 
     @classmethod
     def of(cls, df: pd.DataFrame, test: str, c: str, variance: float) -> TransitionFailures:
@@ -81,7 +82,7 @@ class TransitionFailures:
         adm = bad["nominal_admissible_next" if test in ("T3c", "T3d") else "nominal_admissible"]
         return cls(test, c, variance, int(h.notna().sum()), len(bad), int((~adm).sum()),
                    int((bad["fallback_used"] | bad["fallback_next"]).sum()),
-                   int((bad["step"] == 0).sum()))
+                   int((bad["step"] == 0).sum()), int(bad["step"].max()) if len(bad) else -1)
 
 
 @dataclass(frozen=True)

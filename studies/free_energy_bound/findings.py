@@ -109,6 +109,12 @@ def transition_claims(s: BoundSummary) -> list[Claim]:
         out.append(Claim(f"{n - p} of the {n} {t} failures with local constants occur with an "
                          f"admissible nominal state at {at}: {t} ({FORMS[t]}) fails with its "
                          "premise met.", n > p))
+    for x in s.transition_failures:
+        if x.test == "T3" and x.constants == "local" and x.n_failed:
+            where = "at step 0" if x.last_step == 0 else f"in steps 0-{x.last_step}"
+            out.append(Claim(f"Variance {_v(x.variance)}: all {x.n_failed} T3 failures (local "
+                             f"constants) lie {where} of their episodes, at the start, far from "
+                             "the goal.", x.last_step < 50))
     for e in s.t2e_failures:
         out.append(Claim(
             f"Variance {_v(e.variance)}: T2E fails at {e.n_failed} of {e.n_evaluated} steps, "
