@@ -37,7 +37,7 @@ study-tracking: $(STAMP)
 	$(PY) -m studies.tracking_comparison --profile $(PROFILE) --out reports/tracking_comparison \
 		$(STUDY_EXEC)
 
-# Lemma 1 checked on SA-RMPPI episodes (issue 12): PROFILE=paper (about 1 h) or tiny; any other
+# Lemma 1 checked on SA-RMPPI episodes (issue 12): PROFILE=paper (35-60 min) or tiny; any other
 # PROFILE (quick, the tracking study's full) runs the quick profile (about 2-2.5 min)
 BOUND_PROFILE = $(if $(filter paper tiny,$(PROFILE)),$(PROFILE),quick)
 study-bound: $(STAMP)
