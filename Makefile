@@ -11,8 +11,8 @@ STUDY_EXEC = --workers $(WORKERS) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
-.PHONY: venv test study study-tracking-demo study-tracking study-navigation study-alpha-rules \
-	bench lint clean-cache clean
+.PHONY: venv test study study-tracking-demo study-tracking study-navigation study-bound \
+	study-alpha-rules bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -28,7 +28,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check workbench studies tests benchmarks
 
-study: study-tracking-demo study-tracking study-navigation
+study: study-tracking-demo study-tracking study-navigation study-bound
 
 study-tracking-demo: $(STAMP)
 	$(PY) -m studies.tracking_demo --profile $(PROFILE) --out reports/tracking_demo
@@ -39,6 +39,13 @@ study-tracking: $(STAMP)
 
 study-navigation: $(STAMP)
 	$(PY) -m studies.navigation --profile $(PROFILE) --out reports/navigation $(STUDY_EXEC)
+
+# Lemma 1 checked on SA-RMPPI episodes (issue 12): PROFILE=paper (35-60 min) or tiny; any other
+# PROFILE (quick, the tracking study's full) runs the quick profile (about 2-2.5 min)
+BOUND_PROFILE = $(if $(filter paper tiny,$(PROFILE)),$(PROFILE),quick)
+study-bound: $(STAMP)
+	$(PY) -m studies.free_energy_bound --profile $(BOUND_PROFILE) --out reports/free_energy_bound \
+		$(STUDY_EXEC)
 
 # SA-RMPPI activation per alpha rule (issue 8): 20 episodes per cell at variance 10 and 100
 study-alpha-rules: $(STAMP)

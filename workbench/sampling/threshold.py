@@ -33,7 +33,7 @@ class AlphaRule:
     """How alpha is chosen (defaults [A], chosen from the activation study in NOTES.md)."""
 
     kind: AlphaKind = "progress"
-    kappa: float = 1.0  # progress: alpha = (1 + kappa) F_und(d)
+    kappa: float = 0.1  # progress: alpha = (1 + kappa) F_und(d); 0.1 from the activation study
     quantile: float = 0.5  # quantile: alpha = quantile of F_und
     value: float = np.inf  # fixed
     factor: float = 1.5  # start: alpha = factor x F_und(start)

@@ -1,0 +1,114 @@
+"""Study configuration: frozen, validated at construction (errors name the field)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from numbers import Integral, Real
+
+import numpy as np
+
+from workbench.validation import fail, one_of
+
+PROFILES: tuple[str, ...] = ("tiny", "quick", "paper")
+# SPEC 11.3 tests as workbench.bound.checks names them (T2E: independent batch, "true-F" form)
+TESTS: tuple[str, ...] = ("T1", "T1s", "T2", "T2E", "T3", "T3b", "T3c", "T3d")
+STEP_TESTS = ("T1", "T1s", "T2", "T2E")
+CONSTANTS: tuple[str, ...] = ("local", "global")
+RESULT_VERSION = 2  # bump when the meaning of stored task results changes
+
+
+def _int(name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
+        raise fail(name, value, f"must be an integer >= {minimum}")
+    return int(value)
+
+
+def _real(name: str, value, *, minimum: float = 0.0, strict: bool = False) -> float:
+    ok = isinstance(value, Real) and not isinstance(value, bool) and np.isfinite(value) and (
+        value > minimum if strict else value >= minimum)
+    if not ok:
+        raise fail(name, value, f"must be a finite number {'>' if strict else '>='} {minimum}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """Everything a run depends on ([A] values; SPEC 11-12). Bad values raise ValueError naming
+    the field. ``episodes`` SA-RMPPI episodes of up to ``steps`` plant steps (an episode stops at
+    a crash) per velocity variance; the Lemma-1 checks at every step.
+
+    kappa: the progress alpha rule's margin (AlphaRule(kind="progress", kappa)); n_samples,
+    horizon: the SAIS batch (N, T); calibration_steps: the undisturbed alpha-calibration run;
+    grid_*: the global-Lipschitz grid (workbench.bound.LipschitzGrid); independent: draw a second
+    batch per step for T2E; z, n_q, space: workbench.bound.BoundConfig.
+    """
+
+    profile: str = "quick"
+    variances: tuple[float, ...] = (0.0, 10.0, 100.0)
+    episodes: int = 3
+    steps: int = 150
+    seed: int = 2026
+    tests: tuple[str, ...] = TESTS
+    kappa: float = 0.1
+    n_samples: int = 1024
+    horizon: int = 100
+    calibration_steps: int = 600
+    grid_spacing: float = 0.1
+    grid_rings: int = 25
+    grid_angles: int = 360
+    independent: bool = True
+    z: float = 3.0
+    n_q: str = "T"
+    space: str = "physical"
+
+    def __post_init__(self) -> None:
+        one_of("profile", self.profile, PROFILES)
+        v = self.variances
+        if isinstance(v, str) or not hasattr(v, "__iter__") or len(v) == 0:
+            raise fail("variances", v, "must be a non-empty sequence of numbers >= 0")
+        vs = tuple(_real(f"variances[{i}]", x) for i, x in enumerate(v))
+        if len(set(vs)) != len(vs):
+            raise fail("variances", v, "must not repeat a value")
+        object.__setattr__(self, "variances", tuple(sorted(vs)))
+        for name, lo in (("episodes", 1), ("steps", 2), ("seed", 0), ("n_samples", 4),
+                         ("horizon", 2), ("calibration_steps", 10), ("grid_rings", 1),
+                         ("grid_angles", 4)):
+            object.__setattr__(self, name, _int(name, getattr(self, name), lo))
+        t = self.tests
+        if isinstance(t, str) or not hasattr(t, "__iter__") or len(t) == 0:
+            raise fail("tests", t, f"must be a non-empty subset of {TESTS}")
+        for x in t:
+            if x not in TESTS:
+                raise fail("tests", x, f"unknown test; allowed values are {TESTS}")
+        object.__setattr__(self, "tests", tuple(x for x in TESTS if x in t))
+        object.__setattr__(self, "kappa", _real("kappa", self.kappa))
+        object.__setattr__(self, "grid_spacing", _real("grid_spacing", self.grid_spacing,
+                                                       strict=True))
+        object.__setattr__(self, "z", _real("z", self.z, strict=True))
+        if not isinstance(self.independent, bool):
+            raise fail("independent", self.independent, "must be True or False")
+        one_of("n_q", self.n_q, ("T", "T-1"))
+        one_of("space", self.space, ("physical", "augmented"))
+
+    @classmethod
+    def for_profile(cls, profile: str, **overrides) -> StudyConfig:
+        """tiny (tests): 2 variances x 1 episode x 6 steps, N = 128, T = 30, coarse grid;
+        quick (make study): {0, 10, 100} x 3 x 150 steps; paper: {0, 5, 10, 50, 100} x 10 x 1000."""
+        one_of("profile", profile, PROFILES)
+        sizes = {
+            "tiny": dict(variances=(0.0, 10.0), episodes=1, steps=6, n_samples=128, horizon=30,
+                         calibration_steps=60, grid_spacing=1.0, grid_rings=3, grid_angles=24),
+            "quick": {},
+            "paper": dict(variances=(0.0, 5.0, 10.0, 50.0, 100.0), episodes=10, steps=1000),
+        }[profile]
+        return cls(profile=profile, **{**sizes, **overrides})
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def results_dict(self) -> dict:
+        """The values results depend on (no profile name, no test selection)."""
+        d = self.as_dict()
+        for k in ("profile", "tests", "variances", "episodes", "steps"):
+            d.pop(k)
+        return d

@@ -1,0 +1,141 @@
+"""Typed summary of a run, computed from the tidy tables ``steps`` (one row per control step)
+and ``episodes`` only: fractions holding with Wilson intervals, slack quantiles and
+global/local ratios per (variance, test, constants, stratum) (SPEC 11.3), per-variance facts,
+and the failures (:mod:`~studies.free_energy_bound.failures`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from studies.free_energy_bound.config import CONSTANTS
+from studies.free_energy_bound.failures import (
+    Failure,
+    T2EFailures,
+    TransitionFailures,
+    t1_failures_when_safe,
+)
+from workbench.study import Rate, Spread
+
+# SPEC 11.3 (a), (b) and issue 12's nominal-differs split; a transition check (t, t+1) belongs
+# to the strata of step t
+STRATA = {"all": None, "all_real_safe": ("all_real_safe", True),
+          "some_real_crashed": ("all_real_safe", False), "admissible": ("fallback_used", False),
+          "fallback": ("fallback_used", True), "nominal_differs": ("nominal_differs", True),
+          "nominal_is_real": ("nominal_differs", False)}
+
+
+def in_stratum(df: pd.DataFrame, name: str) -> np.ndarray:
+    s = STRATA[name]
+    return np.ones(len(df), bool) if s is None else df[s[0]].to_numpy(bool) == s[1]
+
+
+def evaluated(df: pd.DataFrame, test: str, constants: str) -> np.ndarray:
+    """Steps where the check exists (holds is 1 or 0, not nan)."""
+    return np.isfinite(df[f"{test}_{constants}_holds"].to_numpy(float))
+
+
+def median_ratio(num: np.ndarray, den: np.ndarray) -> float:
+    ok = den > 0
+    return float(np.median(num[ok] / den[ok])) if ok.any() else float("nan")
+
+
+@dataclass(frozen=True)
+class Row:
+    """One test with one set of constants at one variance over one stratum's steps."""
+
+    test: str
+    constants: str
+    variance: float
+    stratum: str
+    n_steps: int
+    n_holding: int
+    fraction_holding: float
+    interval: tuple[float, float]  # Wilson 95 %
+    slack_q05: float
+    slack_q50: float
+    slack_q95: float
+    rhs_ratio: float  # median over the steps of global RHS / local RHS (local RHS > 0)
+    term_ratio: float  # the same for the Lipschitz term (δ or δ D_F)
+
+    @classmethod
+    def of(cls, df: pd.DataFrame, test: str, c: str, variance: float, stratum: str) -> Row | None:
+        d = df[evaluated(df, test, c) & in_stratum(df, stratum)]
+        if d.empty:
+            return None
+        rate = Rate.of(d[f"{test}_{c}_holds"].to_numpy() == 1.0)
+        q = np.quantile(d[f"{test}_{c}_slack"].to_numpy(float), (0.05, 0.5, 0.95))
+        loc, glo = (d[f"{test}_{k}_rhs"].to_numpy(float) for k in CONSTANTS)
+        tloc, tglo = (d[f"{test}_{k}_term"].to_numpy(float) for k in CONSTANTS)
+        return cls(test, c, variance, stratum, rate.n, rate.k, rate.value, (rate.low, rate.high),
+                   *map(float, q), median_ratio(glo, loc), median_ratio(tglo, tloc))
+
+
+@dataclass(frozen=True)
+class VarianceFacts:
+    """Counts and magnitudes at one variance (medians over steps unless said)."""
+
+    variance: float
+    n_episodes: int
+    n_crashed: int
+    n_steps: int
+    n_nominal_differs: int
+    n_all_real_safe: int
+    n_fallback: int
+    n_secant_ok: int
+    R: Spread
+    R99_median: float
+    L_q_local: Spread  # over steps with R > 0 (where the constant enters the bound)
+    L_phi_local: Spread
+    L_q_global: float
+    L_phi_global: float
+    L_q_ratio_median: float  # global / local L_q over steps with R > 0
+    delta_local: Spread  # over steps with R > 0
+    F_real_abs_median: float  # |F̂_real| over the same steps (the scale δ is compared with)
+    E_median: float
+    D_F_median: float
+
+    @classmethod
+    def of(cls, df: pd.DataFrame, ep: pd.DataFrame, variance: float) -> VarianceFacts:
+        act = df[df["R"].to_numpy(float) > 0]
+        return cls(variance, len(ep), int(ep["crashed"].sum()), len(df),
+                   int(df["nominal_differs"].sum()), int(df["all_real_safe"].sum()),
+                   int(df["fallback_used"].sum()), int(df["secant_ok"].sum()), Spread.of(df["R"]),
+                   float(df["R99"].median()), Spread.of(act["L_q"]), Spread.of(act["L_phi"]),
+                   float(df["L_q_global"].max()), float(df["L_phi_global"].max()),
+                   median_ratio(act["L_q_global"].to_numpy(float), act["L_q"].to_numpy(float)),
+                   Spread.of(act["delta_local"]),
+                   float(np.abs(act["F_real"]).median()) if len(act) else float("nan"),
+                   float(df["E"].median()), float(df["D_F"].median()))
+
+
+@dataclass(frozen=True)
+class BoundSummary:
+    config: dict
+    rows: tuple[Row, ...]
+    variances: tuple[VarianceFacts, ...]
+    t1_failures_safe: tuple[Failure, ...]
+    transition_failures: tuple[TransitionFailures, ...]
+    t2e_failures: tuple[T2EFailures, ...]
+
+    def row(self, test, constants, variance, stratum="all") -> Row | None:
+        return next((r for r in self.rows if (r.test, r.constants, r.variance, r.stratum)
+                     == (test, constants, variance, stratum)), None)
+
+
+def summarise(config, steps: pd.DataFrame, episodes: pd.DataFrame) -> BoundSummary:
+    rows, facts = [], []
+    for v in config.variances:
+        df, ep = steps[steps["variance"] == v], episodes[episodes["variance"] == v]
+        facts.append(VarianceFacts.of(df, ep, v))
+        rows += [r for t in config.tests for c in CONSTANTS for s in STRATA
+                 if (r := Row.of(df, t, c, v, s)) is not None]
+    trans = tuple(TransitionFailures.of(steps[steps["variance"] == v], t, c, v)
+                  for v in config.variances for t in config.tests if t.startswith("T3")
+                  for c in CONSTANTS)
+    t2e = tuple(T2EFailures.of(steps[steps["variance"] == v], v) for v in config.variances
+                if "T2E" in config.tests)
+    return BoundSummary(config.as_dict(), tuple(rows), tuple(facts),
+                        tuple(t1_failures_when_safe(steps)), trans, t2e)
