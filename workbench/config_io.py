@@ -150,7 +150,7 @@ def _unknown(cls: type, path: str, key: str, aliases: Mapping[str, str]) -> str:
     full = path + key
     # candidates: dotted keys, their last part, and the aliases (short names users type)
     names = {**{k: k for k in valid}, **{k.rsplit(".", 1)[-1]: k for k in valid},
-             **{a: a for a, target in aliases.items() if target in valid}}
+             **{a: target for a, target in aliases.items() if target in valid}}
     close = difflib.get_close_matches(full, list(names), n=1, cutoff=0.6) or \
         difflib.get_close_matches(key, list(names), n=1, cutoff=0.6)
     hint = ""

@@ -25,7 +25,9 @@ def _report(out: Path) -> Path:
 
     data = json.loads((Path(out) / "summary.json").read_text())
     path = Path(out) / "report.md"
-    atomic_write_text(path, _report([Row(**r) for r in data["rows"]], data["assumed"]))
+    # JSON stored the tuples as lists; the report prints them as the run did
+    assumed = {k: tuple(v) if isinstance(v, list) else v for k, v in data["assumed"].items()}
+    atomic_write_text(path, _report([Row(**r) for r in data["rows"]], assumed))
     return path
 
 
