@@ -74,6 +74,24 @@ def test_set_overrides_parse_toml_literals_and_dotted_keys():
         parse_sets(["count"])
 
 
+@dataclass(frozen=True)
+class WithDerived:
+    low: float = 0.0
+    high: float = field(init=False)
+    limit: float = float("inf")
+
+    def __post_init__(self):
+        object.__setattr__(self, "high", self.low + 1)
+
+
+def test_derived_fields_are_not_written_and_inf_round_trips():
+    cfg = WithDerived(2.0)
+    assert to_dict(cfg) == {"low": 2.0, "limit": float("inf")}
+    assert load(WithDerived, tomllib.loads(dump(cfg))) == cfg
+    with pytest.raises(ConfigError, match="unknown key 'high'"):
+        load(WithDerived, {"high": 1.0})
+
+
 def test_merge_is_recursive_and_later_layers_win():
     assert merge({"a": 1, "t": {"x": 1, "y": 2}}, {"t": {"y": 3}}, {"a": 2}) == \
         {"a": 2, "t": {"x": 1, "y": 3}}

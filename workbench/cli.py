@@ -19,6 +19,17 @@ from typing import Any
 from workbench import config_io
 from workbench.config_io import ConfigError
 
+DESCRIPTION = """\
+SAIS Workbench: run the studies, show their configs, build the report site.
+
+A run's config is resolved in layers and checked before any work starts:
+  the config dataclass's defaults
+  <- the profile's TOML file (--profile; "quick" when neither --profile nor --config is given)
+  <- --config FILE
+  <- each --set key=value (dotted keys for nested fields, values as TOML literals)
+Studies plug in through studies/<pkg>/cli.py (ENTRY = StudyEntry(...)) and profile TOML files.
+"""
+
 EPILOG = """\
 examples:
   workbench list
@@ -174,8 +185,15 @@ def cmd_bench(args) -> int:
 
 
 # ------------------------------------------------------------------------------ the parser
+def _study_names() -> str:
+    try:
+        return ", ".join(registry())
+    except Exception as exc:  # help must work even when a study's cli.py is broken
+        return f"(registry unavailable: {exc})"
+
+
 def _config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("study", help="study name (see `workbench list`)")
+    p.add_argument("study", help=f"study name: {_study_names()} (see `workbench list`)")
     p.add_argument("--profile", default=None,
                    help="profile: a TOML file in the study's directory (quick, paper, full; "
                         "`workbench list` shows each study's); default: quick, unless --config "
@@ -191,9 +209,8 @@ def _config_args(p: argparse.ArgumentParser) -> None:
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
-        prog="workbench", description="SAIS Workbench: run the studies, show their configs, "
-        "build the report site. " + __doc__.split("\n\n")[1].replace("\n", " "),
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        prog="workbench", description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("list", help="studies, controllers and models",

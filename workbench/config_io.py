@@ -119,6 +119,8 @@ def to_dict(obj: Any) -> dict[str, Any]:
     enums by value; fields that are None are left out (TOML has no null)."""
     out = {}
     for f in dataclasses.fields(obj):
+        if not f.init:  # computed in __post_init__, not a setting
+            continue
         v = _plain(getattr(obj, f.name))
         if v is not None:
             out[f.name] = v
