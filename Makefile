@@ -2,6 +2,7 @@
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
+WB     := $(VENV)/bin/workbench
 STAMP  := $(VENV)/.installed
 PROFILE ?= quick
 WORKERS ?= 2
@@ -12,7 +13,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
 .PHONY: venv test study study-tracking-demo study-tracking study-navigation study-bound \
-	study-alpha-rules bench lint clean-cache clean
+	study-alpha-rules reports bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -26,16 +27,19 @@ test: $(STAMP)
 	$(PY) -m pytest
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check workbench studies tests benchmarks
+	$(VENV)/bin/ruff check workbench studies tests benchmarks examples
 
-study: study-tracking-demo study-tracking study-navigation study-bound
+# every study target is `workbench run NAME --profile $(PROFILE)`; SET='key=value ...' adds
+# --set overrides (e.g. make study-tracking SET='noise_std=5 n_seeds=4')
+SETS = $(foreach s,$(SET),--set $(s))
+
+study: study-tracking-demo study-tracking study-navigation study-bound reports
 
 study-tracking-demo: $(STAMP)
-	$(PY) -m studies.tracking_demo --profile $(PROFILE) --out reports/tracking_demo
+	$(WB) run tracking-demo --profile $(PROFILE) $(SETS)
 
 study-tracking: $(STAMP)
-	$(PY) -m studies.tracking_comparison --profile $(PROFILE) --out reports/tracking_comparison \
-		$(STUDY_EXEC)
+	$(WB) run tracking --profile $(PROFILE) $(STUDY_EXEC) $(SETS)
 
 study-navigation: $(STAMP)
 	$(PY) -m studies.navigation --profile $(PROFILE) --out reports/navigation $(STUDY_EXEC)
@@ -49,10 +53,15 @@ study-bound: $(STAMP)
 
 # SA-RMPPI activation per alpha rule (issue 8): 20 episodes per cell at variance 10 and 100
 study-alpha-rules: $(STAMP)
-	$(PY) -m studies.alpha_rules --episodes $(or $(EPISODES),20) --out reports/alpha_rules
+	$(WB) run alpha-rules --profile $(PROFILE) $(STUDY_EXEC) $(SETS) \
+		$(if $(EPISODES),--set episodes=$(EPISODES))
+
+# reports/index.html: every study's report, figures, tables and manifest, offline
+reports: $(STAMP)
+	$(WB) report
 
 bench: $(STAMP)
-	$(PY) -m benchmarks --out reports/bench/bench.json
+	$(WB) bench
 
 clean-cache:
 	rm -rf .cache/codegen

@@ -50,3 +50,30 @@ def central_jacobian(fun, x, eps=1e-6):
         e[i] = eps
         cols.append((np.ravel(fun(x + e)) - np.ravel(fun(x - e))) / (2 * eps))
     return np.stack(cols, axis=1)
+
+
+# the tracking study at a tiny size, as `--set` overrides of the quick profile
+TINY_TRACKING_SETS = ("n_rollouts=6", "n_seeds=2", "sweep_rollouts=4", "sweep_seeds=1",
+                      "sweep_q_beta=[1e-2, 1.0]", "sweep_pole=[5.0]", "sweep_q_scale=[1.0]",
+                      "sweep_noise_std=[10.0]", "radii=[0.3, 0.5, 1.0]")
+
+
+@pytest.fixture(scope="session")
+def cli_reports(tmp_path_factory):
+    """A reports directory written through the command line: the tracking demo (quick) and the
+    tracking study (tiny), both in this process. Returns (root, [stdout of each run])."""
+    import contextlib
+    import io
+
+    from workbench.cli import main
+
+    root = tmp_path_factory.mktemp("reports")
+    outputs = []
+    for argv in (["run", "tracking-demo", "--out", str(root / "tracking_demo")],
+                 ["run", "tracking", "--workers", "0", "--out", str(root / "tracking_comparison"),
+                  *[a for s in TINY_TRACKING_SETS for a in ("--set", s)]]):
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            assert main(argv) == 0
+        outputs.append(buf.getvalue())
+    return root, outputs

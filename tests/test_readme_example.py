@@ -21,3 +21,17 @@ def test_readme_unicycle_example_runs():
     # the straight reference crosses the obstacle: the solution went around it
     assert np.max(np.abs(result.X[:, 1])) > 0.3
     assert model.nx == 3 and scope["problem"].nx == 4
+
+
+def test_readme_sampling_example_continues_the_unicycle():
+    """The sampling block, run after the unicycle block in the same scope."""
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    blocks = [re.search(rf"<!-- example: {name} -->\s*```python\n(.*?)```", text, re.S)
+              for name in ("unicycle", "unicycle-sampling")]
+    assert all(blocks), "README example blocks not found"
+    scope: dict = {}
+    for b in blocks:
+        exec(compile(b.group(1), "README.md", "exec"), scope)
+    ep = scope["episode"]
+    assert not ep.crashed and ep.min_margin > 0
+    assert np.linalg.norm(ep.X[-1, :2] - [4.5, 0.5]) < 0.3

@@ -12,7 +12,7 @@ from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, Robust
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
 from workbench.sampling.problem import SamplingProblem, navigation_costs
 from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
-from workbench.scenes import NavigationScene
+from workbench.scenes import CircleScene, NavigationScene
 from workbench.sim import closed_loop
 from workbench.validation import fail, one_of
 
@@ -29,7 +29,7 @@ TUNED_Q_BETA = 0.01
 
 @dataclass(frozen=True, eq=False)
 class NavigationSetup:
-    scene: NavigationScene
+    scene: NavigationScene | CircleScene
     plant: Model
     problem: SamplingProblem
     goal: np.ndarray  # physical goal state (4,)
@@ -89,10 +89,14 @@ class NavigationSetup:
                           self.feedback(kind, weights), self.threshold(rule, kind, robust, seed))
 
 
-def navigation_setup(scene: NavigationScene | None = None, *,
+def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
                      barrier: BarrierOptions | None = None, q_beta: float = TUNED_Q_BETA,
                      mppi: MPPIConfig | None = None) -> NavigationSetup:
-    """Plant, barrier-embedded sampling problem and MPPI settings of the navigation study."""
+    """Plant, barrier-embedded sampling problem and MPPI settings of the navigation study.
+
+    ``scene``: the paper's map (default, :class:`NavigationScene`) or your own circles
+    (:class:`~workbench.scenes.CircleScene`); any object with ``start``, ``goal``, ``dt``,
+    ``u_limit`` and ``obstacles()`` works."""
     scene = scene or NavigationScene()
     plant = double_integrator(obstacles=scene.obstacles(), u_limit=scene.u_limit, dt=scene.dt)
     for name in ("start", "goal"):  # also for scenes that bring their own obstacles

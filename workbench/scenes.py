@@ -210,3 +210,51 @@ _GRID = 0.02  # grid spacing of candidate centres (m)
 
 class _Jammed(Exception):
     """Grid placement found no room for the smallest radius (args: circles placed)."""
+
+
+@dataclass(frozen=True)
+class CircleScene:
+    """A navigation scene of your own circles: ``navigation_setup(CircleScene(...))``.
+
+    circles: :class:`~workbench.obstacles.Circle` objects or ``(x, y, radius)`` triples; start
+    and goal positions (2,) in free space; dt and the control box as in
+    :class:`NavigationScene`. ``CircleScene.from_circles(circles, start, goal)`` is the same.
+    """
+
+    circles: tuple[Circle, ...]
+    start: tuple[float, float] = (0.5, 0.5)
+    goal: tuple[float, float] = (9.5, 9.5)
+    dt: float = 0.02
+    u_limit: float = 5.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.circles, Circle) or not hasattr(self.circles, "__iter__"):
+            raise fail("CircleScene.circles", self.circles, "must be a sequence of Circle or "
+                       "(x, y, radius)")
+        circles = []
+        for i, c in enumerate(self.circles):
+            if not isinstance(c, Circle):
+                xyr = as_array(f"CircleScene.circles[{i}]", c, (3,))
+                c = Circle((xyr[0], xyr[1]), xyr[2])
+            circles.append(c)
+        object.__setattr__(self, "circles", tuple(circles))
+        for name in ("start", "goal"):
+            p = as_array(f"CircleScene.{name}", getattr(self, name), (2,))
+            object.__setattr__(self, name, (float(p[0]), float(p[1])))
+            for i, o in enumerate(circles):
+                if np.linalg.norm(p - np.array(o.center)) <= o.radius:
+                    raise fail(f"CircleScene.{name}", getattr(self, name),
+                               f"lies inside circle {i} (centre {o.center}, radius {o.radius:g})"
+                               "; start and goal must be in free space")
+        positive("CircleScene.dt", self.dt)
+        positive("CircleScene.u_limit", self.u_limit)
+
+    @classmethod
+    def from_circles(cls, circles, start=(0.5, 0.5), goal=(9.5, 9.5), **kw) -> CircleScene:
+        return cls(tuple(circles), start, goal, **kw)
+
+    def obstacles(self) -> tuple[Circle, ...]:
+        return self.circles
+
+    def assumed_values(self) -> dict[str, object]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}

@@ -10,7 +10,7 @@ import numpy as np
 from workbench.validation import fail, one_of
 
 METHODS: tuple[str, ...] = ("ecbf", "al", "bas")
-PROFILES: tuple[str, ...] = ("quick", "full")
+PROFILES: tuple[str, ...] = ("quick", "paper", "full")
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
 SWEPT = ("q_beta", "pole", "q_scale", "ecbf_noise", "noise_std")
 NOISE_PLACEMENTS = ("before", "after")
@@ -134,10 +134,15 @@ class StudyConfig:
 
     @classmethod
     def for_profile(cls, profile: str, **overrides) -> StudyConfig:
-        """quick: 2 seeds x 100 rollouts, sweep 1 x 100 (make study); full: 10 x 500, 2 x 250."""
+        """quick: 2 seeds x 100 rollouts, sweep 1 x 100 (make study); paper: the paper's 500
+        Monte Carlo rollouts per method (1 x 500), no sweep; full: 10 x 500, sweep 2 x 250.
+        The command line reads the same sizes from ``studies/tracking_comparison/<profile>.toml``
+        (a test keeps the two equal)."""
         one_of("profile", profile, PROFILES)
-        sizes = ({"n_rollouts": 100, "n_seeds": 2, "sweep_rollouts": 100, "sweep_seeds": 1}
-                 if profile == "quick" else {})
+        sizes = {"quick": {"n_rollouts": 100, "n_seeds": 2, "sweep_rollouts": 100,
+                           "sweep_seeds": 1},
+                 "paper": {"n_rollouts": 500, "n_seeds": 1, "sweep": False},
+                 "full": {}}[profile]
         return cls(profile=profile, **{**sizes, **overrides})
 
     def sweep_points(self) -> list[tuple[str, float | str, Variant]]:

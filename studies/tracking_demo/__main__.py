@@ -18,6 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from studies.tracking_demo.config import DemoConfig
 from workbench.io import atomic_write_bytes, atomic_write_json, atomic_write_text, manifest
 from workbench.ipopt_oracle import solve_ipopt
 from workbench.models import double_integrator
@@ -42,13 +43,16 @@ class Row:
     ipopt_time_s: float
 
 
-def run(profile: str, out: Path) -> list[Row]:
-    one_of("profile", profile, tuple(PROFILES))
+def run(config: DemoConfig | str, out: Path) -> list[Row]:
+    """Solve for every q_beta of ``config`` (or of the named profile) and write to ``out``."""
+    if isinstance(config, str):
+        one_of("profile", config, tuple(PROFILES))
+        config = DemoConfig(config, PROFILES[config])
     scene = TrackingScene()
     model = double_integrator(obstacles=(scene.obstacle,), u_limit=scene.u_limit)
     ref = scene.reference()
     rows, trajs = [], {}
-    for q_beta in PROFILES[profile]:
+    for q_beta in config.q_betas:
         weights = TrackingWeights(q_beta=q_beta)
         res, problem = bas_ilqg(model, scene.start, ref, scene.target, weights=weights)
         P = tracking_params(problem, ref, scene.target)
@@ -65,9 +69,10 @@ def run(profile: str, out: Path) -> list[Row]:
     atomic_write_bytes(out / "trajectories.png", _figure(scene, ref, trajs))
     weights = TrackingWeights()
     assumed = {**scene.assumed_values(), "Q": weights.Q, "R": weights.R, "S": weights.S,
-               "s_beta": weights.s_beta, "q_beta_values": PROFILES[profile],
+               "s_beta": weights.s_beta, "q_beta_values": config.q_betas,
                "barrier": "inverse 1/h, one summed state, gamma=0", "integrator": "euler"}
-    atomic_write_json(out / "summary.json", {"profile": profile, "rows": [asdict(r) for r in rows],
+    atomic_write_json(out / "summary.json", {"profile": config.profile,
+                                             "rows": [asdict(r) for r in rows],
                                              "assumed": assumed, "manifest": manifest()})
     atomic_write_text(out / "report.md", _report(rows, assumed))
     return rows

@@ -23,6 +23,7 @@ from workbench.sampling.emit import LANES, EmitError, KernelSpec, emit_kernel, r
 from workbench.sampling.layout import Layout
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.verify import KernelMismatch, verify_kernel
+from workbench.validation import fail
 
 _OPTS = {"cse": True}
 # -fsched-pressure -fschedule-insns: register-pressure-aware scheduling of the long
@@ -284,6 +285,24 @@ class SamplerLibrary:
 
 _LIBS: dict[str, SamplerLibrary | None] = {}
 _FALLBACK_WARNED: set[str] = set()
+_THREADS: list[int] = []  # the count set by set_threads, for libraries loaded later
+
+
+def set_threads(n: int) -> None:
+    """OpenMP threads of the compiled sampler kernels: every library loaded so far and every
+    one loaded later (default: OpenMP's, one per core). Applies to kernels called from the
+    calling thread (OpenMP's setting is per thread); study workers run with 1."""
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
+        raise fail("threads", n, "must be an integer >= 1")
+    _THREADS[:] = [int(n)]
+    for lib in _LIBS.values():
+        if lib is not None:
+            lib.set_threads(int(n))
+
+
+def get_threads() -> int | None:
+    """The count of the last :func:`set_threads` (None: never set; OpenMP's default)."""
+    return _THREADS[0] if _THREADS else None
 
 
 def _load(specs, source: str, stem: str, rebuild: bool,
@@ -337,6 +356,8 @@ def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
             stem, specs, source = library_sources(sp)
             lays = [layouts(sp, k) for k in ("mppi", "sais", "candidates")]
             _LIBS[key] = _verified(specs, source, stem, lays)
+            if _THREADS and _LIBS[key] is not None:
+                _LIBS[key].set_threads(_THREADS[0])
         except (EmitError, CompileError) as exc:
             if isinstance(exc, CompileError) and "no linked library provides" not in str(exc):
                 raise

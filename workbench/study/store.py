@@ -13,6 +13,7 @@ A task counts as finished only if its ``.npz`` loads and carries the expected id
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -85,9 +86,7 @@ class RunStore:
     # ------------------------------------------------------------------ manifest
     def write_manifest(self, study: Study, execution: Mapping[str, Any]) -> dict:
         """Provenance of this invocation, written before any task runs."""
-        data = {"study": study.name, "version": study.version, "seed": study.seed,
-                "config": study.config, "fingerprint": study.fingerprint,
-                "n_tasks": len(study.tasks), "execution": dict(execution),
+        data = {**study_manifest(study), "execution": dict(execution),
                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 **manifest(), "machine": machine()}
         atomic_write_json(self.root / "manifest.json", data)
@@ -220,6 +219,15 @@ class RunStore:
 
     def finished(self, ids: Iterable[str]) -> set[str]:
         return {i for i in ids if self.is_done(i)}
+
+
+def study_manifest(study: Study) -> dict[str, Any]:
+    """The part of a run's manifest that the study alone fixes (no time, host or back end):
+    equal for two invocations iff they run the same tasks with the same config."""
+    ids = study.task_ids()
+    return {"study": study.name, "version": study.version, "seed": study.seed,
+            "config": study.config, "fingerprint": study.fingerprint, "n_tasks": len(ids),
+            "tasks_sha256": hashlib.sha256("\n".join(ids).encode()).hexdigest()}
 
 
 def machine() -> dict[str, Any]:

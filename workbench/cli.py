@@ -1,0 +1,276 @@
+"""The ``workbench`` command: list, run, show-config, report, bench.
+
+Studies come from the registry (:func:`workbench.study.entry.discover`: every
+``studies/<pkg>/cli.py`` defining ``ENTRY``). A run's config is resolved in layers, then checked
+before any work starts: the config dataclass's defaults <- the profile's TOML file (``--profile``;
+the study's default profile when neither --profile nor --config is given) <- ``--config FILE``
+<- each ``--set key=value`` (dotted keys for nested fields, values as TOML literals).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import textwrap
+from pathlib import Path
+from typing import Any
+
+from workbench import config_io
+from workbench.config_io import ConfigError
+
+DESCRIPTION = """\
+SAIS Workbench: run the studies, show their configs, build the report site.
+
+A run's config is resolved in layers and checked before any work starts:
+  the config dataclass's defaults
+  <- the profile's TOML file (--profile; "quick" when neither --profile nor --config is given)
+  <- --config FILE
+  <- each --set key=value (dotted keys for nested fields, values as TOML literals)
+Studies plug in through studies/<pkg>/cli.py (ENTRY = StudyEntry(...)) and profile TOML files.
+"""
+
+EPILOG = """\
+examples:
+  workbench list
+  workbench run tracking                              # quick profile, reports/tracking_comparison
+  workbench run tracking --profile paper --workers 2
+  workbench run tracking --set noise_std=5 --set methods='["bas"]' --out /tmp/bas5
+  workbench run tracking --profile full --scheduler tcp://host:8786
+  workbench show-config tracking --profile paper > paper.toml   # edit, then:
+  workbench run tracking --config paper.toml
+  workbench report                                    # reports/index.html
+"""
+
+MODELS = {
+    "double_integrator": "planar double integrator, state (px, py, vx, vy), control (ax, ay); "
+                         "workbench.models.double_integrator(obstacles=..., u_limit=..., dt=...)",
+    "single_integrator": "planar single integrator, state (px, py), control (vx, vy); "
+                         "workbench.models.single_integrator(...)",
+    "your own": "any discrete-time CasADi SX model: workbench.models.Model.from_expressions("
+                "name, x, u, x_next, dt=..., h=...) (README: Bring your own model)",
+}
+
+
+def registry() -> dict:
+    from workbench.study.entry import discover
+
+    return discover()
+
+
+def _entry(name: str):
+    reg = registry()
+    if name not in reg:
+        import difflib
+
+        close = difflib.get_close_matches(name, list(reg), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise ConfigError(f"unknown study {name!r}{hint} (studies: {', '.join(reg)})")
+    return reg[name]
+
+
+def resolve_config(entry, profile: str | None = None, config: Path | None = None,
+                   sets: list[str] | tuple[str, ...] = ()) -> Any:
+    """The validated config of a study from its layers (see the module docstring)."""
+    layers = []
+    if profile is None and config is None:
+        profile = entry.default_profile
+    if profile is not None:
+        if profile not in entry.profiles:
+            raise ConfigError(f"--profile {profile!r} is invalid: study {entry.name!r} has the "
+                              f"profiles {', '.join(entry.profiles)}")
+        layers.append(config_io.read_toml(entry.profiles[profile]))
+    if config is not None:
+        layers.append(config_io.read_toml(config))
+    layers.append(config_io.parse_sets(sets, entry.aliases))
+    return config_io.load(entry.config_type, config_io.merge(*layers), aliases=entry.aliases)
+
+
+def dry_manifest(entry, cfg) -> dict:
+    """What a run with ``cfg`` would record before computing anything: the study's manifest
+    fields (study, version, seed, config, fingerprint, tasks and their ids) when the study
+    declares its tasks, else the study name and the resolved config."""
+    if entry.declare is None:
+        return {"study": entry.name, "config": config_io.to_dict(cfg)}
+    from workbench.study.store import study_manifest
+
+    return study_manifest(entry.declare(cfg))
+
+
+# ----------------------------------------------------------------------------- subcommands
+def cmd_list(args) -> int:
+    from workbench.navigation import CONTROLLERS
+
+    reg = registry()
+    print("studies (workbench run NAME [--profile P]):")
+    for e in reg.values():
+        print(f"  {e.name:15s} profiles: {', '.join(e.profiles):18s} -> {e.default_out}")
+        print(textwrap.indent(textwrap.fill(e.description, 80), " " * 18))
+    print("\ncontrollers (workbench.navigation.navigation_setup().controller(NAME)):")
+    print("  " + ", ".join(CONTROLLERS))
+    print("\nmodels:")
+    for name, text in MODELS.items():
+        print(f"  {name:18s} " + textwrap.fill(text, 78, subsequent_indent=" " * 21))
+    return 0
+
+
+def cmd_show_config(args) -> int:
+    entry = _entry(args.study)
+    cfg = resolve_config(entry, args.profile, args.config, args.set)
+    src = " ".join(["workbench show-config", entry.name] +
+                   ([f"--profile {args.profile}"] if args.profile else []) +
+                   ([f"--config {args.config}"] if args.config else []) +
+                   [f"--set {s}" for s in args.set])
+    print(config_io.dump(cfg, header=f"{src}\nresolved config of {entry.config_type.__name__}; "
+                                     f"run with: workbench run {entry.name} --config FILE"),
+          end="")
+    return 0
+
+
+def cmd_run(args) -> int:
+    from workbench.validation import writable_dir
+
+    entry = _entry(args.study)
+    cfg = resolve_config(entry, args.profile, args.config, args.set)  # fails before any work
+    if args.workers < 0:
+        raise ConfigError(f"--workers = {args.workers} is invalid: must be >= 0 (0: in this "
+                          "process)")
+    if args.dry_run:
+        print(json.dumps(dry_manifest(entry, cfg), indent=1, sort_keys=True))
+        return 0
+    out = Path(args.out or entry.default_out)
+    try:
+        writable_dir("--out", out)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    from workbench.io import atomic_write_text
+    from workbench.study import StudyInterrupted
+
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.toml", config_io.dump(
+        cfg, header=f"resolved config of this run; rerun: workbench run {entry.name} "
+                    f"--config {out / 'config.toml'} --out {out}"))
+    try:
+        report = entry.run(cfg, out, args.workers, args.scheduler)
+    except StudyInterrupted:
+        print("interrupted; rerun the same command to continue", file=sys.stderr)
+        return 130
+    print(f"wrote {report}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from workbench.report_site import build_site
+
+    reg = registry()
+    root = Path(args.root)
+    if args.study:
+        entry = _entry(args.study)
+        if entry.report is None:
+            raise ConfigError(f"study {entry.name!r} rebuilds its report only by running "
+                              f"(workbench run {entry.name})")
+        out = root / entry.default_out.name
+        if not (out / "manifest.json").exists() and not (out / "summary.json").exists():
+            raise ConfigError(f"{out}: no results; run `workbench run {entry.name}` first")
+        print(f"wrote {entry.report(out)}")
+    print(f"wrote {build_site(root, reg)}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from benchmarks.__main__ import main as bench_main
+
+    bench_main(["--out", str(args.out), "--repeats", str(args.repeats)])
+    return 0
+
+
+# ------------------------------------------------------------------------------ the parser
+def _study_names() -> str:
+    try:
+        return ", ".join(registry())
+    except Exception as exc:  # help must work even when a study's cli.py is broken
+        return f"(registry unavailable: {exc})"
+
+
+def _config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("study", help=f"study name: {_study_names()} (see `workbench list`)")
+    p.add_argument("--profile", default=None,
+                   help="profile: a TOML file in the study's directory (quick, paper, full; "
+                        "`workbench list` shows each study's); default: quick, unless --config "
+                        "is given")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="TOML file over the profile (e.g. the output of show-config or a run's "
+                        "config.toml)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one field; dotted keys for nested fields (base.noise_std=5), "
+                        "values as TOML literals (5, 1e-3, true, \"after\", [1, 2]); "
+                        "repeatable")
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="workbench", description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("list", help="studies, controllers and models",
+                       description="List the registered studies (name, profiles, output "
+                                   "directory), the navigation controllers and the models.")
+    p.set_defaults(fn=cmd_list)
+
+    p = sub.add_parser("run", help="run (or continue) a study",
+                       description="Run or continue a study: resolve and check its config, "
+                                   "write OUT/config.toml, compute the missing tasks, write the "
+                                   "tidy data, summary.json, figures and report.md to OUT. "
+                                   "Ctrl-C stops within seconds; the same command continues.",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _config_args(p)
+    p.add_argument("--workers", type=int, default=2,
+                   help="local worker processes (0: in this process; default 2)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="Dask scheduler address (tcp://host:8786) instead of local workers")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="run directory (default: the study's, e.g. reports/tracking_comparison)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="check the config and print the run's manifest (study, seed, config, "
+                        "fingerprint, task ids) without computing or writing anything")
+    p.set_defaults(fn=cmd_run)
+
+    p = sub.add_parser("show-config", help="print a study's fully resolved config as TOML",
+                       description="Print the fully resolved config (every field) as TOML; "
+                                   "feeding it back with --config gives the same run.")
+    _config_args(p)
+    p.set_defaults(fn=cmd_show_config)
+
+    p = sub.add_parser("report", help="build reports/index.html (and rebuild a study's report)",
+                       description="Build ROOT/index.html: every study's report (as HTML), "
+                                   "figures, summary tables, manifest and config, with the "
+                                   "paper's numbers beside ours; readable offline. With STUDY, "
+                                   "first rebuild that study's report.md from its stored "
+                                   "results (nothing is computed).")
+    p.add_argument("study", nargs="?", default=None, help="study whose report to rebuild")
+    p.add_argument("--root", type=Path, default=Path("reports"),
+                   help="reports directory (default: reports)")
+    p.set_defaults(fn=cmd_report)
+
+    p = sub.add_parser("bench", help="benchmarks -> reports/bench/bench.json",
+                       description="Time iLQG, BaS-iLQG vs IPOPT and the sampler kernels "
+                                   "against their baselines; write the records as JSON.")
+    p.add_argument("--out", type=Path, default=Path("reports/bench/bench.json"))
+    p.add_argument("--repeats", type=int, default=7)
+    p.set_defaults(fn=cmd_bench)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = parser()
+    args = ap.parse_args(argv)
+    try:
+        return args.fn(args)
+    except ConfigError as exc:
+        print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

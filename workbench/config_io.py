@@ -1,0 +1,250 @@
+"""TOML configs for frozen dataclasses: load with overrides, check, write back.
+
+Generic over any frozen dataclass whose fields are annotated with ``bool``, ``int``, ``float``,
+``str``, ``Literal[...]``, ``tuple[T, ...]``, ``tuple[A, B]``, ``T | None`` or another such
+dataclass (a TOML table). Layers merge in order (e.g. profile file, user file, ``--set``
+overrides); :func:`load` then checks every key and type before calling the dataclass, whose own
+``__post_init__`` checks ranges. Every error is a :class:`ConfigError` naming the dotted key, the
+value and what is allowed; a mistyped key suggests the closest valid one.
+
+    cfg = load(StudyConfig, merge(read_toml("paper.toml"), parse_sets(["base.noise_std=5"])))
+    text = dump(cfg)          # fully resolved; load(StudyConfig, tomllib.loads(text)) == cfg
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import enum
+import tomllib
+import types
+import typing
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+__all__ = ["ConfigError", "dump", "keys", "load", "merge", "parse_sets", "read_toml", "to_dict"]
+
+
+class ConfigError(ValueError):
+    """A config key, type or value that is not allowed (the message says which and why)."""
+
+
+def read_toml(path: Path | str) -> dict[str, Any]:
+    """A TOML file as a dict; a syntax error names the file and line."""
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise ConfigError(f"config file {path} does not exist") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+
+
+def parse_sets(items: Iterable[str], aliases: Mapping[str, str] | None = None) -> dict:
+    """``["a.b=1", "c=[1, 2]", "d=before"]`` -> nested dict. Values are TOML literals; a value
+    that is not one (a bare word) is taken as a string. ``aliases`` maps short keys to dotted
+    paths (e.g. ``noise_std`` -> ``base.noise_std``)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected key=value (dotted keys for nested "
+                              "fields, values as TOML literals, e.g. base.noise_std=5)")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        key = (aliases or {}).get(key, key)
+        node = out
+        *parents, last = key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {p} is set twice, as a value and a table")
+        node[last] = value
+    return out
+
+
+def merge(*layers: Mapping[str, Any]) -> dict[str, Any]:
+    """Later layers override earlier ones key by key; tables merge recursively."""
+    out: dict[str, Any] = {}
+    for layer in layers:
+        for k, v in layer.items():
+            if isinstance(v, Mapping) and isinstance(out.get(k), dict):
+                out[k] = merge(out[k], v)
+            else:
+                out[k] = dict(v) if isinstance(v, Mapping) else v
+    return out
+
+
+def keys(cls: type, prefix: str = "") -> list[str]:
+    """Every dotted key of a config dataclass (leaves only)."""
+    out = []
+    for f, hint in _fields(cls):
+        inner = _dataclass_of(hint)
+        out += keys(inner, f"{prefix}{f.name}.") if inner else [prefix + f.name]
+    return out
+
+
+def load(cls: type, data: Mapping[str, Any], *, path: str = "",
+         aliases: Mapping[str, str] | None = None) -> Any:
+    """An instance of the dataclass ``cls`` from ``data`` (missing keys take the defaults).
+    ``aliases`` (short key -> dotted key) are offered as suggestions for mistyped keys."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{path or 'config'} = {data!r} is invalid: expected a table")
+    fields = dict(_fields(cls))
+    names = {f.name: f for f in fields}
+    for k in data:
+        if k not in names:
+            raise ConfigError(_unknown(cls, path, k, aliases or {}))
+    kwargs = {}
+    for f, hint in fields.items():
+        if f.name in data:
+            kwargs[f.name] = _convert(hint, data[f.name], path + f.name)
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as exc:
+        where = f"{path[:-1]}: " if path else ""
+        raise ConfigError(f"{where}{exc}") from exc
+
+
+def to_dict(obj: Any) -> dict[str, Any]:
+    """A config dataclass as TOML-ready data: tuples as lists, tables for nested dataclasses,
+    enums by value; fields that are None are left out (TOML has no null)."""
+    out = {}
+    for f in dataclasses.fields(obj):
+        if not f.init:  # computed in __post_init__, not a setting
+            continue
+        v = _plain(getattr(obj, f.name))
+        if v is not None:
+            out[f.name] = v
+        elif f.default is not None:  # leaving it out would load the default instead
+            raise ConfigError(f"{f.name} = None cannot be written to TOML (its default is "
+                              f"{f.default!r})")
+    return out
+
+
+def dump(obj: Any, header: str = "") -> str:
+    """The fully resolved config as TOML text (comment lines from ``header`` first)."""
+    text = tomli_w.dumps(to_dict(obj))
+    lines = [f"# {line}".rstrip() for line in header.splitlines()] if header else []
+    return "\n".join([*lines, text]) if lines else text
+
+
+# ---------------------------------------------------------------------------------- internals
+def _fields(cls: type) -> list[tuple[dataclasses.Field, Any]]:
+    hints = typing.get_type_hints(cls)
+    return [(f, hints[f.name]) for f in dataclasses.fields(cls) if f.init]
+
+
+def _dataclass_of(hint) -> type | None:
+    return hint if isinstance(hint, type) and dataclasses.is_dataclass(hint) else None
+
+
+def _unknown(cls: type, path: str, key: str, aliases: Mapping[str, str]) -> str:
+    valid = [path + k for k in keys(cls)]
+    full = path + key
+    # candidates: dotted keys, their last part, and the aliases (short names users type)
+    names = {**{k: k for k in valid}, **{k.rsplit(".", 1)[-1]: k for k in valid},
+             **{a: target for a, target in aliases.items() if target in valid}}
+    close = difflib.get_close_matches(full, list(names), n=1, cutoff=0.6) or \
+        difflib.get_close_matches(key, list(names), n=1, cutoff=0.6)
+    hint = ""
+    if close:
+        short, target = close[0], names[close[0]]
+        hint = f"; did you mean {short!r}" + (f" ({target})" if target != short else "") + "?"
+    return f"unknown key {full!r}{hint} (valid keys: {', '.join(valid)})"
+
+
+def _describe(hint) -> str:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is typing.Literal:
+        return "one of " + ", ".join(repr(a) for a in args)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list of {_describe(args[0])}"
+        return f"a list of {len(args)} items ({', '.join(_describe(a) for a in args)})"
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(a) for a in args if a is not type(None))
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+        return "one of " + ", ".join(repr(m.value) for m in hint)
+    if _dataclass_of(hint):
+        return f"a table ({hint.__name__})"
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(
+        hint, getattr(hint, "__name__", str(hint)))
+
+
+def _bad(key: str, value, hint) -> ConfigError:
+    return ConfigError(f"{key} = {value!r} is invalid: expected {_describe(hint)}")
+
+
+def _convert(hint, value, key: str):
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if _dataclass_of(hint):
+        if isinstance(value, Mapping):
+            return load(hint, value, path=key + ".")
+        raise _bad(key, value, hint)
+    if origin in (typing.Union, types.UnionType):
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _convert(a, value, key)
+            except ConfigError:
+                pass
+        raise _bad(key, value, hint)
+    if origin is typing.Literal:
+        if value in args and type(value) in {type(a) for a in args}:
+            return value
+        raise _bad(key, value, hint)
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise _bad(key, value, hint)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise _bad(key, value, hint)
+        return tuple(_convert(a, v, f"{key}[{i}]") for i, (a, v) in
+                     enumerate(zip(args, value, strict=True)))
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+        try:
+            return hint(value)
+        except ValueError:
+            raise _bad(key, value, hint) from None
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+    elif hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif hint is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+    elif hint is str:
+        if isinstance(value, str):
+            return value
+    elif hint is Any:
+        return value
+    else:
+        raise ConfigError(f"{key}: fields of type {hint!r} cannot be read from TOML")
+    raise _bad(key, value, hint)
+
+
+def _plain(v):
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return to_dict(v)
+    if isinstance(v, enum.Enum):
+        return v.value
+    if isinstance(v, tuple | list):
+        return [_plain(x) for x in v]
+    if isinstance(v, Mapping):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if hasattr(v, "item") and callable(v.item):  # numpy scalars
+        return v.item()
+    return v
