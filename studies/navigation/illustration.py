@@ -54,7 +54,7 @@ def illustrate(setup: NavigationSetup, ctrl, task, ctx: TaskContext) -> TaskOutp
             if shown is None and k >= FIRST and info.nominal_differs:
                 shown = {"step": k, **last}
             x = np.asarray(f(x, np.clip(u, plant.u_min, plant.u_max))).ravel() + dist.sample(
-                plant.nx, plant.dt, rng_w)
+                plant.nx, plant.dt, rng_w, dist.indices(plant))
             path.append(x[:2].copy())
             if np.min(plant.margins(x)) <= 0:
                 crashed = True
