@@ -170,3 +170,18 @@ def test_interrupt_then_rerun_equals_an_uninterrupted_run(tiny_run, tmp_path):
         assert (out / name).read_bytes() == (ref / name).read_bytes(), name
     again = run(cfg, out, workers=0, progress=False)  # complete: nothing recomputed
     assert again.run.computed == 0
+
+
+def test_fig4_illustration_task_runs_and_keeps_both_sample_sets():
+    """The Fig. 4 task (limits +-50, velocity variance 5000) on a few steps: it ran in no
+    other test (the tiny profile skips it) and broke once on an API change."""
+    from studies.navigation.tasks import Illustration, run_task
+    from workbench.sampling.threshold import AlphaRule
+    from workbench.study import TaskContext
+
+    config = StudyConfig.for_profile("tiny")
+    task = Illustration(AlphaRule(kappa=0.1), steps=8)
+    out = run_task(task, TaskContext("fig4", 1, (7,), 1), config)
+    assert out.arrays["path"].shape[1] == 2 and len(out.arrays["path"]) >= 2
+    assert np.all(np.isfinite(out.arrays["path"]))
+    assert len(out.arrays) >= 3  # the path, the nominal path and the rolled-out samples
