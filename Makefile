@@ -41,15 +41,15 @@ study-tracking-demo: $(STAMP)
 study-tracking: $(STAMP)
 	$(WB) run tracking --profile $(PROFILE) $(STUDY_EXEC) $(SETS)
 
+# navigation and bound have tiny/quick/paper profiles; any other PROFILE (the tracking study's
+# full) runs their quick profile
+NAV_PROFILE = $(if $(filter paper tiny,$(PROFILE)),$(PROFILE),quick)
 study-navigation: $(STAMP)
-	$(PY) -m studies.navigation --profile $(PROFILE) --out reports/navigation $(STUDY_EXEC)
+	$(WB) run navigation --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
 
-# Lemma 1 checked on SA-RMPPI episodes (issue 12): PROFILE=paper (35-60 min) or tiny; any other
-# PROFILE (quick, the tracking study's full) runs the quick profile (about 2-2.5 min)
-BOUND_PROFILE = $(if $(filter paper tiny,$(PROFILE)),$(PROFILE),quick)
+# Lemma 1 checked on SA-RMPPI episodes (issue 12): quick about 2-2.5 min, paper 35-60 min
 study-bound: $(STAMP)
-	$(PY) -m studies.free_energy_bound --profile $(BOUND_PROFILE) --out reports/free_energy_bound \
-		$(STUDY_EXEC)
+	$(WB) run free-energy-bound --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
 
 # SA-RMPPI activation per alpha rule (issue 8): 20 episodes per cell at variance 10 and 100
 study-alpha-rules: $(STAMP)

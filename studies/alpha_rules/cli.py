@@ -27,7 +27,7 @@ def _report_from(out: Path) -> Path:
     wall = json.loads(run_file.read_text())["wall_s"] if run_file.exists() else float("nan")
     config = {"episodes": manifest["config"]["episodes"], "steps": manifest["config"]["steps"],
               "seed": manifest["seed"], "wall_s": wall}
-    write_report(store.table("episodes"), Path(out), config)
+    write_report(store.table("episodes"), Path(out), config, store)
     return Path(out) / "report.md"
 
 
