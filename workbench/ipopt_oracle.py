@@ -18,7 +18,9 @@ from workbench.problem import Problem
 
 
 @dataclass(frozen=True)
-class IpoptResult:
+class NLPResult:
+    """Solution of an NLP solver (IPOPT or FATROP) on an optimal-control problem."""
+
     X: np.ndarray
     U: np.ndarray
     cost: float
@@ -26,6 +28,10 @@ class IpoptResult:
     success: bool
     solve_time_s: float
     iterations: int
+    solver: str = "ipopt"
+
+
+IpoptResult = NLPResult
 
 
 def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = False,
@@ -64,16 +70,6 @@ def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = Fa
     )
 
 
-@dataclass(frozen=True)
-class NLPResult:
-    X: np.ndarray
-    U: np.ndarray
-    cost: float
-    status: str
-    success: bool
-    solve_time_s: float
-    iterations: int
-    solver: str
 
 
 class MultipleShootingNLP:

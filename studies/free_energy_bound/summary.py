@@ -17,6 +17,7 @@ from studies.free_energy_bound.failures import (
     TransitionFailures,
     t1_failures_when_safe,
 )
+from workbench.bound import CheckSummary
 from workbench.study import Rate, Spread
 
 # SPEC 11.3 (a), (b) and issue 12's nominal-differs split; a transition check (t, t+1) belongs
@@ -43,22 +44,11 @@ def median_ratio(num: np.ndarray, den: np.ndarray) -> float:
 
 
 @dataclass(frozen=True)
-class Row:
-    """One test with one set of constants at one variance over one stratum's steps."""
+class Row(CheckSummary):
+    """One test with one set of constants at one variance over one stratum's steps (the
+    estimators' :class:`~workbench.bound.CheckSummary` fields, plus the variance)."""
 
-    test: str
-    constants: str
     variance: float
-    stratum: str
-    n_steps: int
-    n_holding: int
-    fraction_holding: float
-    interval: tuple[float, float]  # Wilson 95 %
-    slack_q05: float
-    slack_q50: float
-    slack_q95: float
-    rhs_ratio: float  # median over the steps of global RHS / local RHS (local RHS > 0)
-    term_ratio: float  # the same for the Lipschitz term (δ or δ D_F)
 
     @classmethod
     def of(cls, df: pd.DataFrame, test: str, c: str, variance: float, stratum: str) -> Row | None:
@@ -69,8 +59,9 @@ class Row:
         q = np.quantile(d[f"{test}_{c}_slack"].to_numpy(float), (0.05, 0.5, 0.95))
         loc, glo = (d[f"{test}_{k}_rhs"].to_numpy(float) for k in CONSTANTS)
         tloc, tglo = (d[f"{test}_{k}_term"].to_numpy(float) for k in CONSTANTS)
-        return cls(test, c, variance, stratum, rate.n, rate.k, rate.value, (rate.low, rate.high),
-                   *map(float, q), median_ratio(glo, loc), median_ratio(tglo, tloc))
+        return cls(test, c, stratum, rate.n, rate.k, rate.value, (rate.low, rate.high),
+                   *map(float, q), median_ratio(glo, loc), median_ratio(tglo, tloc),
+                   variance=variance)
 
 
 @dataclass(frozen=True)
