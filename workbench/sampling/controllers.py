@@ -206,6 +206,7 @@ class Selection:
     free_energy: np.ndarray  # (n_candidates,) candidate free energies (empty on the first call)
     alpha: np.ndarray  # (n_candidates,) thresholds at the candidates
     fallback: bool  # no candidate was admissible
+    alpha_nominal: float  # threshold at the chosen nominal state (the SAIS clamp's alpha)
 
 
 @dataclass(frozen=True)
@@ -276,7 +277,9 @@ class RobustMPPI:
         """Nominal-state selection (SPEC 9.3) with s = 1 plant step since the last call."""
         nc = self.rcfg.n_candidates
         if state.x_nom is None:
-            return Selection(xb, state.U, nc - 1, 0, np.zeros(0), np.zeros(0), False)
+            n = self.sp.model.n_physical
+            return Selection(xb, state.U, nc - 1, 0, np.zeros(0), np.zeros(0), False,
+                             float(self.threshold(xb[None, :n])[0]))
         r, cfg, sp = self.rcfg, self.cfg, self.sp
         a0 = state.x_nom
         a1 = self._dyn(a0, state.U[0])[0]
@@ -302,7 +305,7 @@ class RobustMPPI:
             i_star = int(ok.max())
         s = int(self._strides[i_star])
         return Selection(starts[i_star], _shift(state.U, s, cfg.tail), i_star, s, F, alpha,
-                         fallback)
+                         fallback, float(alpha[i_star]))
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
@@ -314,8 +317,7 @@ class RobustMPPI:
         gains = self.feedback.gains(x_nom, U, state.gains, sel.stride)
         K = gains.K
         t2 = time.perf_counter()
-        n = self.sp.model.n_physical
-        alpha = float(self.threshold(x_nom[None, :n])[0])
+        alpha = sel.alpha_nominal
         consts = replace(self.consts, alpha=alpha)
         U_real = U
         first = None

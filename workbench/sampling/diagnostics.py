@@ -26,9 +26,8 @@ from dataclasses import dataclass
 
 import casadi as ca
 
-from workbench.codegen import build_library
 from workbench.sampling.emit import KernelSpec, emit_kernel, rng_source
-from workbench.sampling.kernels import KERNEL_FLAGS, CompiledKernel, layouts, sais_spec
+from workbench.sampling.kernels import CompiledKernel, layouts, load_verified, sais_spec
 from workbench.sampling.layout import Layout
 from workbench.sampling.problem import SamplingProblem
 
@@ -164,15 +163,15 @@ def diagnostics_library(sp: SamplingProblem) -> DiagnosticsLibrary | None:
     if key not in _LIBS:
         specs = [sais_diag_spec(sp), gradient_spec(sp), gradient_spec(sp, "augmented")]
         source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
-        lib = build_library(f"diag_{sp.model.name.replace('+', '_')}", [], source,
-                            extra_flags=KERNEL_FLAGS)
-        if lib is None:
-            _LIBS[key] = None
-        else:
-            g = Layout("gradients carry", tuple((r, 1) for r in GRADIENT_RESULTS))
-            res = Layout("gradients result", g.fields)
-            _LIBS[key] = DiagnosticsLibrary(
-                CompiledKernel(specs[0], lib.cdll, *diag_layouts(sp)),
-                CompiledKernel(specs[1], lib.cdll, g, res),
-                CompiledKernel(specs[2], lib.cdll, g, res), lib.cdll)
+        g = Layout("gradients carry", tuple((r, 1) for r in GRADIENT_RESULTS))
+        res = Layout("gradients result", g.fields)
+
+        def build(cdll) -> DiagnosticsLibrary:
+            return DiagnosticsLibrary(CompiledKernel(specs[0], cdll, *diag_layouts(sp)),
+                                      CompiledKernel(specs[1], cdll, g, res),
+                                      CompiledKernel(specs[2], cdll, g, res), cdll)
+
+        _LIBS[key] = load_verified(
+            f"diag_{sp.model.name.replace('+', '_')}", source, build,
+            lambda lib: (lib.sais_diag, lib.gradients, lib.gradients_augmented))
     return _LIBS[key]

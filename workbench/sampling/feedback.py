@@ -135,6 +135,8 @@ class ILQGFeedback:
         nu, nxf = model.nu, model.nx
         self._zk, self._zK = np.zeros((horizon, nu)), np.zeros((horizon, nu, nxf))
         self._X0 = np.zeros((horizon + 1, nxf))
+        # the open-loop rollout's cost is not used: any parameters will do
+        self._P0 = np.zeros((horizon + 1, self.problem.n_p))
         if model.nh:
             self._margins = FastFunction(model.margins_function, horizon + 1)
 
@@ -142,14 +144,14 @@ class ILQGFeedback:
         """The clipped open-loop nominal trajectory (X (T+1, nx), U (T, nu))."""
         m = self.problem.model
         X, Uc, _ = self.passes.forward(x_nom[: self.problem.nx], self._X0, U, self._zk,
-                                       self._zK, self._params(None, U), 0.0, m.u_min, m.u_max,
+                                       self._zK, self._P0, 0.0, m.u_min, m.u_max,
                                        use_policy=False)
         return X, Uc
 
     def _params(self, X, U) -> np.ndarray:
+        """Track the nominal trajectory itself: x_ref = X (physical part), u_ref = U."""
         n = self.problem.model.n_physical
-        x_ref = np.zeros((self.T + 1, n)) if X is None else X[:, :n]
-        return self.problem.cost.params(self.T, x_ref=x_ref, u_ref=np.vstack([U, U[-1:]]))
+        return self.problem.cost.params(self.T, x_ref=X[:, :n], u_ref=np.vstack([U, U[-1:]]))
 
     def gains(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
         U = as_array("U", U, (self.T, self.problem.nu))
@@ -158,7 +160,7 @@ class ILQGFeedback:
         unsafe = bool(m.nh) and bool(np.min(self._margins(X[:, : m.n_physical])[0]) <= 0.0)
         d = self.passes.derivatives(X, Uc, self._params(X, Uc))
         reason = None
-        if not all(np.all(np.isfinite(a)) for a in _arrays(d)):
+        if not all(np.all(np.isfinite(a)) for a in d.values()):
             reason = "nonfinite_derivatives"
         else:
             mu = self.w.mu
@@ -184,10 +186,3 @@ class ILQGFeedback:
         out[:, :, : K.shape[2]] = K
         return out
 
-
-def _arrays(d):
-    if isinstance(d, dict):
-        return list(d.values())
-    if isinstance(d, tuple | list):
-        return list(d)
-    return [d]

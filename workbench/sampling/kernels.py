@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import ctypes
 import warnings
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import casadi as ca
 import numpy as np
@@ -24,6 +26,8 @@ from workbench.sampling.layout import Layout
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.verify import KernelMismatch, verify_kernel
 from workbench.validation import fail
+
+L = TypeVar("L")
 
 _OPTS = {"cse": True}
 # -fsched-pressure -fschedule-insns: register-pressure-aware scheduling of the long
@@ -305,38 +309,36 @@ def get_threads() -> int | None:
     return _THREADS[0] if _THREADS else None
 
 
-def _load(specs, source: str, stem: str, rebuild: bool,
-          lays=None) -> SamplerLibrary | None:
-    lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS, rebuild=rebuild)
+def load_verified(stem: str, source: str, build: Callable[[ctypes.CDLL], L],
+                  kernels: Callable[[L], Iterable[CompiledKernel]]) -> L | None:
+    """Compile (or load from the cache) a kernel library, wrap it with ``build(cdll)``, and
+    check each of its ``kernels(obj)`` against CasADi's evaluation of its step
+    (:mod:`workbench.sampling.verify`) before first use. A mismatch (e.g. a cached library
+    swapped with another problem's) rebuilds it once; a second mismatch raises. None without a
+    compiler. Every kernel library (sampler, diagnostics) is loaded through here."""
+    lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS)
     if lib is None:
         return None
-    c = lib.cdll
-    c.wb_normals.restype = None
-    c.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
-    c.wb_set_threads.argtypes = [ctypes.c_int]
-    c.wb_get_threads.restype = ctypes.c_int
-    lays = lays or [(None, None)] * len(specs)
-    kernels = [CompiledKernel(s, c, *lay) for s, lay in zip(specs, lays, strict=True)]
-    return SamplerLibrary(*kernels, cdll=c)
-
-
-def _verified(specs, source: str, stem: str, lays=None) -> SamplerLibrary | None:
-    """Load the library and check every kernel against CasADi's evaluation of its step
-    (:mod:`workbench.sampling.verify`) before first use; a mismatch (e.g. a cached library
-    swapped with another problem's) rebuilds it once, a second mismatch raises."""
-    lib = _load(specs, source, stem, rebuild=False, lays=lays)
-    if lib is None:
-        return None
+    obj = build(lib.cdll)
     try:
-        for k in (lib.mppi, lib.sais, lib.candidates):
+        for k in kernels(obj):
             verify_kernel(k)
     except KernelMismatch as exc:
-        warnings.warn(f"workbench: {exc}; rebuilding the sampler library", RuntimeWarning,
-                      stacklevel=3)
-        lib = _load(specs, source, stem, rebuild=True, lays=lays)
-        for k in (lib.mppi, lib.sais, lib.candidates):
+        warnings.warn(f"workbench: {exc}; rebuilding {stem}", RuntimeWarning, stacklevel=3)
+        obj = build(build_library(stem, [], source, extra_flags=KERNEL_FLAGS,
+                                  rebuild=True).cdll)
+        for k in kernels(obj):
             verify_kernel(k)
-    return lib
+    return obj
+
+
+def _sampler_library(cdll: ctypes.CDLL, specs, lays) -> SamplerLibrary:
+    cdll.wb_normals.restype = None
+    cdll.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
+    cdll.wb_set_threads.argtypes = [ctypes.c_int]
+    cdll.wb_get_threads.restype = ctypes.c_int
+    kernels = [CompiledKernel(s, cdll, *lay) for s, lay in zip(specs, lays, strict=True)]
+    return SamplerLibrary(*kernels, cdll=cdll)
 
 
 def library_sources(sp: SamplingProblem) -> tuple[str, list[KernelSpec], str]:
@@ -355,7 +357,9 @@ def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
         try:
             stem, specs, source = library_sources(sp)
             lays = [layouts(sp, k) for k in ("mppi", "sais", "candidates")]
-            _LIBS[key] = _verified(specs, source, stem, lays)
+            _LIBS[key] = load_verified(
+                stem, source, lambda c: _sampler_library(c, specs, lays),
+                lambda lib: (lib.mppi, lib.sais, lib.candidates))
             if _THREADS and _LIBS[key] is not None:
                 _LIBS[key].set_threads(_THREADS[0])
         except (EmitError, CompileError) as exc:

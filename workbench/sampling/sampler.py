@@ -77,7 +77,7 @@ class Sampler:
     def _noise(self, N: int, T: int, seed: int) -> np.ndarray:
         return np.random.default_rng(seed).standard_normal((N, T, self.sp.nu))
 
-    def _check(self, N: int, U, c: SamplerConstants, K=None) -> np.ndarray:
+    def _check(self, N: int, U, c: SamplerConstants) -> np.ndarray:
         if isinstance(N, bool) or not isinstance(N, int | np.integer) or N < 1:
             raise fail("N", N, "the sample count must be an integer >= 1")
         U = np.asarray(U, dtype=float)
@@ -85,8 +85,6 @@ class Sampler:
             raise fail("U", U.shape, f"the plan must have shape (T >= 1, {self.sp.nu})")
         if not np.all(np.isfinite(U)):
             raise fail("U", U, "the plan must be finite")
-        if K is not None:
-            as_array("K", K, (U.shape[0], self.sp.nu, self.sp.nx))
         for name, val, n in (("sigma", c.sigma, self.sp.nu), ("u_min", c.u_min, self.sp.nu),
                              ("u_max", c.u_max, self.sp.nu), ("p", c.p, self.sp.n_p)):
             if np.shape(val) != (n,):
@@ -110,12 +108,10 @@ class Sampler:
              diagnostics: bool = False) -> SAISBatch:
         """SAIS batch (Algorithm 1). ``diagnostics=True`` returns a :class:`SAISDiagBatch`
         (same costs, bitwise, for the same seed; plus trajectories and pure state costs)."""
-        U = self._check(N, U, c, K)
-        x0, xs0 = as_array("x0", x0, (self.sp.nx,)), as_array("xs0", xs0, (self.sp.nx,))
-        K = np.asarray(K, dtype=float)
-        if not np.all(np.isfinite(K)):
-            raise fail("K", K, "the gains must be finite")
+        U = self._check(N, U, c)
         T = U.shape[0]
+        K = as_array("K", K, (T, self.sp.nu, self.sp.nx))  # shape and finiteness
+        x0, xs0 = as_array("x0", x0, (self.sp.nx,)), as_array("xs0", xs0, (self.sp.nx,))
         if diagnostics:
             return self._sais_diag(x0, xs0, U, K, N, c, seed)
         if self.lib is not None:
