@@ -94,6 +94,13 @@ def report_markdown(records: list[dict], man: dict) -> str:
             notes.append(f"baseline = kernel to {p['max_rel_err_vs_kernel_on_kernel_noise']:.0e}")
         if "nlp_max_rel_cost_difference" in p:
             notes.append(f"IPOPT/FATROP objectives agree to {p['nlp_max_rel_cost_difference']:.1e}")
+        if "slowdown_vs_di" in p:
+            notes.append(f"slowdown {p['slowdown_vs_di']:.2f}x (goal <= {p['goal_slowdown']}x"
+                         f"{', met' if p['goal_met'] else ', not met'}); same kernel with cubic "
+                         f"polynomials for sin/cos: {p['floor_polynomial_unicycle_vs_di']:.2f}x")
+        if "vector_vs_scalar_max_rel_diff" in p and "slowdown_vs_di" not in p:
+            notes.append(f"{p['vector_math']}, <= {p['max_ulp_tested']} ulp; vector = scalar to "
+                         f"{p['vector_vs_scalar_max_rel_diff']:.0e}")
         if "al_rel_cost_gap_vs_fatrop" in p:
             notes.append(f"AL cost gap {p['al_rel_cost_gap_vs_fatrop']:.1e}")
         lines.append(f"| {r['name']} | {_fmt(r['value'])} | {r['unit']} | "
@@ -108,7 +115,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args(argv)
     records = []
-    for module in ("benchmarks.tracking", "benchmarks.sampling", "benchmarks.torch_mppi"):
+    for module in ("benchmarks.tracking", "benchmarks.sampling", "benchmarks.trig",
+                   "benchmarks.torch_mppi"):
         records += importlib.import_module(module).records(args.repeats)
     records.append(bench_ilqg_iteration(args.repeats))
     for r in records:

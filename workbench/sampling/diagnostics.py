@@ -26,8 +26,14 @@ from dataclasses import dataclass
 
 import casadi as ca
 
-from workbench.sampling.emit import KernelSpec, emit_kernel, rng_source
-from workbench.sampling.kernels import CompiledKernel, layouts, load_verified, sais_spec
+from workbench.sampling.emit import KernelSpec
+from workbench.sampling.kernels import (
+    CompiledKernel,
+    kernel_source,
+    layouts,
+    load_verified,
+    sais_spec,
+)
 from workbench.sampling.layout import Layout
 from workbench.sampling.problem import SamplingProblem
 
@@ -162,7 +168,7 @@ def diagnostics_library(sp: SamplingProblem) -> DiagnosticsLibrary | None:
     key = sp.fingerprint()
     if key not in _LIBS:
         specs = [sais_diag_spec(sp), gradient_spec(sp), gradient_spec(sp, "augmented")]
-        source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
+        source = kernel_source(specs)
         g = Layout("gradients carry", tuple((r, 1) for r in GRADIENT_RESULTS))
         res = Layout("gradients result", g.fields)
 

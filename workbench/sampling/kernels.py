@@ -24,6 +24,7 @@ from workbench.codegen import CompileError, build_library
 from workbench.sampling.emit import LANES, EmitError, KernelSpec, emit_kernel, rng_source
 from workbench.sampling.layout import Layout
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.vector_math import prelude
 from workbench.sampling.verify import KernelMismatch, verify_kernel
 from workbench.validation import fail
 
@@ -32,7 +33,12 @@ L = TypeVar("L")
 _OPTS = {"cse": True}
 # -fsched-pressure -fschedule-insns: register-pressure-aware scheduling of the long
 # straight-line step; measured 1.5x faster (fewer spills), results unchanged (no FP reordering).
-KERNEL_FLAGS = ("-fopenmp", "-march=native", "-fsched-pressure", "-fschedule-insns")
+# -fno-math-errno: libm calls do not set errno (results unchanged), so gcc may call the SIMD
+# variants of the trigonometric functions inside the lane loop (vector_math.py);
+# -fno-builtin-sin/cos: else gcc merges sin(a) and cos(a) into one sincos call, which it cannot
+# vectorise (every heading-driven model has both).
+KERNEL_FLAGS = ("-fopenmp", "-march=native", "-fsched-pressure", "-fschedule-insns",
+                "-fno-math-errno", "-fno-builtin-sin", "-fno-builtin-cos")
 _CONSTS = ("sigma", "lr", "u_min", "u_max", "crash", "p")
 
 
@@ -341,11 +347,34 @@ def _sampler_library(cdll: ctypes.CDLL, specs, lays) -> SamplerLibrary:
     return SamplerLibrary(*kernels, cdll=cdll)
 
 
-def library_sources(sp: SamplingProblem) -> tuple[str, list[KernelSpec], str]:
+def kernel_source(specs: list[KernelSpec], vector_math: bool | None = None) -> str:
+    """C source of a kernel library: the generator, the SIMD declarations of the trigonometric
+    functions the kernels use (:mod:`workbench.sampling.vector_math`; ``vector_math`` None
+    follows WORKBENCH_VECTOR_MATH), the kernels."""
+    fns = [f for s in specs for f in (s.step, s.final)]
+    return rng_source() + "\n" + prelude(fns, KERNEL_FLAGS, LANES, vector_math) + "\n".join(
+        emit_kernel(s) for s in specs)
+
+
+def library_sources(sp: SamplingProblem, vector_math: bool | None = None) \
+        -> tuple[str, list[KernelSpec], str]:
     """(cache stem, kernel specs, C source) of a sampling problem's library."""
     specs = [mppi_spec(sp), sais_spec(sp), candidate_spec(sp)]
-    source = rng_source() + "\n" + "\n".join(emit_kernel(s) for s in specs)
-    return f"sampler_{sp.model.name.replace('+', '_')}", specs, source
+    return (f"sampler_{sp.model.name.replace('+', '_')}", specs,
+            kernel_source(specs, vector_math))
+
+
+def load_sampler_library(sp: SamplingProblem, vector_math: bool | None = None) \
+        -> SamplerLibrary | None:
+    """Build (or load from the disk cache) and verify a problem's kernels, bypassing the
+    per-process table of :func:`sampler_library` (e.g. to compare scalar and vector libm)."""
+    stem, specs, source = library_sources(sp, vector_math)
+    lays = [layouts(sp, k) for k in ("mppi", "sais", "candidates")]
+    lib = load_verified(stem, source, lambda c: _sampler_library(c, specs, lays),
+                        lambda lib: (lib.mppi, lib.sais, lib.candidates))
+    if _THREADS and lib is not None:
+        lib.set_threads(_THREADS[0])
+    return lib
 
 
 def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
@@ -355,13 +384,7 @@ def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:
     key = sp.fingerprint()
     if key not in _LIBS:
         try:
-            stem, specs, source = library_sources(sp)
-            lays = [layouts(sp, k) for k in ("mppi", "sais", "candidates")]
-            _LIBS[key] = load_verified(
-                stem, source, lambda c: _sampler_library(c, specs, lays),
-                lambda lib: (lib.mppi, lib.sais, lib.candidates))
-            if _THREADS and _LIBS[key] is not None:
-                _LIBS[key].set_threads(_THREADS[0])
+            _LIBS[key] = load_sampler_library(sp)
         except (EmitError, CompileError) as exc:
             if isinstance(exc, CompileError) and "no linked library provides" not in str(exc):
                 raise
