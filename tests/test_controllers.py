@@ -96,6 +96,20 @@ def test_plain_mppi_runs_on_the_physical_model(nav):
     assert np.linalg.norm(ep.X[-1, :2] - nav.x0[:2]) > 0.05  # it moves towards the goal
 
 
+@pytest.mark.parametrize(("T", "window", "order"), [(100, 9, 2), (37, 5, 3), (11, 11, 0)])
+def test_savgol_matrix_equals_scipy_per_element(T, window, order):
+    """Both ends (scipy's "interp" polynomial fits) and the interior, per element, relative."""
+    from scipy.signal import savgol_filter
+
+    from workbench.sampling.controllers import savgol_matrix
+
+    U = np.random.default_rng(T).normal(0.0, 10.0, (T, 3)) ** 3
+    want = savgol_filter(U, window, order, axis=0)
+    got = savgol_matrix(T, window, order) @ U
+    assert np.all(np.abs(got - want) <= 1e-12 * np.maximum(np.abs(want), 1.0))
+    assert not np.allclose(got, U)  # the filter acts
+
+
 def test_savitzky_golay_smoothing_option(nav):
     from dataclasses import replace
 
