@@ -44,6 +44,9 @@ def test_environment_switch_is_validated(monkeypatch):
     monkeypatch.setenv(vm.ENV, "yes")
     with pytest.raises(ValueError, match=r"WORKBENCH_VECTOR_MATH.*yes.*must be 0"):
         vm.enabled()
+    x = ca.SX.sym("x")
+    with pytest.raises(ValueError, match="WORKBENCH_VECTOR_MATH"):  # also without trigonometry
+        vm.prelude([ca.Function("f", [x], [x * x])], KERNEL_FLAGS, LANES)
     monkeypatch.setenv(vm.ENV, "0")
     assert not vm.enabled()
     monkeypatch.delenv(vm.ENV)

@@ -164,8 +164,8 @@ def prelude(functions: Iterable[ca.Function], flags: tuple[str, ...], lanes: int
     """Declarations to put before kernels built from ``functions``: the SIMD variants of the
     trigonometric functions they use, when wanted (``vector_math``; None: :func:`enabled`) and
     the probe passes; else empty (scalar libm calls)."""
+    want = enabled() if vector_math is None else vector_math  # a bad value fails for every model
     names = used(functions)
-    want = enabled() if vector_math is None else vector_math
     if not names or not want or unavailable(tuple(flags), lanes) is not None:
         return ""
     return "/* libmvec SIMD variants (workbench/sampling/vector_math.py) */\n" + \
