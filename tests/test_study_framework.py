@@ -239,3 +239,10 @@ def test_rate_and_claims():
     claims = [Claim("shown", a.below(b), "2% vs 40%"), Claim("hidden", b.below(a))]
     assert supported(claims) == ["- shown"]
     assert md_table(["a", "b"], [[1, 2]]) == ["| a | b |", "|---|---|", "| 1 | 2 |"]
+
+
+def test_tasks_phrase_names_resumed_tasks_only_when_there_are_some():
+    from workbench.study import tasks_phrase
+
+    assert tasks_phrase(2801, 2801) == "2801 of 2801 tasks computed"
+    assert tasks_phrase(3, 10) == "3 of 10 tasks computed, 7 resumed from `tasks/`"

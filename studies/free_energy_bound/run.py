@@ -16,7 +16,7 @@ from studies.free_energy_bound.shared import Shared, load_or_compute
 from studies.free_energy_bound.summary import BoundSummary, summarise
 from studies.free_energy_bound.tasks import run_task, tasks
 from workbench.io import atomic_write_json
-from workbench.study import RunResult, RunStore, Study, run_study, to_jsonable
+from workbench.study import RunResult, RunStore, Study, run_study, tasks_phrase, to_jsonable
 
 
 @dataclass(frozen=True)
@@ -54,8 +54,8 @@ def run(config: StudyConfig, out: Path, *, workers: int = 2, scheduler: str | No
     summary = summarise(config, steps, episodes)
     wall = time.perf_counter() - t0
     where = f"scheduler {scheduler}" if scheduler else f"{workers} workers"
-    run_line = (f"Wall time {wall:.1f} s ({result.computed} of {result.n_tasks} tasks computed, "
-                f"the rest resumed from `tasks/`; {where}; shared set-up "
+    run_line = (f"Wall time {wall:.1f} s ("
+                f"{tasks_phrase(result.computed, result.n_tasks)}; {where}; shared set-up "
                 f"{sum(shared.setup_s.values()):.1f} s when first computed).")
     assumed = assumed_values(config, shared)
     nb = shared.no_barrier.L_q

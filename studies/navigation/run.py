@@ -17,7 +17,7 @@ from workbench.io import atomic_write_json
 from workbench.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
-from workbench.study import RunResult, RunStore, Study, run_study, to_jsonable
+from workbench.study import RunResult, RunStore, Study, run_study, tasks_phrase, to_jsonable
 
 
 @dataclass(frozen=True)
@@ -71,9 +71,9 @@ def run(config: StudyConfig, out: Path, *, workers: int = 2, scheduler: str | No
     atomic_write_json(out / "run.json", {
         "tasks": {"total": result.n_tasks, "computed": result.computed, "loaded": result.loaded},
         "wall_time_s": wall, "backend": where, "cpu_count": cpu, "load_average_1min": load})
-    run_line = (f"Wall time {wall:.0f} s ({result.computed} of {result.n_tasks} tasks computed, "
-                f"the rest resumed from `tasks/`; {where}; {cpu} cores, 1-min load average "
-                f"{load[0]:.1f} at the start and {load[1]:.1f} at the end: compute times per "
-                "step are wall-clock and grow with the load).")
+    run_line = (f"Wall time {wall:.0f} s ("
+                f"{tasks_phrase(result.computed, result.n_tasks)}; {where}; {cpu} cores, "
+                f"1-min load average {load[0]:.1f} at the start and {load[1]:.1f} at the end: "
+                "compute times per step are wall-clock and grow with the load).")
     report = write_report(summary, store, p, ids, config.scene, assumed, run_line)
     return Outcome(summary, result, report)

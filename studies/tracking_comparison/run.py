@@ -19,7 +19,7 @@ from studies.tracking_comparison.report import write_report
 from studies.tracking_comparison.summary import TrackingSummary, summarise
 from studies.tracking_comparison.tasks import plan, run_task
 from workbench.io import atomic_write_json
-from workbench.study import RunResult, RunStore, Study, run_study, to_jsonable
+from workbench.study import RunResult, RunStore, Study, run_study, tasks_phrase, to_jsonable
 
 
 @dataclass(frozen=True)
@@ -56,8 +56,8 @@ def run(config: StudyConfig, out: Path, *, workers: int = 2, scheduler: str | No
     main = table[table["task_id"].isin(main_ids)]
     wall = time.perf_counter() - t0
     where = f"scheduler {scheduler}" if scheduler else f"{workers} workers"
-    run_line = (f"Wall time {wall:.1f} s ({result.computed} of {result.n_tasks} tasks computed, "
-                f"the rest resumed from `tasks/`; {where}).")
+    run_line = (f"Wall time {wall:.1f} s ("
+                f"{tasks_phrase(result.computed, result.n_tasks)}; {where}).")
     assumed = assumed_values(config, setup)
     # summary.json depends only on the results (byte-identical across runs); run.json does not
     atomic_write_json(Path(out) / "summary.json",

@@ -39,3 +39,10 @@ class Claim:
 def supported(claims: Iterable[Claim], bullet: str = "- ") -> list[str]:
     """The sentences of the claims that hold; the others are not printed."""
     return [f"{bullet}{c.text}" for c in claims if c.holds]
+
+
+def tasks_phrase(computed: int, n_tasks: int) -> str:
+    """How many tasks a run computed, and how many it resumed from the store."""
+    rest = n_tasks - computed
+    return (f"{computed} of {n_tasks} tasks computed"
+            + (f", {rest} resumed from `tasks/`" if rest else ""))
