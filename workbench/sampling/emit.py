@@ -62,6 +62,9 @@ _BINARY = {
     ca.OP_COPYSIGN: "copysign({0},{1})", ca.OP_FMOD: "fmod({0},{1})",
     ca.OP_REMAINDER: "remainder({0},{1})",
 }
+# libm calls: emitted as early as their inputs allow, so that fewer values are live across them
+# (a SIMD libm call clobbers every vector register, forcing spills of whatever is live)
+_CALLS = {ca.OP_SIN, ca.OP_COS, ca.OP_TAN, ca.OP_ASIN, ca.OP_ACOS, ca.OP_ATAN, ca.OP_ATAN2}
 _OP_NAMES = {getattr(ca, n): n[3:].lower() for n in dir(ca) if n.startswith("OP_")}
 _STRUCTURAL = (ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST)
 
@@ -108,6 +111,9 @@ def straight_line(f: ca.Function, load, store, prefix: str) -> list[str]:
                         f"supported: {', '.join(supported_operations())}")
     work: dict[int, str] = {}
     body, stores = [], []
+    # statement order: (k, 0, k) for instruction k; a libm call moves up to just after its
+    # last input: (that input's first key entry, 1, k)
+    key: dict[str, tuple[int, int, int]] = {}
     for k in range(f.n_instructions()):
         op = f.instruction_id(k)
         ins, outs = f.instruction_input(k), f.instruction_output(k)
@@ -127,9 +133,13 @@ def straight_line(f: ca.Function, load, store, prefix: str) -> list[str]:
             expr = _BINARY[op].format(a, b)
         else:  # unreachable: unsupported_operations checked every instruction
             raise EmitError(f"{f.name()}: CasADi operation {op_name(op)} is not supported")
-        body.append(f"const double {name} = {expr};")
+        deps = [work[i] for i in ins[: (2 if op in _BINARY else 1)]] \
+            if op not in (ca.OP_INPUT, ca.OP_CONST) else []
+        key[name] = ((max((key[d] for d in deps), default=(-1, 0, 0))[0], 1, k)
+                     if op in _CALLS else (k, 0, k))
+        body.append((key[name], f"const double {name} = {expr};"))
         work[outs[0]] = name
-    return body + stores
+    return [stmt for _, stmt in sorted(body)] + stores
 
 
 @dataclass(frozen=True, eq=False)
