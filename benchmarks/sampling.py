@@ -69,15 +69,24 @@ def _mppi_vectorised(nav, x0, U, N, c, seed):
     return weighted_controls(r["v"], importance_weights(r["S"], c.lam).w)
 
 
-def _interleaved(fast, slow, n_fast: int, n_slow: int) -> tuple[float, float]:
-    """Medians of the two, timed in alternation so load changes hit both."""
+def _interleaved(fast, slow, n_fast: int, n_slow: int, block: int = 1) \
+        -> tuple[float, float]:
+    """Medians of the two, timed in alternation so load changes hit both: ``block`` fast calls,
+    then one slow call. Against a NumPy baseline use block > 1: the first kernel call after
+    30 ms of busy NumPy pays the OpenMP workers' wake-up (up to 4x on 2 threads, NOTES.md), which
+    a controller calling the kernel every step does not; the median of a block is the loop."""
     tf, ts = [], []
-    for i in range(max(n_fast, n_slow)):
-        for fn, out, n in ((fast, tf, n_fast), (slow, ts, n_slow)):
-            if i < n:
-                t0 = time.perf_counter()
-                fn(i)
-                out.append(time.perf_counter() - t0)
+    i = 0
+    while len(tf) < n_fast or len(ts) < n_slow:
+        for _ in range(block if len(tf) < n_fast else 0):
+            t0 = time.perf_counter()
+            fast(i)
+            tf.append(time.perf_counter() - t0)
+        if len(ts) < n_slow:
+            t0 = time.perf_counter()
+            slow(i)
+            ts.append(time.perf_counter() - t0)
+        i += 1
     return statistics.median(tf), statistics.median(ts)
 
 
@@ -105,7 +114,7 @@ def sais_batch_records(repeats: int) -> list[dict]:
         t_fast, t_slow = _interleaved(
             lambda i, N=N: _sais_compiled(sampler, x0, U, K, N, c, i),
             lambda i, N=N: _sais_vectorised(vec, x0, U, K, N, c, i),
-            max(repeats, 5) * 4, max(3, repeats // 2))
+            max(repeats, 5) * 4, max(3, repeats // 2), block=5)
         used = sampler.lib.cdll.wb_get_threads()
         if threads is not None:
             sampler.lib.set_threads(default_threads)
@@ -144,7 +153,7 @@ def mppi_batch_records(repeats: int) -> list[dict]:
                                           s, x, U, N, cc, i),
                                       lambda i, v=vec, x=x0, cc=c: _mppi_vectorised(
                                           v, x, U, N, cc, i),
-                                      max(repeats, 5) * 4, max(3, repeats // 2))
+                                      max(repeats, 5) * 4, max(3, repeats // 2), block=5)
         out.append(_record(
             f"{label}_batch_N{N}_T100", 1e3 * t_fast, "ms", "vectorised_numpy_mppi_ms",
             1e3 * t_slow, {"N": N, "T": T, "nx": sp.nx,
