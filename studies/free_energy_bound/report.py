@@ -3,7 +3,6 @@ the summary, sentences that interpret them from ``findings``)."""
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import matplotlib
@@ -17,20 +16,12 @@ from studies.free_energy_bound.findings import all_claims
 from studies.free_energy_bound.paper import LEMMA, READING
 from studies.free_energy_bound.summary import STRATA, BoundSummary
 from workbench.io import atomic_write_bytes, atomic_write_text
-from workbench.study import md_table, supported
+from workbench.study import md_table, png_bytes, supported
 
 TITLES = {"holds": "Where each test holds", "safe_steps": "T1 where all real samples stayed safe",
           "looseness": "How tight: magnitudes of the local and global constants",
           "transitions": "The T3 family: what the failures share",
           "strata": "Strata, variance and the secant check"}
-
-
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    return buf.getvalue()
 
 
 def slack_figure(df: pd.DataFrame, tests=("T2", "T3", "T3b")) -> bytes:
@@ -50,7 +41,7 @@ def slack_figure(df: pd.DataFrame, tests=("T2", "T3", "T3b")) -> bytes:
             ax.set_title(f"{t} slack (RHS − LHS), variance {v:g}", fontsize=9)
     axes[-1][0].set_xlabel("step")
     axes[0][0].legend(fontsize=6)
-    return _png(fig)
+    return png_bytes(fig)
 
 
 def rhs_figure(df: pd.DataFrame, test: str = "T2") -> bytes:
@@ -64,7 +55,7 @@ def rhs_figure(df: pd.DataFrame, test: str = "T2") -> bytes:
     ax.set_xlabel(f"{test} right-hand side, local constants")
     ax.set_ylabel(f"{test} right-hand side, global constants")
     ax.legend(fontsize=7)
-    return _png(fig)
+    return png_bytes(fig)
 
 
 def radius_figure(df: pd.DataFrame) -> bytes:
@@ -80,7 +71,7 @@ def radius_figure(df: pd.DataFrame) -> bytes:
         f"{(df.loc[df['variance'] == v, 'R'] > 0).sum()} of {(df['variance'] == v).sum()}"
         for v in vs), fontsize=8)
     ax.legend(fontsize=7)
-    return _png(fig)
+    return png_bytes(fig)
 
 
 def _pct(r) -> str:

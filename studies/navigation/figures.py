@@ -4,8 +4,6 @@ summary; no number is computed here that the report states."""
 
 from __future__ import annotations
 
-import io
-
 import matplotlib
 
 matplotlib.use("Agg")
@@ -15,17 +13,10 @@ import pandas as pd
 
 from studies.navigation.findings import NAMES
 from studies.navigation.summary import NavigationSummary
+from workbench.study import png_bytes
 
 COLORS = {"bas_mppi": "tab:blue", "sa_rmppi": "tab:red", "rmppi": "tab:orange",
           "mppi_crash": "tab:gray"}
-
-
-def png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    return buf.getvalue()
 
 
 def draw_map(ax, circles: np.ndarray, start, goal) -> None:
@@ -54,7 +45,7 @@ def paths_figure(panels: list[tuple[str, float, list[np.ndarray], list[bool]]],
             if bad:
                 ax.plot(P[-1, 0], P[-1, 1], "x", color="k", ms=5, mew=1.5, zorder=6)
         ax.set_title(f"{NAMES[c]}, var {v:g}: {sum(crashed)}/{len(paths)} crashed", fontsize=8)
-    return png(fig)
+    return png_bytes(fig)
 
 
 def velocity_figure(vel: pd.DataFrame, variances: list[float]) -> bytes:
@@ -77,7 +68,7 @@ def velocity_figure(vel: pd.DataFrame, variances: list[float]) -> bytes:
             ax.set_xlabel("time [s]")
             ax.set_ylabel(f"{comp} [m/s]")
     axes[0][0].legend(fontsize=8)
-    return png(fig)
+    return png_bytes(fig)
 
 
 def samples_figure(a: dict[str, np.ndarray], meta: dict, circles: np.ndarray, start,
@@ -102,7 +93,7 @@ def samples_figure(a: dict[str, np.ndarray], meta: dict, circles: np.ndarray, st
     axes[0].set_title(f"SAIS batch at step {meta['step']} (limits ±{meta['u_limit']:g}, "
                       f"velocity variance {meta['variance']:g})", fontsize=9)
     axes[1].set_title("zoom at the states: blue nominal, red feedback samples", fontsize=9)
-    return png(fig)
+    return png_bytes(fig)
 
 
 def _errorbar(ax, x, cells, **kw) -> None:
@@ -132,7 +123,7 @@ def safety_figure(s: NavigationSummary, table_i: dict) -> bytes:
     ax.set_ylabel("safety [%] (95% Wilson)")
     ax.set_ylim(-3, 103)
     ax.legend(fontsize=7, loc="lower left")
-    return png(fig)
+    return png_bytes(fig)
 
 
 def alpha_figure(s: NavigationSummary) -> bytes:
@@ -157,4 +148,4 @@ def alpha_figure(s: NavigationSummary) -> bytes:
         ax.set_ylim(-3, 103)
         ax.set_title(f"alpha trade-off at variance {v:g}", fontsize=9)
         ax.legend(fontsize=7, loc="lower right")
-    return png(fig)
+    return png_bytes(fig)

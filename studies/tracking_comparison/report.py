@@ -3,7 +3,6 @@ numbers come from the summary, sentences that interpret them from ``findings``).
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import matplotlib
@@ -24,21 +23,13 @@ from studies.tracking_comparison.paper import PAPER_BY_METHOD
 from studies.tracking_comparison.summary import Outcome, TrackingSummary
 from workbench.io import atomic_write_bytes, atomic_write_text
 from workbench.scenes import TrackingScene
-from workbench.study import RunStore, fmt_rate, md_table, supported
+from workbench.study import RunStore, fmt_rate, md_table, png_bytes, supported
 
 COLORS = {"ecbf": "tab:blue", "al": "tab:red", "bas": "tab:green"}
 
 
 def _fmt(v) -> str:
     return v if isinstance(v, str) else f"{v:g}"
-
-
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    return buf.getvalue()
 
 
 def _scene(ax, scene: TrackingScene) -> None:
@@ -70,7 +61,7 @@ def trajectory_figure(scene: TrackingScene, nominal: np.ndarray, mc: np.ndarray,
     axes[1].plot(nominal[:, 0], nominal[:, 1], "k", lw=1)
     axes[1].set_title(f"{len(mc)} Monte Carlo rollouts (seed 0), unsafe in red: "
                       f"{int((h < 0).sum())}")
-    return _png(fig)
+    return png_bytes(fig, dpi=110)
 
 
 def histogram_figure(rows: pd.DataFrame, column: str, xlabel: str, line: float) -> bytes:
@@ -83,7 +74,7 @@ def histogram_figure(rows: pd.DataFrame, column: str, xlabel: str, line: float) 
         ax.set_title(NAMES[m])
         ax.set_xlabel(xlabel)
     axes[0][0].set_ylabel("rollouts")
-    return _png(fig)
+    return png_bytes(fig, dpi=110)
 
 
 def _errorbar(ax, x, rates, **kw) -> None:
@@ -116,7 +107,7 @@ def sweep_figure(s: TrackingSummary) -> bytes:
             ax.set_ylabel(f"{metric} rate [%]")
             ax.set_ylim(-3, 103)
     axes[0][0].legend(fontsize=8)
-    return _png(fig)
+    return png_bytes(fig, dpi=110)
 
 
 def radius_figure(s: TrackingSummary) -> bytes:
@@ -154,7 +145,7 @@ def radius_figure(s: TrackingSummary) -> bytes:
         ax.set_ylabel("rate [%]")
         ax.set_ylim(-3, 103)
         ax.legend(fontsize=7)
-    return _png(fig)
+    return png_bytes(fig, dpi=110)
 
 
 def _paper_cell(m: str, metric: str) -> str:

@@ -8,7 +8,6 @@ each solution against IPOPT on the same embedded problem, and writes ``summary.j
 from __future__ import annotations
 
 import argparse
-import io
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from workbench.io import atomic_write_bytes, atomic_write_json, atomic_write_tex
 from workbench.ipopt_oracle import solve_ipopt
 from workbench.models import double_integrator
 from workbench.scenes import TrackingScene
+from workbench.study import png_bytes
 from workbench.tracking import TrackingWeights, bas_ilqg, tracking_params
 from workbench.validation import one_of, writable_dir
 
@@ -91,11 +91,7 @@ def _figure(scene, ref, trajs) -> bytes:
     ax.set_xlabel("p_x [m]")
     ax.set_ylabel("p_y [m]")
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=120)
-    plt.close(fig)
-    return buf.getvalue()
+    return png_bytes(fig, dpi=120)
 
 
 def _report(rows: list[Row], assumed: dict) -> str:

@@ -133,10 +133,11 @@ def straight_line(f: ca.Function, load, store, prefix: str) -> list[str]:
             expr = _BINARY[op].format(a, b)
         else:  # unreachable: unsupported_operations checked every instruction
             raise EmitError(f"{f.name()}: CasADi operation {op_name(op)} is not supported")
-        deps = [work[i] for i in ins[: (2 if op in _BINARY else 1)]] \
-            if op not in (ca.OP_INPUT, ca.OP_CONST) else []
-        key[name] = ((max((key[d] for d in deps), default=(-1, 0, 0))[0], 1, k)
-                     if op in _CALLS else (k, 0, k))
+        if op in _CALLS:
+            last = max(key[work[i]] for i in ins[: 2 if op in _BINARY else 1])
+            key[name] = (last[0], 1, k)
+        else:
+            key[name] = (k, 0, k)
         body.append((key[name], f"const double {name} = {expr};"))
         work[outs[0]] = name
     return [stmt for _, stmt in sorted(body)] + stores

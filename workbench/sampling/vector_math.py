@@ -64,6 +64,13 @@ def used(functions: Iterable[ca.Function]) -> tuple[str, ...]:
     return tuple(sorted(VECTOR_FUNCTIONS[op][0] for op in ops & set(VECTOR_FUNCTIONS)))
 
 
+def simd_variants(binary: bytes) -> set[str]:
+    """Names of the functions whose SIMD variants (``_ZGV<isa>N<lanes>v…_<name>``) a compiled
+    library calls."""
+    names = [n for n, _ in VECTOR_FUNCTIONS.values()]
+    return {n for n in names if re.search(rb"_ZGV[a-z]N\d+v+_" + n.encode() + rb"\x00", binary)}
+
+
 def ulp_distance(a, b) -> np.ndarray:
     """Distance in units in the last place between float64 arrays (0 where both are the same
     NaN class or equal; inf where only one is NaN or the signs differ away from zero)."""
@@ -142,9 +149,7 @@ def unavailable(flags: tuple[str, ...], lanes: int) -> str | None:
         return f"the probe does not build: {str(exc).splitlines()[0]}"
     if lib is None:
         return "no C compiler"
-    binary = lib.path.read_bytes()
-    scalar = [n for n in names
-              if not re.search(rb"_ZGV[a-z]N\d+v+_" + n.encode() + rb"\x00", binary)]
+    scalar = sorted(set(names) - simd_variants(lib.path.read_bytes()))
     if scalar:
         return f"the compiler kept scalar calls for {', '.join(scalar)}"
     inp = probe_inputs()

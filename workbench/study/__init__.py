@@ -5,11 +5,11 @@ per-task files, tidy Parquet/CSV tables) -> summary (Rate, Spread) -> report (ta
 """
 
 from workbench.study.execute import RunResult, StudyInterrupted, limit_threads, run_study
-from workbench.study.report import Claim, fmt_rate, md_table, supported, tasks_phrase
+from workbench.study.report import Claim, fmt_rate, md_table, png_bytes, supported, tasks_phrase
 from workbench.study.store import RunStore, TaskError
 from workbench.study.summary import Rate, Spread, to_jsonable
 from workbench.study.tasks import Study, TaskContext, TaskOutput, seed_sequence
 
 __all__ = ["Claim", "Rate", "RunResult", "RunStore", "Spread", "Study", "StudyInterrupted",
            "TaskContext", "TaskError", "TaskOutput", "fmt_rate", "limit_threads", "md_table",
-           "run_study", "seed_sequence", "supported", "tasks_phrase", "to_jsonable"]
+           "png_bytes", "run_study", "seed_sequence", "supported", "tasks_phrase", "to_jsonable"]

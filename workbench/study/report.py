@@ -1,8 +1,9 @@
-"""Report formatting: markdown tables, rates with intervals, and claims that are printed only
-when the numbers support them."""
+"""Report formatting: markdown tables, rates with intervals, claims that are printed only
+when the numbers support them, figures as PNG bytes."""
 
 from __future__ import annotations
 
+import io
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -46,3 +47,14 @@ def tasks_phrase(computed: int, n_tasks: int) -> str:
     rest = n_tasks - computed
     return (f"{computed} of {n_tasks} tasks computed"
             + (f", {rest} resumed from `tasks/`" if rest else ""))
+
+
+def png_bytes(fig, dpi: int = 100) -> bytes:
+    """A matplotlib figure as PNG bytes (tight layout); the figure is closed."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.tight_layout()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return buf.getvalue()
