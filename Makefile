@@ -60,8 +60,9 @@ study-alpha-rules: $(STAMP)
 reports: $(STAMP)
 	$(WB) report
 
+# benchmarks live outside the library: python -m benchmarks [--out FILE] [--repeats N]
 bench: $(STAMP)
-	$(WB) bench
+	$(PY) -m benchmarks
 
 clean-cache:
 	rm -rf .cache/codegen

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.barrier import BarrierOptions
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
-from workbench.io import atomic_write_json, manifest
-from workbench.models import double_integrator
-from workbench.scenes import TrackingScene
-from workbench.tracking import TrackingWeights, tracking_params, tracking_problem
+from workbench.ilqg.bas import TrackingWeights, tracking_params, tracking_problem
+from workbench.problem.barrier import BarrierOptions
+from workbench.problem.models import double_integrator
+from workbench.scenarios.scenes import TrackingScene
+from workbench.study.io import atomic_write_json, manifest
 
 
 def _median_time(fn, repeats: int) -> tuple[float, object]:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workbench.sampling.constants import SamplerConstants
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.numpy_model import numpy_navigation_twin
 from workbench.sampling.problem import SamplingProblem
 

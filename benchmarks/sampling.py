@@ -10,10 +10,10 @@ import time
 import numpy as np
 
 from benchmarks.numpy_sampling import VectorisedNavigation, mppi_numpy, sais_numpy
-from workbench.navigation import navigation_setup
-from workbench.sampling.constants import SamplerConstants
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.sampler import Sampler
 from workbench.sampling.weights import importance_weights, weighted_controls
+from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
 RTOL = 1e-10  # as tests/test_sampler_kernels.py: |a - b| <= RTOL * max(|a|, |b|, 1)

@@ -16,9 +16,9 @@ import numpy as np
 
 from benchmarks.numpy_sampling import VectorisedNavigation
 from benchmarks.sampling import _mppi_compiled, _record
-from workbench.navigation import navigation_setup
-from workbench.sampling.constants import SamplerConstants
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.sampler import Sampler
+from workbench.scenarios.navigation import navigation_setup
 
 NAME = "mppi_plain_vs_pytorch_mppi_N1024_T100"
 

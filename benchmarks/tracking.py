@@ -14,14 +14,14 @@ import numpy as np
 import qpsolvers
 import scipy.sparse as sp
 
-from workbench.al_ilqg import al_ilqg, al_problem
-from workbench.barrier import BarrierOptions
-from workbench.ecbf import ECBFFilter
+from workbench.filters.ecbf import ECBFFilter
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
-from workbench.ipopt_oracle import MultipleShootingNLP
-from workbench.models import double_integrator
-from workbench.scenes import TrackingScene
-from workbench.tracking import TrackingWeights, tracking_params, tracking_problem
+from workbench.ilqg.al import al_ilqg, al_problem
+from workbench.ilqg.bas import TrackingWeights, tracking_params, tracking_problem
+from workbench.ilqg.oracle import MultipleShootingNLP
+from workbench.problem.barrier import BarrierOptions
+from workbench.problem.models import double_integrator
+from workbench.scenarios.scenes import TrackingScene
 
 
 def _record(name, value, unit, baseline, baseline_value, params) -> dict:

@@ -13,13 +13,13 @@ import casadi as ca
 import numpy as np
 
 from benchmarks.sampling import _interleaved, _record, _rel_err
-from workbench.barrier import BarrierOptions, embed_barrier
-from workbench.models import Model, double_integrator
-from workbench.obstacles import circle_margins
+from workbench.problem.barrier import BarrierOptions, embed_barrier
+from workbench.problem.models import Model, double_integrator
+from workbench.problem.obstacles import circle_margins
 from workbench.sampling import SamplingProblem
-from workbench.sampling.kernels import KERNEL_FLAGS, SamplerLibrary, load_sampler_library
-from workbench.sampling.vector_math import MAX_ULP, unavailable
-from workbench.scenes import NavigationScene
+from workbench.sampling.kernels.build import KERNEL_FLAGS, SamplerLibrary, load_sampler_library
+from workbench.sampling.kernels.vector_math import MAX_ULP, unavailable
+from workbench.scenarios.scenes import NavigationScene
 
 N, T, DT = 1024, 100, 0.02
 GOAL_SLOWDOWN = 1.3  # issue 13: the unicycle within 1.3x of the double integrator

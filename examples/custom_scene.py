@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from workbench.navigation import TUNED_LAMBDA, TUNED_SIGMA, navigation_setup
 from workbench.sampling import set_threads
 from workbench.sampling.controllers import MPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule
-from workbench.scenes import CircleScene
+from workbench.scenarios.navigation import TUNED_LAMBDA, TUNED_SIGMA, navigation_setup
+from workbench.scenarios.scenes import CircleScene
 from workbench.sim import Disturbance, closed_loop
 
 SCENE = CircleScene.from_circles(

@@ -14,13 +14,13 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from workbench.barrier import BarrierOptions, embed_barrier
-from workbench.models import Model
-from workbench.obstacles import Circle, circle_margins
+from workbench.ilqg.bas import TrackingWeights, bas_ilqg
+from workbench.problem.barrier import BarrierOptions, embed_barrier
+from workbench.problem.models import Model
+from workbench.problem.obstacles import Circle, circle_margins
 from workbench.sampling import SamplingProblem, set_threads
 from workbench.sampling.controllers import MPPI, MPPIConfig
 from workbench.sim import closed_loop
-from workbench.tracking import TrackingWeights, bas_ilqg
 
 DT = 0.05
 OBSTACLES = (Circle((2.0, 0.05), 0.6), Circle((3.2, 1.2), 0.4))

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workbench.barrier import BarrierOptions, embed_barrier
-from workbench.costs import quadratic_tracking
-from workbench.models import double_integrator
-from workbench.problem import Problem
-from workbench.scenes import TrackingScene
+from workbench.problem.barrier import BarrierOptions, embed_barrier
+from workbench.problem.costs import quadratic_tracking
+from workbench.problem.models import double_integrator
+from workbench.problem.problem import Problem
+from workbench.scenarios.scenes import TrackingScene
 
 TRACK_Q, TRACK_R, TRACK_S = [10, 10, 1, 1], [1e-3, 1e-3], [1000, 1000, 100, 100]
 

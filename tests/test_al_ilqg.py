@@ -6,11 +6,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from workbench.al_ilqg import ALOptions, al_ilqg, al_problem
-from workbench.ipopt_oracle import solve_ipopt
-from workbench.models import double_integrator
-from workbench.obstacles import Circle
-from workbench.tracking import TrackingWeights, tracking_params, tracking_problem
+from workbench.ilqg.al import ALOptions, al_ilqg, al_problem
+from workbench.ilqg.bas import TrackingWeights, tracking_params, tracking_problem
+from workbench.ilqg.oracle import solve_ipopt
+from workbench.problem.models import double_integrator
+from workbench.problem.obstacles import Circle
 
 
 @pytest.fixture(scope="module")

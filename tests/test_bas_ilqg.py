@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workbench.barrier import BarrierOptions
 from workbench.ilqg import ILQGOptions
-from workbench.ipopt_oracle import solve_ipopt
-from workbench.models import double_integrator
-from workbench.tracking import TrackingWeights, bas_ilqg, tracking_params
+from workbench.ilqg.bas import TrackingWeights, bas_ilqg, tracking_params
+from workbench.ilqg.oracle import solve_ipopt
+from workbench.problem.barrier import BarrierOptions
+from workbench.problem.models import double_integrator
 
 
 @pytest.mark.parametrize("q_beta", [1e-2, 1.0])

@@ -20,9 +20,9 @@ from test_sampler_kernels import (
 )
 
 from benchmarks.numpy_sampling import VectorisedNavigation, mppi_numpy, sais_numpy
-from workbench.barrier import embed_barrier
-from workbench.models import double_integrator
-from workbench.sampling.constants import SamplerConstants
+from workbench.problem.barrier import embed_barrier
+from workbench.problem.models import double_integrator
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.sampler import Sampler
 
@@ -71,7 +71,7 @@ def test_multiple_shooting_nlps_reach_the_ddp_optimum(scene):
     from conftest import bas_tracking_problem
 
     from workbench.ilqg import ILQGOptions, ilqg
-    from workbench.ipopt_oracle import MultipleShootingNLP
+    from workbench.ilqg.oracle import MultipleShootingNLP
 
     problem, P = bas_tracking_problem(scene)
     U0 = np.zeros((scene.horizon, 2))
@@ -89,8 +89,8 @@ def test_multiple_shooting_nlps_reach_the_ddp_optimum(scene):
 
 
 def test_multiple_shooting_hard_constraints_match_single_shooting(scene):
-    from workbench.ipopt_oracle import MultipleShootingNLP, solve_ipopt
-    from workbench.tracking import TrackingWeights, tracking_params, tracking_problem
+    from workbench.ilqg.bas import TrackingWeights, tracking_params, tracking_problem
+    from workbench.ilqg.oracle import MultipleShootingNLP, solve_ipopt
 
     model = double_integrator(obstacles=(scene.obstacle,), u_limit=scene.u_limit)
     plain = tracking_problem(model, TrackingWeights())

@@ -8,7 +8,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from workbench.barrier import embed_barrier
 from workbench.bound import (
     BoundConfig,
     BoundEstimator,
@@ -33,14 +32,15 @@ from workbench.bound.free_energy import FreeEnergy
 from workbench.bound.lipschitz import Lipschitz
 from workbench.bound.step import check_batch
 from workbench.bound.tube import Tube
-from workbench.models import double_integrator
-from workbench.navigation import navigation_setup
-from workbench.obstacles import Circle
-from workbench.sampling.constants import SamplerConstants
+from workbench.problem.barrier import embed_barrier
+from workbench.problem.models import double_integrator
+from workbench.problem.obstacles import Circle
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.reference import sais_reference
 from workbench.sampling.sampler import SAISDiagBatch, Sampler
+from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
 # ----------------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import pytest
 from studies.free_energy_bound.__main__ import main
 from studies.free_energy_bound.config import TESTS, StudyConfig
 from studies.free_energy_bound.run import run
-from workbench.stats import wilson_interval
+from workbench.study.stats import wilson_interval
 
 # kappa = 0: alpha is the undisturbed free energy itself, so the nominal state differs on some
 # of the few steps and R > 0 (with the default 0.1 the tiny episodes never leave the real state)

@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from studies.tracking_comparison.config import StudyConfig
-from workbench import config_io
 from workbench.cli import dry_manifest, main, resolve_config
+from workbench.study import config_io
 from workbench.study.entry import StudyEntry, discover
 from workbench.study.store import study_manifest
 
@@ -48,10 +48,9 @@ def test_the_existing_studies_are_registered():
 def test_help_is_complete():
     top = cli("--help")
     assert top.returncode == 0
-    for cmd in ("list", "run", "show-config", "report", "bench"):
+    for cmd in ("list", "run", "show-config", "report"):
         assert cmd in top.stdout
-    helps = {cmd: cli(cmd, "--help") for cmd in ("list", "run", "show-config", "report",
-                                                   "bench")}
+    helps = {cmd: cli(cmd, "--help") for cmd in ("list", "run", "show-config", "report")}
     assert all(h.returncode == 0 for h in helps.values())
     for opt in ("--profile", "--config", "--set", "--workers", "--scheduler", "--out",
                 "--dry-run", "KEY=VALUE"):
@@ -59,7 +58,6 @@ def test_help_is_complete():
     for opt in ("--profile", "--config", "--set"):
         assert opt in helps["show-config"].stdout
     assert "--root" in helps["report"].stdout and "STUDY" in helps["report"].stdout.upper()
-    assert "--out" in helps["bench"].stdout
 
 
 def test_bad_value_fails_within_seconds_naming_the_key(tmp_path):

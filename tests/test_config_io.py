@@ -1,4 +1,4 @@
-"""workbench.config_io: TOML configs into frozen dataclasses, generic over field types."""
+"""workbench.study.config_io: TOML configs into frozen dataclasses, generic over field types."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Literal
 import pytest
 
 from studies.tracking_comparison.config import StudyConfig
-from workbench.config_io import ConfigError, dump, keys, load, merge, parse_sets, to_dict
+from workbench.study.config_io import ConfigError, dump, keys, load, merge, parse_sets, to_dict
 
 
 @dataclass(frozen=True)

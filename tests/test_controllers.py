@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workbench.navigation import navigation_setup
 from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
+from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
 

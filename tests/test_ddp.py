@@ -8,8 +8,8 @@ import pytest
 from conftest import bas_tracking_problem, central_jacobian
 
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
+from workbench.ilqg.oracle import solve_ipopt
 from workbench.ilqg.reference import NumpyPasses
-from workbench.ipopt_oracle import solve_ipopt
 
 
 def _safe_points(problem, rng, n):
@@ -70,9 +70,9 @@ def test_second_order_passes_equal_numpy_twin(bas_tracking, scene, rng, reg, box
 
 def test_second_order_on_linear_dynamics_equals_gauss_newton():
     """The double integrator without barrier is linear: the Hessian terms vanish exactly."""
-    from workbench.costs import quadratic_tracking
-    from workbench.models import double_integrator
-    from workbench.problem import Problem
+    from workbench.problem.costs import quadratic_tracking
+    from workbench.problem.models import double_integrator
+    from workbench.problem.problem import Problem
 
     model = double_integrator(u_limit=5.0)
     problem = Problem.build(model, quadratic_tracking(model, Q=[1, 1, 0.1, 0.1], R=[0.1, 0.1],

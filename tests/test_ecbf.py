@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import qpsolvers
 
-from workbench.ecbf import ECBFFilter, ECBFOptions, control_affine, ecbf_rows
-from workbench.models import Model, double_integrator, single_integrator
-from workbench.obstacles import Circle, circle_margins
+from workbench.filters.ecbf import ECBFFilter, ECBFOptions, control_affine, ecbf_rows
+from workbench.problem.models import Model, double_integrator, single_integrator
+from workbench.problem.obstacles import Circle, circle_margins
 
 OBSTACLES = (Circle((0.0, 0.1), 1.5), Circle((2.5, -1.0), 0.7))
 
@@ -257,7 +257,7 @@ def test_zoh_double_integrator_is_relative_degree_two_closed_form(rng):
 
 @pytest.mark.parametrize("dt", [0.01, 0.05, 0.2])
 def test_relative_degree_is_detected_from_the_discrete_model(dt):
-    from workbench.ecbf import relative_degrees
+    from workbench.filters.ecbf import relative_degrees
 
     c = Circle((1.0, 0.5), 0.6)
     assert relative_degrees(double_integrator(obstacles=(c,), dt=dt)) == (2,)

@@ -52,9 +52,9 @@ def test_set_threads_reaches_every_library_loaded_before_and_after():
     import pytest
 
     from workbench import sampling
-    from workbench.navigation import navigation_setup
-    from workbench.sampling.kernels import sampler_library
-    from workbench.scenes import CircleScene
+    from workbench.sampling.kernels.build import sampler_library
+    from workbench.scenarios.navigation import navigation_setup
+    from workbench.scenarios.scenes import CircleScene
 
     first = sampler_library(navigation_setup().problem)
     if first is None:
@@ -73,8 +73,8 @@ def test_set_threads_reaches_every_library_loaded_before_and_after():
 def test_circle_scene_checks_its_input():
     import pytest
 
-    from workbench.obstacles import Circle
-    from workbench.scenes import CircleScene
+    from workbench.problem.obstacles import Circle
+    from workbench.scenarios.scenes import CircleScene
 
     s = CircleScene.from_circles([(1, 2, 0.5), Circle((3, 3), 1.0)], start=(0, 0), goal=(5, 5))
     assert s.obstacles() == (Circle((1, 2), 0.5), Circle((3, 3), 1.0))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from workbench.fastcall import FastFunction
+from workbench.codegen.fastcall import FastFunction
 
 
 def test_fast_function_equals_casadi_call(rng):

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import qpsolvers
 
-from workbench.costs import quadratic_tracking
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.ilqg.compiled import box_qp_compiled, problem_library
 from workbench.ilqg.reference import NumpyPasses, box_qp
-from workbench.models import double_integrator
-from workbench.problem import Problem
+from workbench.problem.costs import quadratic_tracking
+from workbench.problem.models import double_integrator
+from workbench.problem.problem import Problem
 
 
 def _lq_problem(u_limit=np.inf):

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from conftest import central_jacobian
 
-from workbench.barrier import BarrierOptions, embed_barrier
-from workbench.costs import quadratic_tracking
-from workbench.models import Model, double_integrator, single_integrator
-from workbench.obstacles import Circle, circles_from_arrays
-from workbench.problem import Problem
+from workbench.problem.barrier import BarrierOptions, embed_barrier
+from workbench.problem.costs import quadratic_tracking
+from workbench.problem.models import Model, double_integrator, single_integrator
+from workbench.problem.obstacles import Circle, circles_from_arrays
+from workbench.problem.problem import Problem
 
 OBST = circles_from_arrays([[0.0, 0.1], [2.0, -1.0], [-1.5, 1.5]], [1.0, 0.5, 0.7])
 

@@ -11,9 +11,9 @@ import time
 import numpy as np
 import pytest
 
-from workbench.ecbf import ECBFFilter, ECBFOptions
-from workbench.models import double_integrator
-from workbench.obstacles import Circle
+from workbench.filters.ecbf import ECBFFilter, ECBFOptions
+from workbench.problem.models import double_integrator
+from workbench.problem.obstacles import Circle
 
 ECBF_OBSTACLES = (Circle((0.0, 0.1), 1.5), Circle((0.5, 2.0), 0.7))
 X_ACTIVE = np.array([-1.7, 0.1, 3.0, 0.0])  # near the first obstacle, moving towards it
@@ -255,7 +255,7 @@ def _tiny_spec(expr_of):
     """A one-state kernel whose step applies ``expr_of(x)`` (SX) to the carry."""
     import casadi as ca
 
-    from workbench.sampling.emit import KernelSpec
+    from workbench.sampling.kernels.emit import KernelSpec
 
     c, z, w, s = (ca.SX.sym(n, 1) for n in ("carry", "z", "w", "s"))
     step = ca.Function("wbrel_k_step", [c, z, w, s],
@@ -279,8 +279,8 @@ _LIBM_OPS = {
 @pytest.mark.parametrize("op", sorted(_LIBM_OPS))
 def test_class4_emitter_writes_libm_operations_equal_to_casadi(op, tmp_path):
     from workbench.codegen import build_library
-    from workbench.sampling.emit import emit_kernel, rng_source
-    from workbench.sampling.kernels import CompiledKernel
+    from workbench.sampling.kernels.build import CompiledKernel
+    from workbench.sampling.kernels.emit import emit_kernel, rng_source
 
     spec = _tiny_spec(_LIBM_OPS[op])
     lib = build_library("wbrel_ops", [], rng_source() + emit_kernel(spec), root=tmp_path,
@@ -303,7 +303,7 @@ def test_class4_emitter_writes_libm_operations_equal_to_casadi(op, tmp_path):
 def test_class4_unsupported_operation_is_named_with_the_supported_list():
     import casadi as ca
 
-    from workbench.sampling.emit import EmitError, emit_kernel
+    from workbench.sampling.kernels.emit import EmitError, emit_kernel
 
     with pytest.raises(EmitError, match=r"operation erfinv, which .* supported: acos, acosh"):
         emit_kernel(_tiny_spec(lambda v: ca.erfinv(0.5 * ca.tanh(v))))
@@ -312,7 +312,7 @@ def test_class4_unsupported_operation_is_named_with_the_supported_list():
 def _erfinv_sampling_problem():
     import casadi as ca
 
-    from workbench.models import Model
+    from workbench.problem.models import Model
     from workbench.sampling.problem import SamplingProblem
 
     x, u, g = ca.SX.sym("x", 2), ca.SX.sym("u", 2), ca.SX.sym("g", 2)
@@ -326,8 +326,8 @@ def _erfinv_sampling_problem():
 def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
     import warnings
 
-    from workbench.sampling import kernels
-    from workbench.sampling.constants import SamplerConstants
+    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels.constants import SamplerConstants
     from workbench.sampling.reference import mppi_reference
     from workbench.sampling.sampler import Sampler
 
@@ -354,8 +354,8 @@ def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
 
 
 def _small_navigation(center):
-    from workbench.barrier import embed_barrier
-    from workbench.obstacles import Circle
+    from workbench.problem.barrier import embed_barrier
+    from workbench.problem.obstacles import Circle
     from workbench.sampling.problem import navigation_costs
 
     return navigation_costs(embed_barrier(double_integrator(
@@ -383,8 +383,8 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
     import shutil
 
     from workbench.codegen import build_library
-    from workbench.sampling import kernels
-    from workbench.sampling.constants import SamplerConstants
+    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels.constants import SamplerConstants
     from workbench.sampling.reference import mppi_reference
 
     sp_a, sp_b = _small_navigation((2.0, 2.0)), _small_navigation((1.0, 3.0))
@@ -417,8 +417,8 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
 
 
 def test_class5_kernel_check_rejects_another_problems_kernel():
-    from workbench.sampling import kernels
-    from workbench.sampling.verify import KernelMismatch, verify_kernel
+    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels.verify import KernelMismatch, verify_kernel
 
     lib_b = kernels.sampler_library(_small_navigation((1.0, 3.0)))
     spec_a = kernels.mppi_spec(_small_navigation((2.0, 2.0)))
@@ -499,7 +499,7 @@ DEFAULT_MAP = (
 
 
 def test_class7_default_map_is_unchanged():
-    from workbench.scenes import NavigationScene
+    from workbench.scenarios.scenes import NavigationScene
 
     got = tuple((o.center[0], o.center[1], o.radius) for o in NavigationScene().obstacles())
     assert got == DEFAULT_MAP  # exact, bit for bit
@@ -508,7 +508,7 @@ def test_class7_default_map_is_unchanged():
 @pytest.mark.parametrize("seed", [0, 3, 9])
 def test_class7_map_generator_succeeds_where_rejection_sampling_jammed(seed):
     """These seeds raised 'NavigationScene.seed = ... could not place 30 obstacles' before."""
-    from workbench.scenes import NavigationScene
+    from workbench.scenarios.scenes import NavigationScene
 
     sc = NavigationScene(seed=seed)
     obs = sc.obstacles()
@@ -525,7 +525,7 @@ def test_class7_map_generator_succeeds_where_rejection_sampling_jammed(seed):
 
 
 def test_class7_infeasible_map_explains_density_not_seed():
-    from workbench.scenes import NavigationScene
+    from workbench.scenarios.scenes import NavigationScene
 
     with pytest.raises(ValueError, match=r"too dense.*n_obstacles.*radius range.*gaps") as info:
         NavigationScene(n_obstacles=80, radius_range=(0.6, 0.9)).obstacles()
@@ -542,7 +542,7 @@ def test_class7_infeasible_map_explains_density_not_seed():
     ({"edge_gap": -0.1}, "NavigationScene.edge_gap"),
 ])
 def test_class7_bad_navigation_scene_names_the_field(kwargs, field):
-    from workbench.scenes import NavigationScene
+    from workbench.scenarios.scenes import NavigationScene
 
     with pytest.raises(ValueError, match=rf"^{field} = "):
         NavigationScene(**kwargs)
@@ -554,7 +554,7 @@ def test_class7_bad_navigation_scene_names_the_field(kwargs, field):
     ({"horizon": 0}, "TrackingScene.horizon"),
 ])
 def test_class7_bad_tracking_scene_names_the_field(kwargs, field):
-    from workbench.scenes import TrackingScene
+    from workbench.scenarios.scenes import TrackingScene
 
     with pytest.raises(ValueError, match=rf"^{field} = "):
         TrackingScene(**kwargs)
@@ -592,14 +592,14 @@ def test_class7_cache_directory_that_is_a_file_names_the_variable(tmp_path, monk
 
 @pytest.mark.parametrize("n", [0, 1, -3, 2.5, True])
 def test_class3_n_obstacles_below_two_or_not_an_integer_is_rejected(n):
-    from workbench.scenes import NavigationScene
+    from workbench.scenarios.scenes import NavigationScene
 
     with pytest.raises(ValueError, match=r"^NavigationScene.n_obstacles = .*two gate circles"):
         NavigationScene(n_obstacles=n)
 
 
 def test_class3_two_obstacles_gives_exactly_the_gates():
-    from workbench.scenes import NavigationScene
+    from workbench.scenarios.scenes import NavigationScene
 
     obs = NavigationScene(n_obstacles=2).obstacles()
     assert len(obs) == 2 and {o.radius for o in obs} == {1.0}
@@ -607,16 +607,16 @@ def test_class3_two_obstacles_gives_exactly_the_gates():
 
 @pytest.mark.parametrize(("field", "point"), [("start", (3.6, 5.0)), ("goal", (6.9, 5.2))])
 def test_class3_start_or_goal_inside_an_obstacle_is_rejected(field, point):
-    from workbench.scenes import NavigationScene
+    from workbench.scenarios.scenes import NavigationScene
 
     with pytest.raises(ValueError, match=rf"^NavigationScene.{field} = .*inside obstacle"):
         NavigationScene(**{field: point})
 
 
 def test_class3_navigation_setup_rejects_a_start_inside_a_custom_map_obstacle():
-    from workbench.navigation import navigation_setup
-    from workbench.obstacles import Circle
-    from workbench.scenes import NavigationScene
+    from workbench.problem.obstacles import Circle
+    from workbench.scenarios.navigation import navigation_setup
+    from workbench.scenarios.scenes import NavigationScene
 
     class OneCircle(NavigationScene):
         def obstacles(self):
@@ -642,7 +642,7 @@ class _Hold:
 
 
 def test_class8_single_integrator_closed_loop_disturbs_the_positions():
-    from workbench.models import single_integrator
+    from workbench.problem.models import single_integrator
     from workbench.sim import Disturbance, closed_loop
 
     plant = single_integrator(dt=0.02, u_limit=5.0)
@@ -656,7 +656,7 @@ def test_class8_single_integrator_closed_loop_disturbs_the_positions():
 def test_class8_one_state_plant_runs():
     import casadi as ca
 
-    from workbench.models import Model
+    from workbench.problem.models import Model
     from workbench.sim import Disturbance, closed_loop
 
     x, u = ca.SX.sym("x", 1), ca.SX.sym("u", 1)
@@ -676,7 +676,7 @@ def test_class8_bad_disturbance_indices_are_rejected(index):
 
 
 def test_class8_disturbance_index_out_of_range_for_the_plant_is_named():
-    from workbench.models import single_integrator
+    from workbench.problem.models import single_integrator
     from workbench.sim import Disturbance, closed_loop
 
     with pytest.raises(ValueError, match=r"^Disturbance.velocity_index = .*out of range.*2 states"):

@@ -9,8 +9,6 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from workbench.navigation import navigation_setup
-from workbench.sampling.constants import SamplerConstants
 from workbench.sampling.controllers import (
     MPPI,
     RMPPIConfig,
@@ -20,6 +18,7 @@ from workbench.sampling.controllers import (
     strides,
 )
 from workbench.sampling.feedback import FeedbackWeights, Gains, ILQGFeedback, shifted
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.sampler import Sampler
 from workbench.sampling.threshold import (
     AlphaRule,
@@ -28,6 +27,7 @@ from workbench.sampling.threshold import (
     make_threshold,
     progress_curve,
 )
+from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
 

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from workbench.barrier import embed_barrier
-from workbench.models import double_integrator
-from workbench.obstacles import Circle
-from workbench.sampling.constants import SamplerConstants
+from workbench.problem.barrier import embed_barrier
+from workbench.problem.models import double_integrator
+from workbench.problem.obstacles import Circle
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.reference import _model, _NumpyModel, mppi_reference, sais_reference
 from workbench.sampling.sampler import Sampler

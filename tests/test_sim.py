@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workbench.models import double_integrator
-from workbench.obstacles import Circle
+from workbench.problem.models import double_integrator
+from workbench.problem.obstacles import Circle
 from workbench.sim import Disturbance, closed_loop
 
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from workbench.stats import mcnemar_exact, paired_difference_interval, wilson_interval
+from workbench.study.stats import mcnemar_exact, paired_difference_interval, wilson_interval
 
 
 def test_mcnemar_exact_matches_the_binomial_sum():

@@ -23,12 +23,12 @@ from studies.tracking_comparison.rollouts import (
 )
 from studies.tracking_comparison.run import run
 from studies.tracking_comparison.tasks import plan
-from workbench.barrier import BarrierOptions, embed_barrier
-from workbench.ecbf import ECBFFilter
-from workbench.problem import Problem
-from workbench.stats import wilson_interval
+from workbench.filters.ecbf import ECBFFilter
+from workbench.ilqg.bas import tracking_problem
+from workbench.problem.barrier import BarrierOptions, embed_barrier
+from workbench.problem.problem import Problem
 from workbench.study import Rate, RunStore, fmt_rate
-from workbench.tracking import tracking_problem
+from workbench.study.stats import wilson_interval
 
 TINY = dict(n_rollouts=6, n_seeds=2, sweep_rollouts=4, sweep_seeds=1, sweep_q_beta=(1e-2, 1.0),
             sweep_pole=(5.0,), sweep_q_scale=(1.0,), sweep_ecbf_noise=("before", "after"),

@@ -1,4 +1,4 @@
-"""Vector trigonometry in the generated kernels (workbench/sampling/vector_math.py, issue 13).
+"""Vector trigonometry in the generated kernels (workbench/sampling/kernels/vector_math.py).
 
 The oracle is CasADi's own evaluation of the same Function (scalar glibc libm): the libmvec
 kernels must be within MAX_ULP ulp of it for every function over wide argument ranges, must really
@@ -14,10 +14,15 @@ import numpy as np
 import pytest
 
 from workbench.codegen import build_library
-from workbench.sampling import vector_math as vm
-from workbench.sampling.emit import emit_kernel, rng_source
-from workbench.sampling.kernels import KERNEL_FLAGS, LANES, CompiledKernel, load_sampler_library
-from workbench.sampling.verify import reference_rollout
+from workbench.sampling.kernels import vector_math as vm
+from workbench.sampling.kernels.build import (
+    KERNEL_FLAGS,
+    LANES,
+    CompiledKernel,
+    load_sampler_library,
+)
+from workbench.sampling.kernels.emit import emit_kernel, rng_source
+from workbench.sampling.kernels.verify import reference_rollout
 
 NAMES = [n for n, _ in vm.VECTOR_FUNCTIONS.values()]
 AVAILABLE = vm.unavailable(KERNEL_FLAGS, LANES)
@@ -97,7 +102,7 @@ def test_scalar_calls_are_bitwise_casadi_and_not_simd(tmp_path):
 
 def _unicycle_problem():
     from benchmarks.trig import problem, unicycle
-    from workbench.scenes import NavigationScene
+    from workbench.scenarios.scenes import NavigationScene
 
     return problem(unicycle(NavigationScene().obstacles()))
 
@@ -136,7 +141,7 @@ def test_unicycle_kernels_use_simd_and_equal_casadi(kernel):
 def test_libm_calls_are_emitted_right_after_their_inputs():
     """Fewer values live across a SIMD call (it clobbers every vector register); the order of
     everything else is kept, and the result is unchanged (the kernel tests above)."""
-    from workbench.sampling.emit import straight_line
+    from workbench.sampling.kernels.emit import straight_line
 
     a, b = ca.SX.sym("a"), ca.SX.sym("b")
     late = ((a * b + b) * (a - b) + 3.0 * a) * ca.cos(ca.sin(b) + a)

@@ -1,0 +1,82 @@
+"""SAIS Workbench: safety in sampling-based model predictive control, on CasADi.
+
+Everything a user needs is importable from here (``import workbench as wb``)::
+
+    model = wb.double_integrator(obstacles=(wb.Circle((2.0, 0.0), 0.5),))
+    result, problem = wb.bas_ilqg(model, x0, x_ref, target)
+
+Names load on first use, so ``import workbench`` stays fast. The layers, lowest first:
+:mod:`workbench.problem` (models, obstacles, costs, barrier states, ``Problem``),
+:mod:`workbench.ilqg` (iLQG, BaS-iLQG, AL-iLQG, the IPOPT oracle), :mod:`workbench.filters`
+(the ECBF-QP), :mod:`workbench.sampling` (MPPI, RMPPI, SA-RMPPI on generated C),
+:mod:`workbench.sim` (closed loop, disturbances), :mod:`workbench.scenarios` (scenes and their
+set-ups), :mod:`workbench.bound` (Lemma-1 checks) and :mod:`workbench.study` (the study runner).
+"""
+
+from __future__ import annotations
+
+import importlib
+from importlib import metadata
+from typing import TYPE_CHECKING
+
+try:
+    __version__ = metadata.version("sais-workbench")
+except metadata.PackageNotFoundError:  # run from a source tree that was never installed
+    __version__ = "0+unknown"
+
+_EXPORTS = {
+    "workbench.problem.models": ("Model", "double_integrator", "single_integrator"),
+    "workbench.problem.obstacles": ("Circle", "circle_margins", "circles_from_arrays"),
+    "workbench.problem.costs": ("Cost", "quadratic_tracking"),
+    "workbench.problem.problem": ("Problem",),
+    "workbench.problem.barrier": ("BarrierOptions", "embed_barrier"),
+    "workbench.ilqg.solver": ("ILQGOptions", "ILQGResult", "ilqg"),
+    "workbench.ilqg.bas": ("TrackingWeights", "bas_ilqg", "tracking_params", "tracking_problem"),
+    "workbench.ilqg.al": ("ALOptions", "ALResult", "al_ilqg", "al_problem"),
+    "workbench.ilqg.oracle": ("solve_ipopt",),
+    "workbench.filters.ecbf": ("ECBFFilter", "ECBFOptions"),
+    "workbench.sampling.problem": ("SamplingProblem", "navigation_costs"),
+    "workbench.sampling.controllers": ("MPPI", "MPPIConfig", "RMPPIConfig", "RobustMPPI"),
+    "workbench.sampling.feedback": ("FeedbackWeights", "ILQGFeedback"),
+    "workbench.sampling.threshold": ("AlphaRule", "make_threshold"),
+    "workbench.sampling.kernels.build": ("get_threads", "set_threads"),
+    "workbench.sim": ("Disturbance", "Episode", "closed_loop"),
+    "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "TrackingScene"),
+    "workbench.scenarios.navigation": ("NavigationSetup", "navigation_setup"),
+}
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
+__all__ = [*sorted(_WHERE), "__version__"]
+
+
+def __getattr__(name: str):
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module 'workbench' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerly
+    from workbench.filters.ecbf import ECBFFilter, ECBFOptions
+    from workbench.ilqg.al import ALOptions, ALResult, al_ilqg, al_problem
+    from workbench.ilqg.bas import TrackingWeights, bas_ilqg, tracking_params, tracking_problem
+    from workbench.ilqg.oracle import solve_ipopt
+    from workbench.ilqg.solver import ILQGOptions, ILQGResult, ilqg
+    from workbench.problem.barrier import BarrierOptions, embed_barrier
+    from workbench.problem.costs import Cost, quadratic_tracking
+    from workbench.problem.models import Model, double_integrator, single_integrator
+    from workbench.problem.obstacles import Circle, circle_margins, circles_from_arrays
+    from workbench.problem.problem import Problem
+    from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
+    from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
+    from workbench.sampling.kernels.build import get_threads, set_threads
+    from workbench.sampling.problem import SamplingProblem, navigation_costs
+    from workbench.sampling.threshold import AlphaRule, make_threshold
+    from workbench.scenarios.navigation import NavigationSetup, navigation_setup
+    from workbench.scenarios.scenes import CircleScene, NavigationScene, TrackingScene
+    from workbench.sim import Disturbance, Episode, closed_loop

@@ -1,4 +1,4 @@
-"""The ``workbench`` command: list, run, show-config, report, bench.
+"""The ``workbench`` command: list, run, show-config, report.
 
 Studies come from the registry (:func:`workbench.study.entry.discover`: every
 ``studies/<pkg>/cli.py`` defining ``ENTRY``). A run's config is resolved in layers, then checked
@@ -16,8 +16,8 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
-from workbench import config_io
-from workbench.config_io import ConfigError
+from workbench.study import config_io
+from workbench.study.config_io import ConfigError
 
 DESCRIPTION = """\
 SAIS Workbench: run the studies, show their configs, build the report site.
@@ -44,10 +44,10 @@ examples:
 
 MODELS = {
     "double_integrator": "planar double integrator, state (px, py, vx, vy), control (ax, ay); "
-                         "workbench.models.double_integrator(obstacles=..., u_limit=..., dt=...)",
+                         "workbench.double_integrator(obstacles=..., u_limit=..., dt=...)",
     "single_integrator": "planar single integrator, state (px, py), control (vx, vy); "
-                         "workbench.models.single_integrator(...)",
-    "your own": "any discrete-time CasADi SX model: workbench.models.Model.from_expressions("
+                         "workbench.single_integrator(...)",
+    "your own": "any discrete-time CasADi SX model: workbench.Model.from_expressions("
                 "name, x, u, x_next, dt=..., h=...) (README: Bring your own model)",
 }
 
@@ -99,14 +99,14 @@ def dry_manifest(entry, cfg) -> dict:
 
 # ----------------------------------------------------------------------------- subcommands
 def cmd_list(args) -> int:
-    from workbench.navigation import CONTROLLERS
+    from workbench.scenarios.navigation import CONTROLLERS
 
     reg = registry()
     print("studies (workbench run NAME [--profile P]):")
     for e in reg.values():
         print(f"  {e.name:15s} profiles: {', '.join(e.profiles):18s} -> {e.default_out}")
         print(textwrap.indent(textwrap.fill(e.description, 80), " " * 18))
-    print("\ncontrollers (workbench.navigation.navigation_setup().controller(NAME)):")
+    print("\ncontrollers (workbench.scenarios.navigation.navigation_setup().controller(NAME)):")
     print("  " + ", ".join(CONTROLLERS))
     print("\nmodels:")
     for name, text in MODELS.items():
@@ -143,8 +143,8 @@ def cmd_run(args) -> int:
         writable_dir("--out", out)
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
-    from workbench.io import atomic_write_text
     from workbench.study import StudyInterrupted
+    from workbench.study.io import atomic_write_text
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.toml", config_io.dump(
@@ -160,7 +160,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from workbench.report_site import build_site
+    from workbench.study.report_site import build_site
 
     reg = registry()
     root = Path(args.root)
@@ -174,13 +174,6 @@ def cmd_report(args) -> int:
             raise ConfigError(f"{out}: no results; run `workbench run {entry.name}` first")
         print(f"wrote {entry.report(out)}")
     print(f"wrote {build_site(root, reg)}")
-    return 0
-
-
-def cmd_bench(args) -> int:
-    from benchmarks.__main__ import main as bench_main
-
-    bench_main(["--out", str(args.out), "--repeats", str(args.repeats)])
     return 0
 
 
@@ -253,12 +246,6 @@ def parser() -> argparse.ArgumentParser:
                    help="reports directory (default: reports)")
     p.set_defaults(fn=cmd_report)
 
-    p = sub.add_parser("bench", help="benchmarks -> reports/bench/bench.json",
-                       description="Time iLQG, BaS-iLQG vs IPOPT and the sampler kernels "
-                                   "against their baselines; write the records as JSON.")
-    p.add_argument("--out", type=Path, default=Path("reports/bench/bench.json"))
-    p.add_argument("--repeats", type=int, default=7)
-    p.set_defaults(fn=cmd_bench)
     return ap
 
 

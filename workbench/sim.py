@@ -9,8 +9,8 @@ from typing import Literal, Protocol
 import casadi as ca
 import numpy as np
 
-from workbench.fastcall import FastFunction
-from workbench.models import Model
+from workbench.codegen.fastcall import FastFunction
+from workbench.problem.models import Model
 from workbench.validation import fail, one_of, positive
 
 DisturbanceModel = Literal["velocity_variance", "velocity_std", "white_noise", "kick"]

@@ -32,8 +32,8 @@ def _report_from(out: Path) -> Path:
 
 
 def _run(config: AlphaRulesConfig, out: Path, workers: int, scheduler: str | None) -> Path:
-    from workbench.io import atomic_write_json
     from workbench.study import run_study
+    from workbench.study.io import atomic_write_json
 
     t0 = time.time()
     run_study(_declare(config), out, workers=workers, scheduler=scheduler).raise_for_errors()

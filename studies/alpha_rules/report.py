@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 
 from studies.alpha_rules.run import DEFAULT_RULE, RULES
-from workbench.io import atomic_write_json, atomic_write_text
-from workbench.stats import mcnemar_exact, paired_difference_interval, wilson_interval
+from workbench.study.io import atomic_write_json, atomic_write_text
+from workbench.study.stats import mcnemar_exact, paired_difference_interval, wilson_interval
 
 
 def summarise(df: pd.DataFrame) -> pd.DataFrame:

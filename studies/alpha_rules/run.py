@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workbench.navigation import navigation_setup
 from workbench.sampling.threshold import AlphaRule
+from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import Study, TaskContext, TaskOutput
 

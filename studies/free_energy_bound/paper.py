@@ -65,7 +65,7 @@ def assumed_values(config: StudyConfig, shared: Shared) -> list[dict[str, str]]:
          "calibration steps)", "source": "[A] NOTES 'SA-RMPPI that acts' (kappa = 0.1); "
          f"note: AlphaRule() in the code defaults to kappa = {AlphaRule().kappa:g}"},
         {"name": "SAIS batch", "value": f"N = {c.n_samples}, T = {c.horizon}, sigma = (5, 5), "
-         "lambda = 10, q_beta = 0.01", "source": "[A] workbench.navigation"},
+         "lambda = 10, q_beta = 0.01", "source": "[A] workbench.scenarios.navigation"},
         {"name": "episodes", "value": f"{c.episodes} per variance, up to {c.steps} steps "
          "(stop at a crash)", "source": "[A]"},
         {"name": "E_M^V", "value": f"delta method, z = {c.z:g}", "source": "[A] SPEC 11.2"},

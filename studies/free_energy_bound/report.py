@@ -15,8 +15,8 @@ import pandas as pd
 from studies.free_energy_bound.findings import all_claims
 from studies.free_energy_bound.paper import LEMMA, READING
 from studies.free_energy_bound.summary import STRATA, BoundSummary
-from workbench.io import atomic_write_bytes, atomic_write_text
 from workbench.study import md_table, png_bytes, supported
+from workbench.study.io import atomic_write_bytes, atomic_write_text
 
 TITLES = {"holds": "Where each test holds", "safe_steps": "T1 where all real samples stayed safe",
           "looseness": "How tight: magnitudes of the local and global constants",

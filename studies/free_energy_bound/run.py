@@ -15,8 +15,8 @@ from studies.free_energy_bound.report import write_report
 from studies.free_energy_bound.shared import Shared, load_or_compute
 from studies.free_energy_bound.summary import BoundSummary, summarise
 from studies.free_energy_bound.tasks import run_task, tasks
-from workbench.io import atomic_write_json
 from workbench.study import RunResult, RunStore, Study, run_study, tasks_phrase, to_jsonable
+from workbench.study.io import atomic_write_json
 
 
 @dataclass(frozen=True)

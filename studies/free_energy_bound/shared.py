@@ -16,10 +16,15 @@ import numpy as np
 
 from studies.free_energy_bound.config import StudyConfig
 from workbench.bound import BoundConfig, CostGradients, Lipschitz, LipschitzGrid
-from workbench.io import atomic_write_json
-from workbench.navigation import TUNED_LAMBDA, TUNED_SIGMA, NavigationSetup, navigation_setup
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI
 from workbench.sampling.threshold import AlphaRule, ProgressThreshold
+from workbench.scenarios.navigation import (
+    TUNED_LAMBDA,
+    TUNED_SIGMA,
+    NavigationSetup,
+    navigation_setup,
+)
+from workbench.study.io import atomic_write_json
 
 
 @dataclass(frozen=True)

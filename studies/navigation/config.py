@@ -8,8 +8,8 @@ from numbers import Integral, Real
 import numpy as np
 
 from studies.navigation.scene import MapSpec
-from workbench.navigation import CONTROLLERS
 from workbench.sampling.threshold import AlphaRule
+from workbench.scenarios.navigation import CONTROLLERS
 from workbench.validation import fail, one_of
 
 PROFILES: tuple[str, ...] = ("tiny", "quick", "paper")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from workbench.navigation import NavigationSetup
+from workbench.scenarios.navigation import NavigationSetup
 from workbench.sim import Disturbance
 from workbench.study import TaskContext, TaskOutput
 

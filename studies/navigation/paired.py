@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from workbench.stats import mcnemar_exact, paired_difference_interval
+from workbench.study.stats import mcnemar_exact, paired_difference_interval
 
 
 @dataclass(frozen=True)

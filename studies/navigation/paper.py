@@ -6,9 +6,9 @@ from __future__ import annotations
 from dataclasses import asdict
 
 from studies.navigation.config import StudyConfig
-from workbench.navigation import NavigationSetup
 from workbench.sampling.controllers import RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.scenarios.navigation import NavigationSetup
 
 # Table I [P]: safety % and RMSE [m] over 100 realisations per variance
 TABLE_I = {

@@ -11,8 +11,8 @@ from studies.navigation import figures, paper
 from studies.navigation.evidence import all_evidence
 from studies.navigation.findings import NAMES, all_claims
 from studies.navigation.summary import NavigationSummary
-from workbench.io import atomic_write_bytes, atomic_write_text
 from workbench.study import RunStore, fmt_rate, md_table, supported
+from workbench.study.io import atomic_write_bytes, atomic_write_text
 
 HEADINGS = {"safer": "SA-RMPPI safer than BaS-MPPI (paired)", "rmse": "BaS-MPPI lower RMSE",
             "monotone": "Safety decreases with the variance",

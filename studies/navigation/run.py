@@ -13,11 +13,11 @@ from studies.navigation.paper import assumed_values
 from studies.navigation.report import write_report
 from studies.navigation.summary import NavigationSummary, summarise
 from studies.navigation.tasks import Plan, plan, run_task, setup
-from workbench.io import atomic_write_json
-from workbench.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.scenarios.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
 from workbench.study import RunResult, RunStore, Study, run_study, tasks_phrase, to_jsonable
+from workbench.study.io import atomic_write_json
 
 
 @dataclass(frozen=True)

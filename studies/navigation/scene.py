@@ -7,8 +7,8 @@ from functools import cache
 
 import numpy as np
 
-from workbench.obstacles import Circle
-from workbench.scenes import NavigationScene
+from workbench.problem.obstacles import Circle
+from workbench.scenarios.scenes import NavigationScene
 from workbench.validation import fail
 
 

@@ -16,8 +16,8 @@ from studies.navigation.config import ROBUST, StudyConfig, variance_key
 from studies.navigation.illustration import illustrate
 from studies.navigation.metrics import episode_row, timing_row, velocity_rows
 from studies.navigation.scene import MapSpec
-from workbench.navigation import NavigationSetup, navigation_setup
 from workbench.sampling.threshold import AlphaRule
+from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
 

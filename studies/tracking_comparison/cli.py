@@ -30,8 +30,8 @@ def _declare(config: StudyConfig):
 def _report(out: Path) -> Path:
     """Rebuild report.md from a finished run (every task loaded, nothing computed)."""
     from studies.tracking_comparison.run import run
-    from workbench.config_io import load
     from workbench.study import RunStore
+    from workbench.study.config_io import load
 
     store = RunStore(out)
     config = load(StudyConfig, store.manifest()["config"])

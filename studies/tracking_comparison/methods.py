@@ -7,13 +7,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from studies.tracking_comparison.config import METHODS, Variant
-from workbench.al_ilqg import ALOptions, al_ilqg, al_problem
-from workbench.barrier import BarrierOptions
-from workbench.ecbf import ECBFOptions, ecbf_rows
+from workbench.filters.ecbf import ECBFOptions, ecbf_rows
 from workbench.ilqg import ILQGOptions, ilqg
-from workbench.models import Model, double_integrator
-from workbench.scenes import TrackingScene
-from workbench.tracking import TrackingWeights, bas_ilqg, tracking_params, tracking_problem
+from workbench.ilqg.al import ALOptions, al_ilqg, al_problem
+from workbench.ilqg.bas import TrackingWeights, bas_ilqg, tracking_params, tracking_problem
+from workbench.problem.barrier import BarrierOptions
+from workbench.problem.models import Model, double_integrator
+from workbench.scenarios.scenes import TrackingScene
 from workbench.validation import one_of
 
 

@@ -70,7 +70,7 @@ def assumed_values(config: StudyConfig, setup: Setup) -> list[dict[str, str]]:
         ("ECBF QP", f"{e.mode} rows normalised to ‖a_i‖ = 1, slack cost {e.slack_linear:g} "
          f"delta + {e.slack_quadratic:g} delta^2 (SPEC: 1e6 delta^2), infeasible if delta > "
          f"{e.slack_tol:g}; OSQP eps {e.eps_abs:g}, polish {e.polish}, warm start",
-         "A (deviation, see workbench/ecbf.py) / SPEC 7.2"),
+         "A (deviation, see workbench/filters/ecbf.py) / SPEC 7.2"),
         ("ECBF nominal", "plain iLQG on the tracking problem without the obstacle",
          "P / SPEC 6.3"),
         ("unsafe", "min over k = 0..N and obstacles of h(x_k) < 0", "SPEC 6.4"),

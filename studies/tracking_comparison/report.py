@@ -21,9 +21,9 @@ from studies.tracking_comparison.findings import (
 )
 from studies.tracking_comparison.paper import PAPER_BY_METHOD
 from studies.tracking_comparison.summary import Outcome, TrackingSummary
-from workbench.io import atomic_write_bytes, atomic_write_text
-from workbench.scenes import TrackingScene
+from workbench.scenarios.scenes import TrackingScene
 from workbench.study import RunStore, fmt_rate, md_table, png_bytes, supported
+from workbench.study.io import atomic_write_bytes, atomic_write_text
 
 COLORS = {"ecbf": "tab:blue", "al": "tab:red", "bas": "tab:green"}
 

@@ -15,8 +15,8 @@ import casadi as ca
 import numpy as np
 
 from studies.tracking_comparison.config import METHODS
-from workbench.ecbf import ECBFFilter
-from workbench.models import Model
+from workbench.filters.ecbf import ECBFFilter
+from workbench.problem.models import Model
 from workbench.study import seed_sequence
 from workbench.validation import fail
 

@@ -18,8 +18,8 @@ from studies.tracking_comparison.paper import assumed_values
 from studies.tracking_comparison.report import write_report
 from studies.tracking_comparison.summary import TrackingSummary, summarise
 from studies.tracking_comparison.tasks import plan, run_task
-from workbench.io import atomic_write_json
 from workbench.study import RunResult, RunStore, Study, run_study, tasks_phrase, to_jsonable
+from workbench.study.io import atomic_write_json
 
 
 @dataclass(frozen=True)

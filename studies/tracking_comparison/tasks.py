@@ -21,8 +21,8 @@ from studies.tracking_comparison.rollouts import (
     rollout_metrics,
     stream_key,
 )
-from workbench.barrier import embed_barrier
-from workbench.ecbf import ECBFFilter
+from workbench.filters.ecbf import ECBFFilter
+from workbench.problem.barrier import embed_barrier
 from workbench.study import TaskContext, TaskOutput
 
 

@@ -18,12 +18,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from studies.tracking_demo.config import DemoConfig
-from workbench.io import atomic_write_bytes, atomic_write_json, atomic_write_text, manifest
-from workbench.ipopt_oracle import solve_ipopt
-from workbench.models import double_integrator
-from workbench.scenes import TrackingScene
+from workbench.ilqg.bas import TrackingWeights, bas_ilqg, tracking_params
+from workbench.ilqg.oracle import solve_ipopt
+from workbench.problem.models import double_integrator
+from workbench.scenarios.scenes import TrackingScene
 from workbench.study import png_bytes
-from workbench.tracking import TrackingWeights, bas_ilqg, tracking_params
+from workbench.study.io import atomic_write_bytes, atomic_write_json, atomic_write_text, manifest
 from workbench.validation import one_of, writable_dir
 
 PROFILES = {"quick": (1e-2,), "full": (1e-3, 1e-2, 1e-1, 1.0)}

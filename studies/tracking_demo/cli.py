@@ -21,7 +21,7 @@ def _run(config: DemoConfig, out: Path, workers: int, scheduler: str | None) -> 
 
 def _report(out: Path) -> Path:
     from studies.tracking_demo.__main__ import Row, _report
-    from workbench.io import atomic_write_text
+    from workbench.study.io import atomic_write_text
 
     data = json.loads((Path(out) / "summary.json").read_text())
     path = Path(out) / "report.md"

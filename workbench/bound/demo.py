@@ -25,8 +25,8 @@ from workbench.bound.checks import episode_checks
 from workbench.bound.episode import BoundRecorder
 from workbench.bound.step import BoundConfig, BoundEstimator
 from workbench.bound.summary import summarize
-from workbench.navigation import navigation_setup
 from workbench.sampling.threshold import AlphaRule
+from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
 

@@ -21,7 +21,8 @@ term, but R then carries the β differences, which are large near obstacles.
 
 Gradients are CasADi's exact derivatives of the sampling problem's q and φ composed with the
 model's lift, evaluated by the generated kernel ``wb_cost_gradients``
-(:mod:`workbench.sampling.diagnostics`), or by the CasADi virtual machine without a compiler.
+(:mod:`workbench.sampling.kernels.diagnostics`), or by the CasADi virtual machine without a
+compiler.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.bound.tube import check_trajectories
-from workbench.sampling.diagnostics import (
+from workbench.sampling.kernels.diagnostics import (
     GRADIENT_RESULTS,
     SEGMENT_POINTS,
     SPACES,

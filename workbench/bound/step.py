@@ -31,7 +31,7 @@ from workbench.bound.free_energy import (
 )
 from workbench.bound.lipschitz import CostGradients, Lipschitz, LipschitzGrid
 from workbench.bound.tube import Tube, check_trajectories, tube_radius
-from workbench.fastcall import FastFunction
+from workbench.codegen.fastcall import FastFunction
 from workbench.sampling.controllers import RMPPIInfo, RobustMPPI, physical_model
 from workbench.sampling.sampler import SAISDiagBatch
 from workbench.sim import Disturbance

@@ -16,7 +16,7 @@ import numpy as np
 
 from workbench.bound.checks import Check, episode_checks
 from workbench.bound.step import BoundStep
-from workbench.stats import wilson_interval
+from workbench.study.stats import wilson_interval
 from workbench.validation import fail
 
 STRATA: dict[str, Callable[[BoundStep], bool]] = {

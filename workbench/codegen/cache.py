@@ -8,7 +8,8 @@ and compares every exported Function with its symbolic twin at seeded points; a 
 the library and loads the rebuilt file (through a private copy when this process already has the
 old one open at that path). Libraries are linked with every symbol resolved
 (``-Wl,--no-undefined``) and loaded with RTLD_NOW. Generated code without Functions (the sampler
-kernels) is checked by its caller (:mod:`workbench.sampling.verify`), which asks for a rebuild.
+kernels) is checked by its caller (:mod:`workbench.sampling.kernels.verify`), which asks for a
+rebuild.
 """
 
 from __future__ import annotations

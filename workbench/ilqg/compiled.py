@@ -10,7 +10,7 @@ import numpy as np
 
 from workbench.codegen import Library, build_library
 from workbench.ilqg.reference import step_function
-from workbench.problem import FUNCTION_NAMES, Problem
+from workbench.problem.problem import FUNCTION_NAMES, Problem
 
 _LIBS: dict[str, Library | None] = {}
 _dp = ctypes.c_void_p  # raw addresses: numpy's .ctypes.data_as costs microseconds per call

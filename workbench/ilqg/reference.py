@@ -10,7 +10,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from workbench.problem import Problem
+from workbench.problem.problem import Problem
 
 CRASH_PENALTY = 1e10
 CRASH_MARGIN = 1e-15

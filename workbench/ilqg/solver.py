@@ -15,7 +15,7 @@ import numpy as np
 
 from workbench.ilqg.compiled import CompiledPasses, problem_library
 from workbench.ilqg.reference import NumpyPasses
-from workbench.problem import Problem
+from workbench.problem.problem import Problem
 from workbench.validation import fail, one_of, positive
 
 Backend = Literal["auto", "compiled", "numpy"]

@@ -20,10 +20,10 @@ from typing import Literal
 import numpy as np
 from scipy.signal import savgol_filter
 
-from workbench.fastcall import FastFunction
-from workbench.models import Model
-from workbench.sampling.constants import SamplerConstants
+from workbench.codegen.fastcall import FastFunction
+from workbench.problem.models import Model
 from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.sampler import Backend, SAISBatch, Sampler
 from workbench.sampling.threshold import ConstantThreshold, Threshold

@@ -25,11 +25,11 @@ from typing import Protocol
 
 import numpy as np
 
-from workbench.costs import quadratic_tracking
-from workbench.fastcall import FastFunction
+from workbench.codegen.fastcall import FastFunction
 from workbench.ilqg import make_passes
-from workbench.models import Model
-from workbench.problem import Problem
+from workbench.problem.costs import quadratic_tracking
+from workbench.problem.models import Model
+from workbench.problem.problem import Problem
 from workbench.validation import as_array, fail
 
 FALLBACK_REASONS = ("backward_failed", "nonfinite_derivatives", "nonfinite_gains")

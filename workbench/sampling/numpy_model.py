@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workbench.models import Model
+from workbench.problem.models import Model
 
 
 class NumpyNavigation:

@@ -16,16 +16,16 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from workbench.costs import Cost
-from workbench.models import Model
-from workbench.problem import Problem
+from workbench.problem.costs import Cost
+from workbench.problem.models import Model
+from workbench.problem.problem import Problem
 from workbench.validation import as_array, fail
 
 
 @dataclass(frozen=True, eq=False)
 class SamplingProblem:
-    """The sampler's view of a :class:`~workbench.problem.Problem` whose stage cost is a state
-    cost q(x, p) (no control term: MPPI's control cost is its likelihood ratio) and whose
+    """The sampler's view of a :class:`~workbench.problem.Problem` whose stage cost is a
+    state cost q(x, p) (no control term: MPPI's control cost is its likelihood ratio) and whose
     terminal cost is phi(x, p). Dynamics, margins and costs are the Problem's own Functions."""
 
     problem: Problem

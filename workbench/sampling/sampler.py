@@ -13,10 +13,10 @@ from typing import Literal
 
 import numpy as np
 
-from workbench.sampling.constants import SamplerConstants
-from workbench.sampling.diagnostics import diagnostics_library
-from workbench.sampling.emit import LANES
-from workbench.sampling.kernels import sampler_library
+from workbench.sampling.kernels.build import sampler_library
+from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.kernels.diagnostics import diagnostics_library
+from workbench.sampling.kernels.emit import LANES
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import mppi_reference, sais_reference
 from workbench.validation import as_array, fail, one_of

@@ -30,7 +30,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from workbench.io import _default, atomic_write_bytes, atomic_write_json, manifest
+from workbench.study.io import _default, atomic_write_bytes, atomic_write_json, manifest
 from workbench.study.tasks import Study, TaskOutput, columns, describe
 from workbench.validation import fail
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from workbench.stats import wilson_interval
+from workbench.study.stats import wilson_interval
 from workbench.validation import fail
 
 

@@ -1,7 +1,7 @@
 /* Per-sample generator of the sampler kernels: xoshiro256** seeded by splitmix64(seed, sample),
    and a ziggurat standard normal. Streams depend only on (seed, sample index), never on threads.
    The including code defines wb_zig_x[129], wb_zig_r[128], WB_ZIG_R and WB_LANES first
-   (workbench/sampling/emit.py: rng_source). */
+   (workbench/sampling/kernels/emit.py: rng_source). */
 #include <math.h>
 #include <stdint.h>
 #include <stddef.h>

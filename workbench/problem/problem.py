@@ -1,7 +1,8 @@
 """The optimal-control problem, built once and shared by every method (DESIGN principle 1).
 
-A :class:`Problem` turns a :class:`~workbench.models.Model` and a :class:`~workbench.costs.Cost`
-into CasADi Functions with named inputs and outputs and exact first and second derivatives:
+A :class:`Problem` turns a :class:`~workbench.problem.Model` and a
+:class:`~workbench.problem.Cost` into CasADi Functions with named inputs and outputs and exact
+first and second derivatives:
 
 ===========  =====================  =====================================
 name         inputs                 outputs
@@ -29,8 +30,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from workbench.costs import Cost
-from workbench.models import Model
+from workbench.problem.costs import Cost
+from workbench.problem.models import Model
 from workbench.validation import as_array, fail
 
 FUNCTION_NAMES = ("dyn", "dyn_jac", "dyn_hess", "stage", "stage_quad", "term", "term_quad",

@@ -6,11 +6,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workbench.barrier import BarrierOptions, embed_barrier
-from workbench.costs import BetaCost, quadratic_tracking
 from workbench.ilqg import ILQGOptions, ILQGResult, ilqg
-from workbench.models import Model
-from workbench.problem import Problem
+from workbench.problem.barrier import BarrierOptions, embed_barrier
+from workbench.problem.costs import BetaCost, quadratic_tracking
+from workbench.problem.models import Model
+from workbench.problem.problem import Problem
 from workbench.validation import as_array, fail
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from workbench.problem import Problem
+from workbench.problem.problem import Problem
 
 
 @dataclass(frozen=True)

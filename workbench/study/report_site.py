@@ -18,7 +18,7 @@ from urllib.parse import quote
 
 import markdown
 
-from workbench.io import atomic_write_text
+from workbench.study.io import atomic_write_text
 
 CSS = """
 body { font: 15px/1.45 system-ui, sans-serif; max-width: 72rem; margin: 2rem auto;

@@ -29,7 +29,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from workbench.models import Model
+from workbench.problem.models import Model
 from workbench.validation import fail, one_of, positive
 
 Mode = Literal["soft", "hard"]

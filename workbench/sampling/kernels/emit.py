@@ -297,4 +297,4 @@ def rng_source() -> str:
         f"static const double wb_zig_x[129] = {{{', '.join(_literal(v) for v in x)}}};",
         f"static const double wb_zig_r[128] = {{{', '.join(_literal(v) for v in ratio)}}};",
         f"#define WB_ZIG_R {_literal(3.442619855899)}", f"#define WB_LANES {LANES}", ""])
-    return tables + (resources.files("workbench.sampling") / "rng.c").read_text()
+    return tables + (resources.files("workbench.sampling.kernels") / "rng.c").read_text()

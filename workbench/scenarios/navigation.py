@@ -6,13 +6,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from workbench.barrier import BarrierOptions, embed_barrier
-from workbench.models import Model, double_integrator
+from workbench.problem.barrier import BarrierOptions, embed_barrier
+from workbench.problem.models import Model, double_integrator
 from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
 from workbench.sampling.problem import SamplingProblem, navigation_costs
 from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
-from workbench.scenes import CircleScene, NavigationScene
+from workbench.scenarios.scenes import CircleScene, NavigationScene
 from workbench.sim import closed_loop
 from workbench.validation import fail, one_of
 
@@ -95,7 +95,7 @@ def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
     """Plant, barrier-embedded sampling problem and MPPI settings of the navigation study.
 
     ``scene``: the paper's map (default, :class:`NavigationScene`) or your own circles
-    (:class:`~workbench.scenes.CircleScene`); any object with ``start``, ``goal``, ``dt``,
+    (:class:`~workbench.scenarios.scenes.CircleScene`); any object with ``start``, ``goal``, ``dt``,
     ``u_limit`` and ``obstacles()`` works."""
     scene = scene or NavigationScene()
     plant = double_integrator(obstacles=scene.obstacles(), u_limit=scene.u_limit, dt=scene.dt)

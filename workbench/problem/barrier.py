@@ -15,7 +15,7 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
-from workbench.models import Model
+from workbench.problem.models import Model
 from workbench.validation import fail, one_of, positive
 
 BarrierKind = Literal["inverse", "log", "exp"]

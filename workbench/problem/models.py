@@ -14,8 +14,8 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
-from workbench.fastcall import FastFunction
-from workbench.obstacles import Circle, HForm, circle_margins
+from workbench.codegen.fastcall import FastFunction
+from workbench.problem.obstacles import Circle, HForm, circle_margins
 from workbench.validation import as_array, bounds, fail, one_of, positive
 
 Integrator = Literal["euler", "zoh"]
@@ -44,7 +44,7 @@ class Model:
     position: tuple[int, int] | None = None
     obstacles: tuple[Circle, ...] = ()
     n_physical: int = -1
-    barrier: object | None = None  # workbench.barrier.BarrierSpec for embedded models
+    barrier: object | None = None  # workbench.problem.barrier.BarrierSpec for embedded models
     lift_expr: ca.SX | None = field(default=None, repr=False)  # full state in physical symbols
 
     @property

@@ -1,5 +1,5 @@
 """Generated sampler kernels (issue: sampling core): MPPI rollouts, the SAIS dual rollout of
-Algorithm 1 and the RMPPI candidate evaluation, emitted by :mod:`workbench.sampling.emit`.
+Algorithm 1 and the RMPPI candidate evaluation, emitted by :mod:`workbench.sampling.kernels.emit`.
 
 Run-time constants (``const`` role, shared by all samples):
   sigma (nu) sampling std, lr (1) = lambda (1 - nu_mix), u_min, u_max (nu), crash (2) =
@@ -19,13 +19,13 @@ from typing import TypeVar
 import casadi as ca
 import numpy as np
 
-from workbench.barrier import min_margin
 from workbench.codegen import CompileError, build_library
-from workbench.sampling.emit import LANES, EmitError, KernelSpec, emit_kernel, rng_source
-from workbench.sampling.layout import Layout
+from workbench.problem.barrier import min_margin
+from workbench.sampling.kernels.emit import LANES, EmitError, KernelSpec, emit_kernel, rng_source
+from workbench.sampling.kernels.layout import Layout
+from workbench.sampling.kernels.vector_math import prelude
+from workbench.sampling.kernels.verify import KernelMismatch, verify_kernel
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.vector_math import prelude
-from workbench.sampling.verify import KernelMismatch, verify_kernel
 from workbench.validation import fail
 
 L = TypeVar("L")
@@ -319,7 +319,7 @@ def load_verified(stem: str, source: str, build: Callable[[ctypes.CDLL], L],
                   kernels: Callable[[L], Iterable[CompiledKernel]]) -> L | None:
     """Compile (or load from the cache) a kernel library, wrap it with ``build(cdll)``, and
     check each of its ``kernels(obj)`` against CasADi's evaluation of its step
-    (:mod:`workbench.sampling.verify`) before first use. A mismatch (e.g. a cached library
+    (:mod:`workbench.sampling.kernels.verify`) before first use. A mismatch (e.g. a cached library
     swapped with another problem's) rebuilds it once; a second mismatch raises. None without a
     compiler. Every kernel library (sampler, diagnostics) is loaded through here."""
     lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS)
@@ -349,7 +349,7 @@ def _sampler_library(cdll: ctypes.CDLL, specs, lays) -> SamplerLibrary:
 
 def kernel_source(specs: list[KernelSpec], vector_math: bool | None = None) -> str:
     """C source of a kernel library: the generator, the SIMD declarations of the trigonometric
-    functions the kernels use (:mod:`workbench.sampling.vector_math`; ``vector_math`` None
+    functions the kernels use (:mod:`workbench.sampling.kernels.vector_math`; ``vector_math`` None
     follows WORKBENCH_VECTOR_MATH), the kernels."""
     fns = [f for s in specs for f in (s.step, s.final)]
     return rng_source() + "\n" + prelude(fns, KERNEL_FLAGS, LANES, vector_math) + "\n".join(

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workbench.obstacles import Circle
+from workbench.problem.obstacles import Circle
 from workbench.validation import as_array, fail, positive
 
 
@@ -216,8 +216,8 @@ class _Jammed(Exception):
 class CircleScene:
     """A navigation scene of your own circles: ``navigation_setup(CircleScene(...))``.
 
-    circles: :class:`~workbench.obstacles.Circle` objects or ``(x, y, radius)`` triples; start
-    and goal positions (2,) in free space; dt and the control box as in
+    circles: :class:`~workbench.problem.obstacles.Circle` objects or ``(x, y, radius)``
+    triples; start and goal positions (2,) in free space; dt and the control box as in
     :class:`NavigationScene`. ``CircleScene.from_circles(circles, start, goal)`` is the same.
     """
 

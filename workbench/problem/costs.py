@@ -14,7 +14,7 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
-from workbench.models import Model
+from workbench.problem.models import Model
 from workbench.validation import as_array, fail, one_of
 
 BetaCost = Literal["relative", "absolute"]

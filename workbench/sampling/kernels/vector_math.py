@@ -115,7 +115,7 @@ def reference(name: str, x, u, y) -> np.ndarray:
 def probe_spec():
     """A kernel whose lane outputs are every vectorisable function of lane inputs x, u, y
     (asin and acos of u in [-1, 1])."""
-    from workbench.sampling.emit import KernelSpec
+    from workbench.sampling.kernels.emit import KernelSpec
 
     c, w = ca.SX.sym("carry"), ca.SX.sym("w")
     x, u, y = ca.SX.sym("x"), ca.SX.sym("u"), ca.SX.sym("y")
@@ -137,8 +137,8 @@ def unavailable(flags: tuple[str, ...], lanes: int) -> str | None:
     Builds a probe with the kernels' flags, checks that gcc called a SIMD variant of every
     function and that each result is within :data:`MAX_ULP` ulp of scalar libm."""
     from workbench.codegen import CompileError, build_library
-    from workbench.sampling.emit import emit_kernel, rng_source
-    from workbench.sampling.kernels import CompiledKernel
+    from workbench.sampling.kernels.build import CompiledKernel
+    from workbench.sampling.kernels.emit import emit_kernel, rng_source
 
     spec = probe_spec()
     names = [n for n, _ in VECTOR_FUNCTIONS.values()]
@@ -173,5 +173,5 @@ def prelude(functions: Iterable[ca.Function], flags: tuple[str, ...], lanes: int
     names = used(functions)
     if not names or not want or unavailable(tuple(flags), lanes) is not None:
         return ""
-    return "/* libmvec SIMD variants (workbench/sampling/vector_math.py) */\n" + \
+    return "/* libmvec SIMD variants (workbench/sampling/kernels/vector_math.py) */\n" + \
         declarations(names)

@@ -23,10 +23,10 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
-from workbench.costs import Cost
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
-from workbench.models import Model
-from workbench.problem import Problem
+from workbench.problem.costs import Cost
+from workbench.problem.models import Model
+from workbench.problem.problem import Problem
 from workbench.validation import fail, one_of, positive
 
 
