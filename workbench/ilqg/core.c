@@ -12,7 +12,7 @@
  * A (T,NX,NX), B (T,NX,NU), lx (T+1,NX), lu (T,NU), lxx (T+1,NX,NX), luu (T,NU,NU),
  * lux (T,NU,NX), k (T,NU), K (T,NU,NX).
  * The Python twin in workbench/ilqg/reference.py implements the same passes in NumPy; the
- * two are compared in tests/test_ilqg.py. Keep them in step.
+ * two are compared in tests/ilqg/test_ilqg.py. Keep them in step.
  */
 #include <math.h>
 #include <string.h>

@@ -153,7 +153,7 @@ def test_interrupt_then_rerun_equals_an_uninterrupted_run(tiny_run, tmp_path):
             "try:\n    run(StudyConfig.for_profile('tiny'), Path(sys.argv[1]), workers=1, "
             "progress=False)\nexcept StudyInterrupted:\n    sys.exit(130)\n")
     proc = subprocess.Popen([sys.executable, "-c", code, str(out)], stderr=subprocess.PIPE,
-                            cwd=Path(__file__).parents[1])
+                            cwd=Path(__file__).parents[2])
     t_end = time.monotonic() + 90
     while len(list(out.glob("tasks/*.npz"))) < 3:
         assert time.monotonic() < t_end and proc.poll() is None

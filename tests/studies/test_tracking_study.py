@@ -268,7 +268,7 @@ def test_sigint_during_ecbf_tasks_then_rerun_equals_an_uninterrupted_run(tmp_pat
             f"try:\n    run(cfg, Path({str(out)!r}), workers=0, progress=False)\n"
             "except StudyInterrupted:\n    sys.exit(130)\n")
     proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE,
-                            cwd=Path(__file__).parents[1])
+                            cwd=Path(__file__).parents[2])
     t_end = time.monotonic() + 60
     while len(list((out / "tasks").glob("*.npz")) if (out / "tasks").exists() else []) < 2:
         assert time.monotonic() < t_end and proc.poll() is None
