@@ -267,7 +267,7 @@ def test_summary_counts_fractions_and_ratios():
 # ----------------------------------------------------------------------------------------------
 
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6))
-RTOL, FLOOR = 1e-10, 1.0  # as tests/sampling/kernels/test_sampler_kernels.py: relative, absolute below 1
+RTOL, FLOOR = 1e-10, 1.0  # as the sampler-kernel tests: relative, absolute below 1
 
 
 def rel_err(a, b) -> float:
