@@ -11,7 +11,8 @@ variants at a few ulp; we require and test **at most** :data:`MAX_ULP` **ulp** a
 libm that CasADi itself calls (``tests/sampling/kernels/test_vector_math.py``, over wide argument
 ranges). The probe below checks the same bound on the machine before the variants are used;
 where it fails (no libmvec, another libc or compiler, an unexpected result) the kernels keep the
-scalar calls, which equal CasADi's evaluation bitwise. ``WORKBENCH_VECTOR_MATH=0`` forces the scalar calls.
+scalar calls, which equal CasADi's evaluation bitwise. ``WORKBENCH_VECTOR_MATH=0`` forces the
+scalar calls.
 
 Only libraries whose kernels use one of :data:`VECTOR_FUNCTIONS` get the declarations; the
 double integrator's source is unchanged.
