@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import tempfile
 from collections.abc import Sequence
+from numbers import Integral, Real
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +38,47 @@ def as_array(field: str, value: object, shape: Sequence[int | None], *, finite: 
     if finite and not np.all(np.isfinite(arr)):
         raise fail(field, value, "all entries must be finite")
     return arr
+
+
+def integer(field: str, value: object, minimum: int | None = None,
+            maximum: int | None = None) -> int:
+    """An integer (Python or NumPy; never ``bool``) within [minimum, maximum]."""
+    ok = isinstance(value, Integral) and not isinstance(value, bool | np.bool_)
+    if ok and minimum is not None and value < minimum:
+        ok = False
+    if ok and maximum is not None and value > maximum:
+        ok = False
+    if not ok:
+        rng = ("" if minimum is None and maximum is None else
+               f" >= {minimum}" if maximum is None else
+               f" <= {maximum}" if minimum is None else f" in [{minimum}, {maximum}]")
+        raise fail(field, value, f"must be an integer{rng}")
+    return int(value)
+
+
+def real(field: str, value: object, minimum: float | None = None, *, strict: bool = False,
+         maximum: float | None = None) -> float:
+    """A finite real number (never ``bool``); above ``minimum`` (``strict``: strictly), at most
+    ``maximum``."""
+    ok = (isinstance(value, Real) and not isinstance(value, bool | np.bool_)
+          and bool(np.isfinite(value)))
+    if ok and minimum is not None:
+        ok = value > minimum if strict else value >= minimum
+    if ok and maximum is not None:
+        ok = value <= maximum
+    if not ok:
+        parts = ([f"{'>' if strict else '>='} {minimum:g}"] if minimum is not None else []) + (
+            [f"<= {maximum:g}"] if maximum is not None else [])
+        raise fail(field, value, "must be a finite number" + (" " + " and ".join(parts)
+                                                              if parts else ""))
+    return float(value)
+
+
+def flag(field: str, value: object) -> bool:
+    """A ``bool`` (Python or NumPy), nothing else: 0 and 1 are not flags."""
+    if not isinstance(value, bool | np.bool_):
+        raise fail(field, value, "must be true or false")
+    return bool(value)
 
 
 def positive(field: str, value: float, *, allow_zero: bool = False) -> float:
