@@ -13,7 +13,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
 .PHONY: venv test study study-tracking-demo study-tracking study-navigation study-bound \
-	study-alpha-rules reports bench lint clean-cache clean
+	reports bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -47,14 +47,9 @@ NAV_PROFILE = $(if $(filter paper tiny,$(PROFILE)),$(PROFILE),quick)
 study-navigation: $(STAMP)
 	$(WB) run navigation --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
 
-# Lemma 1 checked on SA-RMPPI episodes (issue 12): quick about 2-2.5 min, paper 35-60 min
+# Lemma 1 checked on SA-RMPPI episodes: quick about 2-2.5 min, paper 35-60 min
 study-bound: $(STAMP)
 	$(WB) run free-energy-bound --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
-
-# SA-RMPPI activation per alpha rule (issue 8): 20 episodes per cell at variance 10 and 100
-study-alpha-rules: $(STAMP)
-	$(WB) run alpha-rules --profile $(PROFILE) $(STUDY_EXEC) $(SETS) \
-		$(if $(EPISODES),--set episodes=$(EPISODES))
 
 # reports/index.html: every study's report, figures, tables and manifest, offline
 reports: $(STAMP)

@@ -69,7 +69,7 @@ def cli_reports(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("reports")
     outputs = []
-    for argv in (["run", "tracking-demo", "--out", str(root / "tracking_demo")],
+    for argv in (["run", "tracking-demo", "--workers", "0", "--out", str(root / "tracking_demo")],
                  ["run", "tracking", "--workers", "0", "--out", str(root / "tracking_comparison"),
                   *[a for s in TINY_TRACKING_SETS for a in ("--set", s)]]):
         buf = io.StringIO()

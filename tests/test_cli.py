@@ -14,14 +14,14 @@ from pathlib import Path
 
 import pytest
 
-from studies.tracking_comparison.config import StudyConfig
-from workbench.cli import dry_manifest, main, resolve_config
+from workbench.cli import main
 from workbench.study import config_io
-from workbench.study.entry import StudyEntry, discover
+from workbench.study.runner import declare, dry_manifest, resolve_config
+from workbench.study.spec import StudySpec, registry
 from workbench.study.store import study_manifest
 
 ROOT = Path(__file__).parents[1]
-REGISTRY = discover()
+REGISTRY = registry()
 WORKBENCH = str(Path(sys.executable).parent / "workbench")  # the installed console script
 
 
@@ -39,9 +39,9 @@ def call(*args: str) -> tuple[int, str]:
 
 
 def test_the_existing_studies_are_registered():
-    assert {"tracking", "tracking-demo", "alpha-rules"} <= set(REGISTRY)
+    assert {"tracking", "tracking-demo", "navigation", "free-energy-bound"} == set(REGISTRY)
     for e in REGISTRY.values():
-        assert isinstance(e, StudyEntry) and e.profiles and e.default_profile in e.profiles
+        assert isinstance(e, StudySpec) and e.profiles and e.default_profile in e.profiles
     assert {"quick", "paper", "full"} <= set(REGISTRY["tracking"].profiles)
 
 
@@ -114,9 +114,51 @@ def test_set_overrides_change_the_manifest_and_use_aliases():
     assert dry_manifest(entry, cfg)["tasks_sha256"] != dry_manifest(entry, base)["tasks_sha256"]
 
 
-@pytest.mark.parametrize("profile", ["quick", "paper", "full"])
-def test_tracking_profile_files_equal_for_profile(profile):
-    assert resolve_config(REGISTRY["tracking"], profile) == StudyConfig.for_profile(profile)
+def test_profile_is_chosen_with_the_flag_never_a_config_key(tmp_path, capsys):
+    """A label can never disagree with what ran: ``profile`` is not a config key."""
+    assert main(["run", "navigation", "--set", "profile=paper", "--dry-run"]) == 2
+    assert "profile = 'paper' is not a config key" in capsys.readouterr().err
+    path = tmp_path / "c.toml"
+    path.write_text('profile = "tiny"\n')
+    assert main(["run", "navigation", "--config", str(path), "--dry-run"]) == 2
+    assert "is not a config key" in capsys.readouterr().err
+    for e in REGISTRY.values():
+        assert "profile" not in {f for f in e.config_type.__dataclass_fields__}
+
+
+def test_navigation_controller_settings_are_config_fields():
+    """The sampler's sigma, lambda, N, T, q_beta, the robust and feedback settings and the
+    calibration seed are settable, shown by a dry run and part of every task id."""
+    rc, text = call("run", "navigation", "--set", "sampler.sigma=[4.0, 4.0]", "--set",
+                    "sampler.lam=5", "--set", "q_beta=0.1", "--set", "calibration_seed=3",
+                    "--set", "feedback.q_beta=2", "--dry-run")
+    assert rc == 0
+    shown = json.loads(text)
+    assert shown["config"]["sampler"]["sigma"] == [4.0, 4.0]
+    assert shown["config"]["sampler"]["lam"] == 5.0 and shown["config"]["q_beta"] == 0.1
+    assert shown["fingerprint"]["mppi"]["sigma"] == [4.0, 4.0]
+    assert shown["fingerprint"]["calibration_seed"] == 3
+    assert shown["fingerprint"]["feedback"]["q_beta"] == 2.0
+    rc, base = call("run", "navigation", "--dry-run")
+    assert json.loads(base)["tasks_sha256"] != shown["tasks_sha256"]
+    assert main(["run", "navigation", "--set", "sampler.lam=-1", "--dry-run"]) == 2
+
+
+def test_a_config_files_sizes_are_what_runs(tmp_path):
+    """A config file (here: two barrier weights) decides the sizes; run.json records that no
+    profile was used, config.toml the sizes."""
+    path = tmp_path / "c.toml"
+    path.write_text("q_betas = [0.1, 1.0]\n")
+    out = tmp_path / "run"
+    rc, _ = call("run", "tracking-demo", "--config", str(path), "--workers", "0", "--out",
+                 str(out))
+    assert rc == 0
+    assert [r["q_beta"] for r in json.loads((out / "summary.json").read_text())["rows"]] == \
+        [0.1, 1.0]
+    record = json.loads((out / "run.json").read_text())
+    assert record["profile"] is None and record["tasks"]["total"] == 2
+    assert config_io.load(REGISTRY["tracking-demo"].config_type,
+                          config_io.read_toml(out / "config.toml")).q_betas == (0.1, 1.0)
 
 
 def test_run_writes_a_config_that_reproduces_its_manifest(cli_reports):
@@ -128,8 +170,8 @@ def test_run_writes_a_config_that_reproduces_its_manifest(cli_reports):
     entry = REGISTRY["tracking"]
     again = dry_manifest(entry, resolve_config(entry, config=out / "config.toml"))
     assert {k: stored[k] for k in again} == json.loads(json.dumps(again))
-    assert again == study_manifest(entry.declare(resolve_config(entry, config=out /
-                                                                "config.toml")))
+    assert again == study_manifest(declare(entry, resolve_config(entry, config=out /
+                                                                 "config.toml"))[0])
 
 
 def test_report_rebuilds_from_stored_results(cli_reports):
@@ -140,22 +182,20 @@ def test_report_rebuilds_from_stored_results(cli_reports):
         md.unlink()
         rc, _ = call("report", name, "--root", str(root))
         assert rc == 0 and md.is_file() and (root / "index.html").is_file()
-        if name == "tracking-demo":
-            assert md.read_text() == before
-        else:  # the same numbers; only the run line (wall time, tasks computed) differs
-            strip = [ln for ln in before.splitlines() if "Wall time" not in ln]
-            assert [ln for ln in md.read_text().splitlines() if "Wall time" not in ln] == strip
+        # the same numbers; only the run line (wall time, tasks computed) differs
+        strip = [ln for ln in before.splitlines() if "Wall time" not in ln]
+        assert [ln for ln in md.read_text().splitlines() if "Wall time" not in ln] == strip
 
 
 def test_report_of_a_study_that_has_not_run(tmp_path, capsys):
     assert main(["report", "tracking", "--root", str(tmp_path)]) == 2
-    assert "no results; run `workbench run tracking` first" in capsys.readouterr().err
+    assert "no readable manifest.json; run `workbench run tracking" in capsys.readouterr().err
 
 
 def test_list_names_studies_controllers_and_models():
     rc, out = call("list")
     assert rc == 0
-    for word in ("tracking", "tracking-demo", "alpha-rules", "sa_rmppi", "bas_mppi",
+    for word in ("tracking", "tracking-demo", "navigation", "sa_rmppi", "bas_mppi",
                  "double_integrator", "Model.from_expressions"):
         assert word in out
 
@@ -171,10 +211,6 @@ def test_makefile_targets_call_the_cli():
                         "SET=noise_std=5"], capture_output=True, text=True, cwd=ROOT)
     assert "workbench run tracking --profile full --workers 3" in r.stdout
     assert "--set noise_std=5" in r.stdout
-    r = subprocess.run(["make", "-n", "study-alpha-rules", "EPISODES=3"], capture_output=True,
-                       text=True, cwd=ROOT)
-    assert "workbench run alpha-rules --profile quick" in r.stdout
-    assert "--set episodes=3" in r.stdout
     r = subprocess.run(["make", "-n", "reports", "study-tracking-demo"], capture_output=True,
                        text=True, cwd=ROOT)
     assert "workbench report" in r.stdout and "workbench run tracking-demo" in r.stdout

@@ -1,10 +1,11 @@
 """The ``workbench`` command: list, run, show-config, report.
 
-Studies come from the registry (:func:`workbench.study.entry.discover`: every
-``studies/<pkg>/cli.py`` defining ``ENTRY``). A run's config is resolved in layers, then checked
-before any work starts: the config dataclass's defaults <- the profile's TOML file (``--profile``;
-the study's default profile when neither --profile nor --config is given) <- ``--config FILE``
-<- each ``--set key=value`` (dotted keys for nested fields, values as TOML literals).
+Studies come from the registry (:func:`workbench.study.spec.registry`: the modules listed in
+``studies/registry.py`` and in ``$WORKBENCH_STUDIES``, each defining ``STUDY``). A run's config
+is resolved in layers, then checked before any work starts (:mod:`workbench.study.runner`):
+the config dataclass's defaults <- the profile's TOML file (``--profile``; the study's default
+profile when neither --profile nor --config is given) <- ``--config FILE`` <- each
+``--set key=value`` (dotted keys for nested fields, values as TOML literals).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import json
 import sys
 import textwrap
 from pathlib import Path
-from typing import Any
 
 from workbench.study import config_io
 from workbench.study.config_io import ConfigError
@@ -27,7 +27,8 @@ A run's config is resolved in layers and checked before any work starts:
   <- the profile's TOML file (--profile; "quick" when neither --profile nor --config is given)
   <- --config FILE
   <- each --set key=value (dotted keys for nested fields, values as TOML literals)
-Studies plug in through studies/<pkg>/cli.py (ENTRY = StudyEntry(...)) and profile TOML files.
+A study plugs in with STUDY = StudySpec(...) in its package, profile TOML files beside it and
+one line in studies/registry.py (or its module name in $WORKBENCH_STUDIES).
 """
 
 EPILOG = """\
@@ -53,9 +54,9 @@ MODELS = {
 
 
 def registry() -> dict:
-    from workbench.study.entry import discover
+    from workbench.study.spec import registry as load
 
-    return discover()
+    return load()
 
 
 def _entry(name: str):
@@ -67,34 +68,6 @@ def _entry(name: str):
         hint = f"; did you mean {close[0]!r}?" if close else ""
         raise ConfigError(f"unknown study {name!r}{hint} (studies: {', '.join(reg)})")
     return reg[name]
-
-
-def resolve_config(entry, profile: str | None = None, config: Path | None = None,
-                   sets: list[str] | tuple[str, ...] = ()) -> Any:
-    """The validated config of a study from its layers (see the module docstring)."""
-    layers = []
-    if profile is None and config is None:
-        profile = entry.default_profile
-    if profile is not None:
-        if profile not in entry.profiles:
-            raise ConfigError(f"--profile {profile!r} is invalid: study {entry.name!r} has the "
-                              f"profiles {', '.join(entry.profiles)}")
-        layers.append(config_io.read_toml(entry.profiles[profile]))
-    if config is not None:
-        layers.append(config_io.read_toml(config))
-    layers.append(config_io.parse_sets(sets, entry.aliases))
-    return config_io.load(entry.config_type, config_io.merge(*layers), aliases=entry.aliases)
-
-
-def dry_manifest(entry, cfg) -> dict:
-    """What a run with ``cfg`` would record before computing anything: the study's manifest
-    fields (study, version, seed, config, fingerprint, tasks and their ids) when the study
-    declares its tasks, else the study name and the resolved config."""
-    if entry.declare is None:
-        return {"study": entry.name, "config": config_io.to_dict(cfg)}
-    from workbench.study.store import study_manifest
-
-    return study_manifest(entry.declare(cfg))
 
 
 # ----------------------------------------------------------------------------- subcommands
@@ -115,6 +88,8 @@ def cmd_list(args) -> int:
 
 
 def cmd_show_config(args) -> int:
+    from workbench.study.runner import resolve_config
+
     entry = _entry(args.study)
     cfg = resolve_config(entry, args.profile, args.config, args.set)
     src = " ".join(["workbench show-config", entry.name] +
@@ -128,6 +103,7 @@ def cmd_show_config(args) -> int:
 
 
 def cmd_run(args) -> int:
+    from workbench.study.runner import dry_manifest, resolve_config
     from workbench.validation import writable_dir
 
     entry = _entry(args.study)
@@ -135,8 +111,10 @@ def cmd_run(args) -> int:
     if args.workers < 0:
         raise ConfigError(f"--workers = {args.workers} is invalid: must be >= 0 (0: in this "
                           "process)")
+    profile = args.profile or (entry.default_profile if args.config is None else None)
     if args.dry_run:
-        print(json.dumps(dry_manifest(entry, cfg), indent=1, sort_keys=True))
+        print(json.dumps({"profile": profile, **dry_manifest(entry, cfg)}, indent=1,
+                         sort_keys=True))
         return 0
     out = Path(args.out or entry.default_out)
     try:
@@ -144,35 +122,28 @@ def cmd_run(args) -> int:
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     from workbench.study import StudyInterrupted
-    from workbench.study.io import atomic_write_text
+    from workbench.study.runner import run
 
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "config.toml", config_io.dump(
-        cfg, header=f"resolved config of this run; rerun: workbench run {entry.name} "
-                    f"--config {out / 'config.toml'} --out {out}"))
     try:
-        report = entry.run(cfg, out, args.workers, args.scheduler)
+        outcome = run(entry, cfg, out, workers=args.workers, scheduler=args.scheduler,
+                      profile=profile)
     except StudyInterrupted:
         print("interrupted; rerun the same command to continue", file=sys.stderr)
         return 130
-    print(f"wrote {report}")
+    print(f"wrote {outcome.report}")
     return 0
 
 
 def cmd_report(args) -> int:
     from workbench.study.report_site import build_site
+    from workbench.study.runner import rebuild_report
 
     reg = registry()
     root = Path(args.root)
     if args.study:
         entry = _entry(args.study)
-        if entry.report is None:
-            raise ConfigError(f"study {entry.name!r} rebuilds its report only by running "
-                              f"(workbench run {entry.name})")
         out = root / entry.default_out.name
-        if not (out / "manifest.json").exists() and not (out / "summary.json").exists():
-            raise ConfigError(f"{out}: no results; run `workbench run {entry.name}` first")
-        print(f"wrote {entry.report(out)}")
+        print(f"wrote {rebuild_report(entry, out)}")
     print(f"wrote {build_site(root, reg)}")
     return 0
 

@@ -9,7 +9,6 @@ import numpy as np
 
 from workbench.validation import fail, one_of
 
-PROFILES: tuple[str, ...] = ("tiny", "quick", "paper")
 # SPEC 11.3 tests as workbench.bound.checks names them (T2E: independent batch, "true-F" form)
 TESTS: tuple[str, ...] = ("T1", "T1s", "T2", "T2E", "T3", "T3b", "T3c", "T3d")
 STEP_TESTS = ("T1", "T1s", "T2", "T2E")
@@ -43,7 +42,6 @@ class StudyConfig:
     batch per step for T2E; z, n_q, space: workbench.bound.BoundConfig.
     """
 
-    profile: str = "quick"
     variances: tuple[float, ...] = (0.0, 10.0, 100.0)
     episodes: int = 3
     steps: int = 150
@@ -62,7 +60,6 @@ class StudyConfig:
     space: str = "physical"
 
     def __post_init__(self) -> None:
-        one_of("profile", self.profile, PROFILES)
         v = self.variances
         if isinstance(v, str) or not hasattr(v, "__iter__") or len(v) == 0:
             raise fail("variances", v, "must be a non-empty sequence of numbers >= 0")
@@ -90,25 +87,12 @@ class StudyConfig:
         one_of("n_q", self.n_q, ("T", "T-1"))
         one_of("space", self.space, ("physical", "augmented"))
 
-    @classmethod
-    def for_profile(cls, profile: str, **overrides) -> StudyConfig:
-        """tiny (tests): 2 variances x 1 episode x 6 steps, N = 128, T = 30, coarse grid;
-        quick (make study): {0, 10, 100} x 3 x 150 steps; paper: {0, 5, 10, 50, 100} x 10 x 1000."""
-        one_of("profile", profile, PROFILES)
-        sizes = {
-            "tiny": dict(variances=(0.0, 10.0), episodes=1, steps=6, n_samples=128, horizon=30,
-                         calibration_steps=60, grid_spacing=1.0, grid_rings=3, grid_angles=24),
-            "quick": {},
-            "paper": dict(variances=(0.0, 5.0, 10.0, 50.0, 100.0), episodes=10, steps=1000),
-        }[profile]
-        return cls(profile=profile, **{**sizes, **overrides})
-
     def as_dict(self) -> dict:
         return asdict(self)
 
     def results_dict(self) -> dict:
-        """The values results depend on (no profile name, no test selection)."""
+        """The values results depend on (no test selection, no sizes)."""
         d = self.as_dict()
-        for k in ("profile", "tests", "variances", "episodes", "steps"):
+        for k in ("tests", "variances", "episodes", "steps"):
             d.pop(k)
         return d

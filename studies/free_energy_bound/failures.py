@@ -1,5 +1,5 @@
 """Where checks fail, from the tidy table: T1/T1s failures at steps where every real sample
-stayed safe (issue 12: each must be reported and explained), and what the T3-family failures
+stayed safe (each is reported and explained), and what the T3-family failures
 have in common."""
 
 from __future__ import annotations

@@ -62,7 +62,7 @@ def assumed_values(config: StudyConfig, shared: Shared) -> list[dict[str, str]]:
     return [
         {"name": "alpha rule", "value": f"progress, kappa = {c.kappa:g} (alpha = (1 + kappa) x "
          f"undisturbed free energy at the distance to the goal; {c.calibration_steps} "
-         "calibration steps)", "source": "[A] NOTES 'SA-RMPPI that acts' (kappa = 0.1); "
+         "calibration steps)", "source": "[A] kappa = 0.1 from an activation sweep on this map; "
          f"note: AlphaRule() in the code defaults to kappa = {AlphaRule().kappa:g}"},
         {"name": "SAIS batch", "value": f"N = {c.n_samples}, T = {c.horizon}, sigma = (5, 5), "
          "lambda = 10, q_beta = 0.01", "source": "[A] workbench.scenarios.navigation"},

@@ -121,7 +121,7 @@ def write_report(s: BoundSummary, df: pd.DataFrame, out: Path, assumed, no_barri
         atomic_write_bytes(out / name, fig)
     claims = all_claims(s, no_barrier_L_q)
     lines = ["# Free-energy bound (Lemma 1): numerical check on the navigation map", "",
-             f"Profile `{s.config['profile']}`. {run_line}", "",
+             f"{run_line}", "",
              "## Lemma 1 as printed", "", LEMMA, "", "## Reading used (SPEC 11, 13)", "",
              *(f"- {r}" for r in READING), "", "## Assumed values", "",
              *md_table(["what", "value", "source"],
@@ -136,3 +136,10 @@ def write_report(s: BoundSummary, df: pd.DataFrame, out: Path, assumed, no_barri
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path
+
+
+def report(finished, summary) -> Path:
+    """The framework's report step: figures and report.md from a finished run."""
+    return write_report(summary.value, finished.store.table("steps"), finished.out,
+                        summary.data["assumed"], finished.prepared.no_barrier.L_q,
+                        finished.run_line)

@@ -9,11 +9,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from studies.free_energy_bound.config import CONSTANTS, TESTS, StudyConfig
+from studies.free_energy_bound.config import CONSTANTS, RESULT_VERSION, TESTS, StudyConfig
 from studies.free_energy_bound.shared import Shared, bound_config, controller, grid, navigation
 from workbench.bound import BoundEstimator, BoundStep, episode_checks, independent_batch
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.spec import Declaration
 
 
 @dataclass(frozen=True)
@@ -136,3 +137,14 @@ def tasks(config: StudyConfig) -> tuple[Episode, ...]:
     """Every (variance, episode), variance-major."""
     return tuple(Episode(v, j, config.steps) for v in config.variances
                  for j in range(config.episodes))
+
+
+def run(task: Episode, ctx: TaskContext, config: StudyConfig, prepared: Shared) -> TaskOutput:
+    """The framework's task function: the shared set-up comes prepared."""
+    return run_task(task, ctx, config, prepared)
+
+
+def declare(config: StudyConfig) -> Declaration:
+    """The episodes of a run; results depend on the config's result values."""
+    return Declaration(tasks(config), run, fingerprint={"config": config.results_dict()},
+                       version=RESULT_VERSION)

@@ -1,9 +1,21 @@
-"""Navigation study (paper Sec. V, Table I, Figs. 4-6; SPEC 3.2, 12.2, 14.2-14.4): SA-RMPPI vs
-BaS-MPPI in the 30-obstacle field under velocity disturbances, with two ablations (RMPPI with
-plain iLQG gains, MPPI with a crash cost only) and an alpha sweep.
+"""Navigation (paper Sec. V, Table I): SA-RMPPI against BaS-MPPI and two ablations in the
+30-obstacle field under velocity disturbances, with an alpha-rule sweep and the Fig. 4 batch."""
 
-config (frozen, validated; scene: the map) -> tasks (one realisation per task, common random
-numbers; illustration: Fig. 4) -> metrics (per-episode rows) -> run (on workbench.study) ->
-summary (typed cells, paired comparisons) -> findings (SPEC 14.4 claims) and evidence
-(internals, ablations, alpha) -> figures, report; paper.py holds Table I and the assumed values.
-"""
+from pathlib import Path
+
+from studies.navigation.config import StudyConfig
+from workbench.study.spec import StudySpec
+
+STUDY = StudySpec(
+    name="navigation",
+    description="paper Sec. V / Table I: SA-RMPPI vs BaS-MPPI (+ RMPPI and crash-cost MPPI "
+                "ablations) in the 30-obstacle field under velocity disturbances; alpha-rule "
+                "sweep",
+    config_type=StudyConfig,
+    directory=Path(__file__).parent,
+    prepare="studies.navigation.tasks:prepare",
+    tasks="studies.navigation.tasks:declare",
+    summarise="studies.navigation.summary:summary",
+    report="studies.navigation.report:report",
+    paper="studies.navigation.paper:paper_rows",
+)

@@ -8,14 +8,15 @@ from numbers import Integral, Real
 import numpy as np
 
 from studies.navigation.scene import MapSpec
+from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
+from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule
-from workbench.scenarios.navigation import CONTROLLERS
-from workbench.validation import fail, one_of
+from workbench.scenarios.navigation import CONTROLLERS, TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
+from workbench.validation import fail, integer, one_of, real
 
-PROFILES: tuple[str, ...] = ("tiny", "quick", "paper")
 ROBUST = ("sa_rmppi", "rmppi")  # controllers that use an alpha rule
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
-DEFAULT_RULE = AlphaRule(kappa=0.1)  # [A] chosen by make study-alpha-rules (NOTES.md, SPEC 10.3)
+DEFAULT_RULE = AlphaRule(kappa=0.1)  # [A] chosen by an activation sweep; see sweep_rules
 
 
 def _int(name: str, value, minimum: int) -> int:
@@ -65,9 +66,14 @@ class StudyConfig:
     ``sweep_rules`` at each of ``sweep_variances``. ``steps``: episode length (20 s = 1000
     steps of 0.02 s [A]); ``goal_radius``: "reached" radius [P, 1 m]; ``velocity_stride``: steps
     between rows of the velocity table; ``illustration``: run the Fig. 4 task (limits +-50,
-    velocity variance 5000)."""
+    velocity variance 5000).
 
-    profile: str = "paper"
+    The controllers: ``sampler`` (sigma, lambda, N, T, ... of every sampling controller),
+    ``q_beta`` (the barrier-state weight of the sampling cost), ``robust`` (the RMPPI selection
+    and its candidates), ``feedback`` (the weights of K_safe and of the plain iLQG gains).
+    ``calibration_seed``: the seed of the undisturbed episode that calibrates each alpha rule
+    once per run (``rule.calibration_steps`` steps; the episodes' streams come from ``seed``)."""
+
     controllers: tuple[str, ...] = CONTROLLERS
     variances: tuple[float, ...] = (0.0, 5.0, 10.0, 50.0, 100.0)
     realisations: int = 100
@@ -85,9 +91,13 @@ class StudyConfig:
     illustration: bool = True
     illustration_steps: int = 60
     scene: MapSpec = field(default_factory=MapSpec)
+    sampler: MPPIConfig = MPPIConfig(sigma=TUNED_SIGMA, lam=TUNED_LAMBDA)
+    q_beta: float = TUNED_Q_BETA
+    robust: RMPPIConfig = RMPPIConfig()
+    feedback: FeedbackWeights = FeedbackWeights()
+    calibration_seed: int = 0
 
     def __post_init__(self) -> None:
-        one_of("profile", self.profile, PROFILES)
         ctrls = self.controllers
         if isinstance(ctrls, str) or not hasattr(ctrls, "__iter__") or len(ctrls) == 0:
             raise fail("controllers", ctrls, f"must be a non-empty subset of {CONTROLLERS}")
@@ -115,21 +125,13 @@ class StudyConfig:
         if not isinstance(self.scene, MapSpec):
             raise fail("scene", self.scene, "must be a MapSpec")
         self.scene.check()  # start / goal inside an obstacle -> names scene.start / scene.goal
-
-    @classmethod
-    def for_profile(cls, profile: str, **overrides) -> StudyConfig:
-        """tiny: tests; quick: ``make study`` (<= 15 min on 2 cores); paper: Table I."""
-        one_of("profile", profile, PROFILES)
-        sizes = {
-            "tiny": dict(variances=(50.0,), realisations=2, steps=20, sweep_variances=(50.0,),
-                         sweep_rules=(AlphaRule(kappa=0.0, calibration_steps=30),),
-                         sweep_realisations=2, rule=AlphaRule(kappa=0.1, calibration_steps=30),
-                         illustration=False, velocity_stride=5),
-            "quick": dict(variances=(0.0, 10.0, 100.0), realisations=20, sweep_realisations=10,
-                          sweep_rules=(AlphaRule(kappa=0.0), AlphaRule(kappa=0.25))),
-            "paper": {},
-        }[profile]
-        return cls(profile=profile, **{**sizes, **overrides})
+        for name, kind in (("sampler", MPPIConfig), ("robust", RMPPIConfig),
+                           ("feedback", FeedbackWeights)):
+            if not isinstance(getattr(self, name), kind):
+                raise fail(name, getattr(self, name), f"must be a {kind.__name__}")
+        object.__setattr__(self, "q_beta", real("q_beta", self.q_beta, 0.0))
+        object.__setattr__(self, "calibration_seed",
+                           integer("calibration_seed", self.calibration_seed, 0))
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -4,11 +4,11 @@ criteria (SPEC 14.4) with the thresholds the findings use, and every assumed val
 from __future__ import annotations
 
 from dataclasses import asdict
+from pathlib import Path
 
 from studies.navigation.config import StudyConfig
-from workbench.sampling.controllers import RMPPIConfig
-from workbench.sampling.feedback import FeedbackWeights
 from workbench.scenarios.navigation import NavigationSetup
+from workbench.study.spec import PaperRow
 
 # Table I [P]: safety % and RMSE [m] over 100 realisations per variance
 TABLE_I = {
@@ -48,7 +48,7 @@ CLAIMS = {
 def assumed_values(config: StudyConfig, nav: NavigationSetup) -> list[dict[str, str]]:
     """Every value the run used that the paper does not give ([A]) or takes from elsewhere."""
     m, sc = nav.mppi, config.scene
-    fb, rc = FeedbackWeights(), RMPPIConfig()
+    fb, rc = config.feedback, config.robust
     rows = [
         ("map", f"{len(sc.circle_array())} circles; " + (
             "user-given" if sc.circles else f"SPEC 3.2 generator, seed {sc.seed}: central "
@@ -63,7 +63,7 @@ def assumed_values(config: StudyConfig, nav: NavigationSetup) -> list[dict[str, 
          "step (SPEC 2.3 velocity_variance)", "X / A (SPEC 13 E4)"),
         ("sampling", f"N = {m.n_samples}, T = {m.horizon}, {m.iterations} iteration; sigma = "
          f"{m.sigma}, lambda = {m.lam:g}, q_beta = {nav.problem.weights.get('q_beta', '?')}; "
-         "tuned because SPEC 8.2's values stall undisturbed (NOTES.md)", "A"),
+         "tuned because the paper's starting values stall undisturbed", "A"),
         ("barrier", "inverse barrier, one summed state, gamma = 0, crash cost "
          f"{m.crash_cost:g}", "X / A (SPEC 4, 13 E8)"),
         ("candidates", f"{rc.n_candidates} candidates x {rc.candidate_samples} samples, "
@@ -72,7 +72,8 @@ def assumed_values(config: StudyConfig, nav: NavigationSetup) -> list[dict[str, 
          "about the nominal trajectory; RMPPI ablation: plain iLQG gains on the physical model",
          "A (SPEC 10.2)"),
         ("alpha (main)", f"{config.rule.label()}, calibrated on an undisturbed run of each "
-         f"robust controller ({config.rule.calibration_steps} steps, seed 0)",
+         f"robust controller ({config.rule.calibration_steps} steps, seed "
+         f"{config.calibration_seed}), once per run",
          "A (SPEC 10.3)"),
         ("alpha sweep", f"{config.sweep_controller} with "
          + ", ".join(r.label() for r in config.sweep_rules)
@@ -92,3 +93,22 @@ def assumed_values(config: StudyConfig, nav: NavigationSetup) -> list[dict[str, 
         ("robust settings", str({k: v for k, v in asdict(rc).items() if k != "alpha"}), "A"),
     ]
     return [{"name": n, "value": v, "source": src} for n, v, src in rows]
+
+
+def paper_rows(out: Path) -> list[PaperRow]:
+    """Table I beside this run's cells, for the report site."""
+    import json
+
+    cells = json.loads((Path(out) / "summary.json").read_text())["cells"]
+    rows = []
+    for c in cells:
+        paper = TABLE_I.get(float(c["variance"]), {}).get(c["controller"])
+        if paper is None:
+            continue
+        rows.append(PaperRow(
+            f"{c['controller']} safety, variance {c['variance']:g}", f"{paper[0]}%",
+            f"{100 * c['safety']:.0f}% [{100 * c['ci_low']:.0f}, {100 * c['ci_high']:.0f}], "
+            f"n = {c['n']}",
+            f"RMSE paper {paper[1]:g} m, ours "
+            f"{'-' if c['rmse'] is None else format(c['rmse'], '.3f')} m"))
+    return rows

@@ -109,7 +109,7 @@ def write_report(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
     cfg, claims, evidence = s.config, all_claims(s), all_evidence(s)
     lines = [
         "# Navigation study: SA-RMPPI vs BaS-MPPI (paper Table I, Figs. 4-6)", "",
-        f"Profile `{cfg['profile']}`: variances {cfg['variances']}, {cfg['realisations']} "
+        f"Variances {cfg['variances']}, {cfg['realisations']} "
         f"realisations per cell, {cfg['steps']} steps per episode, controllers "
         f"{', '.join(NAMES[c] for c in cfg['controllers'])}; alpha sweep of "
         f"{NAMES[cfg['sweep_controller']]} at variances {cfg['sweep_variances']} "
@@ -148,3 +148,9 @@ def write_report(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
     path = store.root / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path
+
+
+def report(finished, summary) -> Path:
+    """The framework's report step: figures and report.md from a finished run."""
+    return write_report(summary.value, finished.store, finished.plan, finished.ids,
+                        finished.config.scene, summary.data["assumed"], finished.run_line)

@@ -1,4 +1,4 @@
-"""The study's map: the SPEC 3.2 generator (fixed seed) or the user's own list of circles."""
+"""The study's map as config: the generated map of a seed, or the user's own list of circles."""
 
 from __future__ import annotations
 
@@ -8,26 +8,8 @@ from functools import cache
 import numpy as np
 
 from workbench.problem.obstacles import Circle
-from workbench.scenarios.scenes import NavigationScene
+from workbench.scenarios.scenes import CircleScene, NavigationScene
 from workbench.validation import fail
-
-
-@dataclass(frozen=True)
-class CircleMap:
-    """A navigation scene from a given list of circles (same interface as NavigationScene)."""
-
-    circles: tuple[tuple[float, float, float], ...]
-    start: tuple[float, float] = (0.5, 0.5)
-    goal: tuple[float, float] = (9.5, 9.5)
-    dt: float = 0.02
-    u_limit: float = 5.0
-
-    def obstacles(self) -> tuple[Circle, ...]:
-        return tuple(Circle((float(x), float(y)), float(r)) for x, y, r in self.circles)
-
-    def assumed_values(self) -> dict[str, object]:
-        return {"circles": self.circles, "start": self.start, "goal": self.goal,
-                "dt": self.dt, "u_limit": self.u_limit}
 
 
 @dataclass(frozen=True)
@@ -58,9 +40,9 @@ class MapSpec:
         if not (np.isfinite(self.u_limit) and self.u_limit > 0):
             raise fail("scene.u_limit", self.u_limit, "must be a finite number > 0")
 
-    def scene(self) -> NavigationScene | CircleMap:
+    def scene(self) -> NavigationScene | CircleScene:
         if self.circles:
-            return CircleMap(self.circles, self.start, self.goal, u_limit=self.u_limit)
+            return CircleScene(self.circles, self.start, self.goal, u_limit=self.u_limit)
         return NavigationScene(start=self.start, goal=self.goal, seed=self.seed,
                                u_limit=self.u_limit)
 
@@ -74,7 +56,7 @@ class MapSpec:
         except ValueError as exc:
             # the scene itself rejects a start or goal inside an obstacle: name that field
             field = next((f"scene.{n}" for n in ("start", "goal")
-                          if f"NavigationScene.{n} =" in str(exc)), "scene.seed")
+                          if f"Scene.{n} =" in str(exc)), "scene.seed")
             raise fail(field, getattr(self, field.split(".")[1]), str(exc)) from exc
         for name in ("start", "goal"):
             p = np.array(getattr(self, name))

@@ -18,7 +18,9 @@ import pandas as pd
 
 from studies.navigation.paired import Paired
 from workbench.sampling.feedback import FALLBACK_REASONS
-from workbench.study import Rate, RunStore, Spread
+from workbench.study import Rate, RunStore, Spread, fmt_rate, to_jsonable
+from workbench.study.io import atomic_write_json
+from workbench.study.spec import Summary
 
 GATES = (0, 1)  # the generated map's first two circles form the central vertical passage
 EARLY = 1 / 3  # a crash with less than this fraction of the start-goal distance covered
@@ -140,3 +142,22 @@ def summarise(config, plan, store: RunStore, ids: dict) -> NavigationSummary:
                                     ry[["realisation", "crashed"]]))
     illu = store.meta(ids[plan.illustration]) if plan.illustration else None
     return NavigationSummary(config.as_dict(), tuple(cells), tuple(paired), illu)
+
+
+def summary(finished) -> Summary:
+    """summary.json: the cells, paired tests, illustration and the assumed values; one console
+    line per cell. Also writes map.json (the map the run used)."""
+    from studies.navigation.findings import NAMES
+    from studies.navigation.paper import assumed_values
+    from studies.navigation.tasks import Controllers, setup
+
+    config = finished.config
+    s = summarise(config, finished.plan, finished.store, finished.ids)
+    assumed = assumed_values(config, setup(Controllers.of(config)))
+    atomic_write_json(finished.out / "map.json", {
+        "start": config.scene.start, "goal": config.scene.goal,
+        "circles": config.scene.circle_array().tolist()})
+    lines = tuple(f"{NAMES[c.controller]:26s} {c.rule:22s} var {c.variance:6g}  safety "
+                  f"{fmt_rate(c.safe, 0):16s} RMSE {c.rmse:.4f}  {c.mean_step_ms:.1f} ms/step"
+                  for c in s.cells)
+    return Summary({**to_jsonable(s), "assumed": assumed}, s, lines)

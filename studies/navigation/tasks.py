@@ -7,19 +7,22 @@ nothing else, so the controller stream ``ctx.rng(0)`` and the plant-disturbance 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from functools import cache
 
 import numpy as np
 
-from studies.navigation.config import ROBUST, StudyConfig, variance_key
+from studies.navigation.config import RESULT_VERSION, ROBUST, StudyConfig, variance_key
 from studies.navigation.illustration import illustrate
 from studies.navigation.metrics import episode_row, timing_row, velocity_rows
 from studies.navigation.scene import MapSpec
-from workbench.sampling.threshold import AlphaRule
+from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
+from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.spec import Declaration
 
 NO_RULE = AlphaRule(kind="fixed")  # placeholder rule of the MPPI controllers (no selection)
 ILLUSTRATION_KEY = 2**32 - 1  # stream word of the Fig. 4 task (one word: no episode has it)
@@ -59,26 +62,79 @@ class Illustration:
         return (ILLUSTRATION_KEY,)
 
 
-@cache
-def setup(scene: MapSpec) -> NavigationSetup:
-    """One navigation set-up per process and map (its calibration runs are cached in it)."""
-    return navigation_setup(scene.scene())
+@dataclass(frozen=True)
+class Controllers:
+    """The config's controller settings, as one hashable key for the per-process caches."""
+
+    scene: MapSpec
+    sampler: MPPIConfig
+    q_beta: float
+    robust: RMPPIConfig
+    feedback: FeedbackWeights
+
+    @classmethod
+    def of(cls, config: StudyConfig, scene: MapSpec | None = None) -> Controllers:
+        return cls(scene or config.scene, config.sampler, config.q_beta, config.robust,
+                   config.feedback)
 
 
 @cache
-def controller(scene: MapSpec, name: str, rule: AlphaRule):
-    """One controller per process; controllers keep no state between episodes."""
-    return setup(scene).controller(name, rule)
+def setup(c: Controllers) -> NavigationSetup:
+    """One navigation set-up per process, map and settings."""
+    return navigation_setup(c.scene.scene(), q_beta=c.q_beta, mppi=c.sampler)
 
 
-def run_task(task: Realisation | Illustration, ctx: TaskContext, config: StudyConfig) \
-        -> TaskOutput:
+def illustration_map(scene: MapSpec, task: Illustration) -> MapSpec:
+    """The Fig. 4 map: the study's map with the illustration's control limits."""
+    return MapSpec(scene.start, scene.goal, scene.seed, scene.circles, task.u_limit)
+
+
+def feedback_kind(controller: str) -> str:
+    """K_safe (BaS-iLQG gains) for SA-RMPPI, plain iLQG gains for RMPPI."""
+    return "bas_ilqg" if controller == "sa_rmppi" else "ilqg"
+
+
+Thresholds = dict[tuple[Controllers, str, AlphaRule], Threshold]
+
+
+def prepare(config: StudyConfig, out=None) -> Thresholds:
+    """Every alpha rule a run uses, calibrated once (in the coordinating process) on the
+    controller that uses it, with ``config.calibration_seed``: (settings, controller, rule) ->
+    threshold."""
+    p = plan(config)
+    needed = dict.fromkeys((Controllers.of(config), t.controller, t.rule)
+                           for t in p.tasks if isinstance(t, Realisation)
+                           and t.controller in ROBUST)
+    if p.illustration is not None:
+        big = Controllers.of(config, illustration_map(config.scene, p.illustration))
+        needed[(big, "sa_rmppi", p.illustration.rule)] = None
+    return {key: setup(key[0]).threshold(key[2], feedback_kind(key[1]), config.robust,
+                                         config.feedback, config.calibration_seed)
+            for key in needed}
+
+
+_CONTROLLERS: dict = {}
+
+
+def controller(c: Controllers, name: str, rule: AlphaRule, thresholds: Thresholds):
+    """One controller per process and key; controllers keep no state between episodes."""
+    key = (c, name, rule)
+    if key not in _CONTROLLERS:
+        _CONTROLLERS[key] = setup(c).controller(
+            name, rule, c.robust, c.feedback, threshold=thresholds.get(key))
+    return _CONTROLLERS[key]
+
+
+def run_task(task: Realisation | Illustration, ctx: TaskContext, config: StudyConfig,
+             prepared: Thresholds) -> TaskOutput:
     scene = config.scene
     if isinstance(task, Illustration):
-        big = MapSpec(scene.start, scene.goal, scene.seed, scene.circles, task.u_limit)
-        return illustrate(setup(big), controller(big, "sa_rmppi", task.rule), task, ctx)
-    nav = setup(scene)
-    ctrl = controller(scene, task.controller, task.rule)
+        big = Controllers.of(config, illustration_map(scene, task))
+        return illustrate(setup(big), controller(big, "sa_rmppi", task.rule, prepared), task,
+                          ctx)
+    c = Controllers.of(config)
+    nav = setup(c)
+    ctrl = controller(c, task.controller, task.rule, prepared)
     if ctrl.sampler.lib is not None:
         ctrl.sampler.lib.set_threads(ctx.threads)
     ep = closed_loop(ctrl, nav.plant, nav.x0, config.steps, ctx.rng(0), ctx.rng(1),
@@ -120,3 +176,17 @@ def plan(config: StudyConfig) -> Plan:
             if config.illustration else None)
     tasks = ((illu,) if illu else ()) + tuple(ordered)
     return Plan(tasks, main, sweep, illu)
+
+
+def fingerprint(config: StudyConfig) -> dict:
+    """Every input results depend on beyond the task descriptions."""
+    return {"scene": asdict(config.scene), "steps": config.steps,
+            "goal_radius": config.goal_radius, "velocity_stride": config.velocity_stride,
+            "mppi": asdict(config.sampler), "q_beta": config.q_beta,
+            "robust": asdict(config.robust), "feedback": asdict(config.feedback),
+            "calibration_seed": config.calibration_seed}
+
+
+def declare(config: StudyConfig) -> Declaration:
+    p = plan(config)
+    return Declaration(p.tasks, run_task, fingerprint(config), RESULT_VERSION, p)

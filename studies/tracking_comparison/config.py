@@ -10,7 +10,6 @@ import numpy as np
 from workbench.validation import fail, one_of
 
 METHODS: tuple[str, ...] = ("ecbf", "al", "bas")
-PROFILES: tuple[str, ...] = ("quick", "paper", "full")
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
 SWEPT = ("q_beta", "pole", "q_scale", "ecbf_noise", "noise_std")
 NOISE_PLACEMENTS = ("before", "after")
@@ -74,8 +73,9 @@ class Variant:
 
 @dataclass(frozen=True)
 class StudyConfig:
-    """Everything a run depends on. Build with :meth:`for_profile` or directly; bad values raise
-    ValueError naming the field.
+    """Everything a run depends on; the defaults are the full profile, the profile files
+    (``quick.toml``, ``paper.toml``, ``full.toml``) set the sizes. Bad values raise ValueError
+    naming the field.
 
     Main study: n_seeds x n_rollouts per method at ``base``. Sweep: for each [A] parameter and each
     of its values (others at base), sweep_seeds x sweep_rollouts per method. failure = unsafe or
@@ -83,7 +83,6 @@ class StudyConfig:
     (computed from the same rollouts).
     """
 
-    profile: str = "full"
     methods: tuple[str, ...] = METHODS
     n_rollouts: int = 500
     n_seeds: int = 10
@@ -101,7 +100,6 @@ class StudyConfig:
     sweep_seeds: int = 2
 
     def __post_init__(self) -> None:
-        one_of("profile", self.profile, PROFILES)
         methods = self.methods
         if isinstance(methods, str) or not hasattr(methods, "__iter__") or len(methods) == 0:
             raise fail("methods", methods, f"must be a non-empty subset of {METHODS}")
@@ -131,19 +129,6 @@ class StudyConfig:
         object.__setattr__(self, "sweep_rollouts",
                            _int("sweep_rollouts", self.sweep_rollouts, 1))
         object.__setattr__(self, "sweep_seeds", _int("sweep_seeds", self.sweep_seeds, 1))
-
-    @classmethod
-    def for_profile(cls, profile: str, **overrides) -> StudyConfig:
-        """quick: 2 seeds x 100 rollouts, sweep 1 x 100 (make study); paper: the paper's 500
-        Monte Carlo rollouts per method (1 x 500), no sweep; full: 10 x 500, sweep 2 x 250.
-        The command line reads the same sizes from ``studies/tracking_comparison/<profile>.toml``
-        (a test keeps the two equal)."""
-        one_of("profile", profile, PROFILES)
-        sizes = {"quick": {"n_rollouts": 100, "n_seeds": 2, "sweep_rollouts": 100,
-                           "sweep_seeds": 1},
-                 "paper": {"n_rollouts": 500, "n_seeds": 1, "sweep": False},
-                 "full": {}}[profile]
-        return cls(profile=profile, **{**sizes, **overrides})
 
     def sweep_points(self) -> list[tuple[str, float | str, Variant]]:
         """(parameter, value, variant) for every swept value, the others at base."""

@@ -4,9 +4,11 @@ assumed value a run uses ([A], SPEC 15), in one place."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from studies.tracking_comparison.config import StudyConfig
 from studies.tracking_comparison.methods import Setup
+from workbench.study.spec import PaperRow
 
 
 @dataclass(frozen=True)
@@ -84,3 +86,26 @@ def assumed_values(config: StudyConfig, setup: Setup) -> list[dict[str, str]]:
          "rollouts (same noise prefix as the main seeds)", "A"),
     ]
     return [{"name": n, "value": v, "source": src} for n, v, src in rows]
+
+
+def paper_rows(out: Path) -> list[PaperRow]:
+    """The paper's rates beside this run's, for the report site."""
+    import json
+
+    from studies.tracking_comparison.findings import NAMES
+    from studies.tracking_comparison.paper import PAPER
+
+    summary = json.loads((Path(out) / "summary.json").read_text())
+    ours = {m["method"]: m for m in summary["methods"]}
+    rows = []
+    for p in PAPER:
+        if p.method not in ours:
+            continue
+        r = ours[p.method][p.metric]
+        inside = p.band[0] <= r["value"] <= p.band[1]
+        rows.append(PaperRow(
+            f"{NAMES[p.method]}: {p.metric} rate", f"{p.value:.0%} ({p.text})",
+            f"{r['value']:.1%} [{r['low']:.1%}, {r['high']:.1%}], n = {r['n']}",
+            f"SPEC 14.4 band {p.band[0]:.0%}-{p.band[1]:.0%}: "
+            f"{'inside' if inside else 'outside'}"))
+    return rows

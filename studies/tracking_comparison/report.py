@@ -252,7 +252,7 @@ def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene:
     claims = all_claims(s)
     lines = [
         "# Tracking comparison: ECBF-filtered iLQG, AL-iLQG, BaS-iLQG (paper Sec. III)", "",
-        f"Profile `{cfg['profile']}`: {cfg['n_seeds']} seeds x {cfg['n_rollouts']} Monte Carlo "
+        f"{cfg['n_seeds']} seeds x {cfg['n_rollouts']} Monte Carlo "
         f"rollouts per method, control noise std {cfg['base']['noise_std']:g}, limits ±15, one "
         "obstacle on the reference (SPEC 3.3, 6, 7, 12.1). Rates are pooled over seeds with 95% "
         f"Wilson intervals. {run_line}", "",
@@ -290,3 +290,14 @@ def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene:
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path
+
+
+def report(finished, summary) -> Path:
+    """The framework's report step: figures and report.md from a finished run."""
+    from studies.tracking_comparison.methods import Setup
+
+    s = summary.value
+    main_ids = {finished.ids[t] for ts in finished.plan.main.values() for t in ts}
+    table = finished.store.table("rollouts")
+    return write_report(s, finished.store, table[table["task_id"].isin(main_ids)],
+                        Setup().scene, summary.data["assumed"], finished.run_line)

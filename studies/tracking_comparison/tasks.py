@@ -9,7 +9,7 @@ from functools import cache
 
 import numpy as np
 
-from studies.tracking_comparison.config import METHODS, StudyConfig, Variant
+from studies.tracking_comparison.config import METHODS, RESULT_VERSION, StudyConfig, Variant
 from studies.tracking_comparison.methods import Nominal, Setup, solve_nominal
 from studies.tracking_comparison.rollouts import (
     LinearDynamics,
@@ -24,6 +24,7 @@ from studies.tracking_comparison.rollouts import (
 from workbench.filters.ecbf import ECBFFilter
 from workbench.problem.barrier import embed_barrier
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.spec import Declaration
 
 
 @dataclass(frozen=True)
@@ -133,3 +134,15 @@ def plan(config: StudyConfig) -> Plan:
     # nominal loops first (fast), then the slow ECBF batches, largest first
     ordered = sorted(rollouts, key=lambda t: (t.method != "ecbf", -t.n_rollouts))
     return Plan((*nominals.values(), *ordered), nominals, main, sweep)
+
+
+def run(task: Rollouts | NominalLoop, ctx: TaskContext, config: StudyConfig) -> TaskOutput:
+    """The framework's task function: every task runs on the fixed set-up."""
+    return run_task(task, ctx, Setup())
+
+
+def declare(config: StudyConfig) -> Declaration:
+    """The tasks of a run; results depend on the fixed set-up beyond the task descriptions."""
+    p = plan(config)
+    return Declaration(p.tasks, run, fingerprint={"setup": Setup().fixed()},
+                       version=RESULT_VERSION, plan=p)

@@ -10,10 +10,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from studies.free_energy_bound.__main__ import main
-from studies.free_energy_bound.config import TESTS, StudyConfig
-from studies.free_energy_bound.run import run
+from studies.free_energy_bound import STUDY
+from studies.free_energy_bound.config import TESTS
+from workbench.cli import main
+from workbench.study.config_io import ConfigError
+from workbench.study.runner import profile_config, resolve_config
+from workbench.study.runner import run as run_study
 from workbench.study.stats import wilson_interval
+
+
+def run(cfg, out, **kw):
+    return run_study(STUDY, cfg, out, **kw)
 
 # kappa = 0: alpha is the undisturbed free energy itself, so the nominal state differs on some
 # of the few steps and R > 0 (with the default 0.1 the tiny episodes never leave the real state)
@@ -27,7 +34,7 @@ STRATA = {"all": None, "all_real_safe": ("all_real_safe", True),
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     out = tmp_path_factory.mktemp("bound_tiny")
-    cfg = StudyConfig.for_profile("tiny", **TINY)
+    cfg = profile_config(STUDY, "tiny", **TINY)
     outcome = run(cfg, out, workers=0, progress=False)
     return cfg, out, outcome
 
@@ -36,17 +43,19 @@ def tiny(tmp_path_factory):
     ({"variances": (0.0, -5.0)}, "variances"), ({"variances": ()}, "variances"),
     ({"episodes": 0}, "episodes"), ({"tests": ("T1", "T4")}, "tests"),
     ({"steps": 1}, "steps"), ({"kappa": float("nan")}, "kappa"), ({"n_q": "T+1"}, "n_q"),
-    ({"space": "polar"}, "space"), ({"profile": "huge"}, "profile"),
+    ({"space": "polar"}, "space"),
 ])
 def test_bad_config_fails_at_construction_naming_the_field(overrides, field):
     with pytest.raises(ValueError, match=rf"^{field}"):
-        StudyConfig.for_profile("tiny", **overrides) if field != "profile" else \
-            StudyConfig(**overrides)
+        profile_config(STUDY, "tiny", **overrides)
+    with pytest.raises(ConfigError, match=r"^--profile 'huge' is invalid"):
+        resolve_config(STUDY, "huge")
 
 
-def test_bad_cli_value_fails_before_any_work(tmp_path):
-    with pytest.raises(ValueError, match=r"^episodes"):
-        main(["--profile", "tiny", "--episodes", "0", "--out", str(tmp_path / "x")])
+def test_bad_cli_value_fails_before_any_work(tmp_path, capsys):
+    assert main(["run", "free-energy-bound", "--profile", "tiny", "--set", "episodes=0",
+                 "--out", str(tmp_path / "x")]) == 2
+    assert "episodes = 0 is invalid" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
 
 

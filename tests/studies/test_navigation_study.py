@@ -16,12 +16,22 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from studies.navigation.config import StudyConfig
+from studies.navigation import STUDY
 from studies.navigation.findings import all_claims
-from studies.navigation.run import run, study
 from studies.navigation.scene import MapSpec
-from studies.navigation.tasks import setup
+from studies.navigation.tasks import Controllers, setup
 from workbench.study import Rate, RunStore, fmt_rate
+from workbench.study.config_io import ConfigError
+from workbench.study.runner import declare, profile_config, resolve_config
+from workbench.study.runner import run as run_study
+
+
+def run(cfg, out, **kw):
+    return run_study(STUDY, cfg, out, **kw)
+
+
+def tiny(**overrides):
+    return profile_config(STUDY, "tiny", **overrides)
 
 TABLES = ("episodes.parquet", "episodes.csv", "velocity.parquet", "velocity.csv")
 
@@ -40,22 +50,22 @@ TABLES = ("episodes.parquet", "episodes.csv", "velocity.parquet", "velocity.csv"
 ])
 def test_bad_config_fails_at_start_naming_the_field(overrides, field):
     with pytest.raises(ValueError, match=rf"^{field}"):
-        StudyConfig.for_profile("tiny", **overrides)
+        tiny(**overrides)
 
 
 def test_bad_map_values_and_profile_name_the_field():
     with pytest.raises(ValueError, match=r"^scene\.circles\[0\]"):
         MapSpec(circles=((1.0, 1.0, -0.5),))
-    with pytest.raises(ValueError, match=r"^profile"):
-        StudyConfig.for_profile("huge")
-    cfg = StudyConfig.for_profile("quick")
+    with pytest.raises(ConfigError, match=r"^--profile 'huge' is invalid"):
+        resolve_config(STUDY, "huge")
+    cfg = resolve_config(STUDY, "quick")
     assert cfg.variances == (0.0, 10.0, 100.0) and cfg.realisations == 20
-    assert StudyConfig.for_profile("paper").realisations == 100
+    assert resolve_config(STUDY, "paper").realisations == 100
 
 
 def test_streams_are_keyed_by_variance_and_realisation_only():
-    cfg = StudyConfig.for_profile("tiny")
-    decl, p = study(cfg)
+    cfg = tiny()
+    decl, p = declare(STUDY, cfg)
     keys: dict = {}
     for t in p.tasks:
         keys.setdefault((t.variance, t.realisation), set()).add(decl.context(t).key)
@@ -66,7 +76,7 @@ def test_streams_are_keyed_by_variance_and_realisation_only():
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("nav")
-    cfg = StudyConfig.for_profile("tiny")
+    cfg = tiny()
     return cfg, out, run(cfg, out, workers=0, progress=False)  # later runs reuse its set-up
 
 
@@ -74,7 +84,7 @@ def test_common_random_numbers_same_disturbance_for_every_controller(tiny_run):
     """The plant disturbance w_k = x_{k+1} - F(x_k, u_k), recovered from every stored
     trajectory, is the same sequence for every controller and alpha rule of realisation j."""
     cfg, out, _ = tiny_run
-    store, plant = RunStore(out), setup(cfg.scene).plant
+    store, plant = RunStore(out), setup(Controllers.of(cfg)).plant
     f = ca.Function("f", [plant.x, plant.u], [plant.x_next])
     ep = store.table("episodes")
     seqs: dict[int, list[np.ndarray]] = {}
@@ -116,7 +126,7 @@ def test_report_numbers_are_the_data(tiny_run):
     sa = next(c for c in cells if c["controller"] == "sa_rmppi" and c["main"])
     assert fmt_rate(Rate(sa["safe"]["k"], sa["n"]), 0) in line
     assert f"{sa['rmse']:.4f}" in line or math.isnan(sa["rmse"])
-    for cs in all_claims(outcome.summary).values():  # every SPEC 14.4 claim is printed
+    for cs in all_claims(outcome.summary.value).values():  # every SPEC 14.4 claim is printed
         for claim in cs:
             assert f"- {claim.text}" in text
 
@@ -147,10 +157,10 @@ def test_interrupt_then_rerun_equals_an_uninterrupted_run(tiny_run, tmp_path):
     cfg, ref, _ = tiny_run
     out = tmp_path / "run"
     code = ("import sys; from pathlib import Path\n"
-            "from studies.navigation.config import StudyConfig\n"
-            "from studies.navigation.run import run\n"
+            "from studies.navigation import STUDY\n"
             "from workbench.study import StudyInterrupted\n"
-            "try:\n    run(StudyConfig.for_profile('tiny'), Path(sys.argv[1]), workers=1, "
+            "from workbench.study.runner import profile_config, run\n"
+            "try:\n    run(STUDY, profile_config(STUDY, 'tiny'), Path(sys.argv[1]), workers=1, "
             "progress=False)\nexcept StudyInterrupted:\n    sys.exit(130)\n")
     proc = subprocess.Popen([sys.executable, "-c", code, str(out)], stderr=subprocess.PIPE,
                             cwd=Path(__file__).parents[2])
@@ -175,13 +185,16 @@ def test_interrupt_then_rerun_equals_an_uninterrupted_run(tiny_run, tmp_path):
 def test_fig4_illustration_task_runs_and_keeps_both_sample_sets():
     """The Fig. 4 task (limits +-50, velocity variance 5000) on a few steps: it ran in no
     other test (the tiny profile skips it) and broke once on an API change."""
-    from studies.navigation.tasks import Illustration, run_task
+    from dataclasses import replace
+
+    from studies.navigation.tasks import Illustration, prepare, run_task
     from workbench.sampling.threshold import AlphaRule
     from workbench.study import TaskContext
 
-    config = StudyConfig.for_profile("tiny")
-    task = Illustration(AlphaRule(kappa=0.1), steps=8)
-    out = run_task(task, TaskContext("fig4", 1, (7,), 1), config)
+    rule = AlphaRule(kappa=0.1, calibration_steps=30)
+    config = replace(tiny(rule=rule), illustration=True, illustration_steps=8)
+    task = Illustration(rule, steps=8)
+    out = run_task(task, TaskContext("fig4", 1, (7,), 1), config, prepare(config))
     assert out.arrays["path"].shape[1] == 2 and len(out.arrays["path"]) >= 2
     assert np.all(np.isfinite(out.arrays["path"]))
     assert len(out.arrays) >= 3  # the path, the nominal path and the rolled-out samples

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.stats import binomtest
 
+from studies.tracking_comparison import STUDY
 from studies.tracking_comparison.config import StudyConfig, Variant
 from studies.tracking_comparison.findings import NAMES, all_claims
 from studies.tracking_comparison.methods import Setup, solve_nominal
@@ -21,14 +22,24 @@ from studies.tracking_comparison.rollouts import (
     lift_function,
     noise_generator,
 )
-from studies.tracking_comparison.run import run
 from studies.tracking_comparison.tasks import plan
 from workbench.filters.ecbf import ECBFFilter
 from workbench.ilqg.bas import tracking_problem
 from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.problem import Problem
 from workbench.study import Rate, RunStore, fmt_rate
+from workbench.study.config_io import ConfigError
+from workbench.study.runner import profile_config, resolve_config
+from workbench.study.runner import run as run_study
 from workbench.study.stats import wilson_interval
+
+
+def run(cfg, out, **kw):
+    return run_study(STUDY, cfg, out, **kw)
+
+
+def quick(**overrides):
+    return profile_config(STUDY, "quick", **overrides)
 
 TINY = dict(n_rollouts=6, n_seeds=2, sweep_rollouts=4, sweep_seeds=1, sweep_q_beta=(1e-2, 1.0),
             sweep_pole=(5.0,), sweep_q_scale=(1.0,), sweep_ecbf_noise=("before", "after"),
@@ -48,19 +59,19 @@ TINY = dict(n_rollouts=6, n_seeds=2, sweep_rollouts=4, sweep_seeds=1, sweep_q_be
 ])
 def test_bad_config_fails_at_construction_naming_the_field(overrides, field):
     with pytest.raises(ValueError, match=rf"^{field}"):
-        StudyConfig.for_profile("quick", **overrides)
+        quick(**overrides)
 
 
 def test_bad_profile_and_variant_name_the_field():
-    with pytest.raises(ValueError, match=r"^profile"):
-        StudyConfig.for_profile("huge")
+    with pytest.raises(ConfigError, match=r"^--profile 'huge' is invalid"):
+        resolve_config(STUDY, "huge")
     with pytest.raises(ValueError, match=r"^ecbf_noise"):
         Variant(ecbf_noise="sometimes")
     with pytest.raises(ValueError, match=r"^noise_std"):
         Variant(noise_std=-1.0)
-    cfg = StudyConfig.for_profile("quick", methods=("bas", "ecbf"))
+    cfg = quick(methods=("bas", "ecbf"))
     assert cfg.methods == ("ecbf", "bas") and cfg.n_rollouts == 100
-    assert StudyConfig.for_profile("full").n_rollouts * StudyConfig().n_seeds == 5000
+    assert resolve_config(STUDY, "full").n_rollouts * StudyConfig().n_seeds == 5000
 
 
 @pytest.mark.parametrize("k, n", [(0, 500), (1, 500), (135, 500), (300, 500), (500, 500),
@@ -152,7 +163,7 @@ def test_ecbf_rollouts_equal_a_stepwise_filter_loop(setup_and_nominals, rng):
 def tiny_run(tmp_path_factory):
     """A tiny run in this process (workers = 0), its config and outcome."""
     out = tmp_path_factory.mktemp("tc")
-    cfg = StudyConfig.for_profile("quick", **TINY)
+    cfg = quick(**TINY)
     return cfg, out, run(cfg, out, workers=0, progress=False)
 
 
@@ -210,12 +221,12 @@ def test_report_numbers_are_the_data(tiny_run):
 def test_report_prints_exactly_the_claims_that_hold(tiny_run):
     outcome = tiny_run[2]
     text = outcome.report.read_text()
-    claims = [c for cs in all_claims(outcome.summary).values() for c in cs]
+    claims = [c for cs in all_claims(outcome.summary.value).values() for c in cs]
     assert any(c.holds for c in claims) and any(not c.holds for c in claims)
     for c in claims:
         assert (f"- {c.text}" in text) == c.holds, c.text
     # mutually exclusive alternatives: exactly one ranking sentence is printed
-    ranking = [c for c in all_claims(outcome.summary)["ranking"][:3] if c.holds]
+    ranking = [c for c in all_claims(outcome.summary.value)["ranking"][:3] if c.holds]
     assert len(ranking) == 1
 
 
@@ -257,15 +268,15 @@ def test_sigint_during_ecbf_tasks_then_rerun_equals_an_uninterrupted_run(tmp_pat
     from pathlib import Path
 
     overrides = dict(methods=("ecbf",), n_rollouts=40, n_seeds=4, sweep=False, radii=(0.5,))
-    cfg = StudyConfig.for_profile("quick", **overrides)
+    cfg = quick(**overrides)
     run(cfg, tmp_path / "ref", workers=0, progress=False)
     out = tmp_path / "run"
     code = ("import sys; from pathlib import Path\n"
-            "from studies.tracking_comparison.config import StudyConfig\n"
-            "from studies.tracking_comparison.run import run\n"
+            "from studies.tracking_comparison import STUDY\n"
             "from workbench.study import StudyInterrupted\n"
-            f"cfg = StudyConfig.for_profile('quick', **{overrides!r})\n"
-            f"try:\n    run(cfg, Path({str(out)!r}), workers=0, progress=False)\n"
+            "from workbench.study.runner import profile_config, run\n"
+            f"cfg = profile_config(STUDY, 'quick', **{overrides!r})\n"
+            f"try:\n    run(STUDY, cfg, Path({str(out)!r}), workers=0, progress=False)\n"
             "except StudyInterrupted:\n    sys.exit(130)\n")
     proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE,
                             cwd=Path(__file__).parents[2])

@@ -8,6 +8,7 @@ from typing import Literal
 
 import pytest
 
+from studies.navigation.config import StudyConfig as NavigationConfig
 from studies.tracking_comparison.config import StudyConfig
 from workbench.study.config_io import ConfigError, dump, keys, load, merge, parse_sets, to_dict
 
@@ -98,8 +99,8 @@ def test_merge_is_recursive_and_later_layers_win():
 
 
 @pytest.mark.parametrize("cfg", [Outer(), Outer(count=9, maybe=2.0, inner=Inner(0.5, "b")),
-                                 StudyConfig.for_profile("quick"),
-                                 StudyConfig.for_profile("full", methods=("bas",))])
+                                 StudyConfig(n_rollouts=100, n_seeds=2),
+                                 StudyConfig(methods=("bas",)), NavigationConfig()])
 def test_dump_round_trips(cfg):
     text = dump(cfg, header="a header\nover two lines")
     assert text.startswith("# a header\n# over two lines\n")

@@ -11,7 +11,7 @@ from urllib.parse import unquote, urlparse
 
 import pytest
 
-from workbench.study.entry import discover
+from workbench.study.spec import registry as discover
 from workbench.study.report_site import build_site
 
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
@@ -24,7 +24,7 @@ def test_site_html_without_a_browser(cli_reports, tmp_path):
     html = build_site(root, reg).read_text()
     for name in reg:
         assert f'id="{name}"' in html
-    assert "Not run yet: <code>workbench run alpha-rules</code>" in html
+    assert "Not run yet: <code>workbench run navigation</code>" in html
     for href in ("tracking_comparison/report.html", "tracking_comparison/manifest.json",
                  "tracking_comparison/summary.json", "tracking_comparison/rollouts.csv",
                  "tracking_comparison/rollouts.parquet", "tracking_comparison/config.toml",

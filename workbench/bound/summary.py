@@ -4,7 +4,7 @@ quantiles and the global/local ratio, per test, set of constants and stratum (SP
 A transition check (t, t+1) belongs to the strata of step t. Strata:
 ``all``; ``all_real_safe`` / ``some_real_crashed`` (SPEC 11.3 (a)); ``admissible`` /
 ``fallback`` (SPEC 11.3 (b): a candidate was below alpha, or none was); ``nominal_differs`` /
-``nominal_is_real`` (issue 12).
+``nominal_is_real``.
 """
 
 from __future__ import annotations
@@ -81,11 +81,14 @@ def summarize(steps: list[BoundStep], checks: list[list[Check]] | None = None,
             sl = np.array([c.slack for _, c in sel])
             k = sum(c.holds for _, c in sel)
             glob = cst == "global" and bool(local)
+            q05, q50, q95 = (float(np.quantile(sl, q)) for q in (0.05, 0.5, 0.95))
             rows.append(CheckSummary(
-                test, cst, name, len(sel), int(k), k / len(sel), wilson_interval(int(k), len(sel)),
-                *(float(np.quantile(sl, q)) for q in (0.05, 0.5, 0.95)),
-                _median_ratio((c.rhs, local[i].rhs) for i, c in sel if i in local) if glob
-                else float("nan"),
-                _median_ratio((c.lipschitz_term, local[i].lipschitz_term) for i, c in sel
-                              if i in local) if glob else float("nan")))
+                test=test, constants=cst, stratum=name, n_steps=len(sel), n_holding=int(k),
+                fraction_holding=k / len(sel), interval=wilson_interval(int(k), len(sel)),
+                slack_q05=q05, slack_q50=q50, slack_q95=q95,
+                rhs_ratio=_median_ratio((c.rhs, local[i].rhs) for i, c in sel if i in local)
+                if glob else float("nan"),
+                term_ratio=_median_ratio((c.lipschitz_term, local[i].lipschitz_term)
+                                         for i, c in sel if i in local) if glob
+                else float("nan")))
     return rows

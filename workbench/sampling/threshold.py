@@ -30,7 +30,8 @@ AlphaKind = Literal["progress", "quantile", "fixed", "start"]
 
 @dataclass(frozen=True)
 class AlphaRule:
-    """How alpha is chosen (defaults [A], chosen from the activation study in NOTES.md)."""
+    """How alpha is chosen (defaults [A]: kappa = 0.1 chosen from an activation sweep on the
+    navigation map; the navigation study's alpha sweep repeats it)."""
 
     kind: AlphaKind = "progress"
     kappa: float = 0.1  # progress: alpha = (1 + kappa) F_und(d); 0.1 from the activation study
@@ -120,7 +121,7 @@ def make_threshold(rule: AlphaRule, X: np.ndarray | None = None, F: np.ndarray |
     """The threshold of a rule from an undisturbed trace: states X (n, n_physical) and the
     real-state candidate free energies F (n,) (None for ``kind="fixed"``)."""
     if rule.kind == "fixed":
-        return ConstantThreshold(rule.value)
+        return ConstantThreshold(value=rule.value)
     if X is None or F is None or goal is None:
         raise fail("calibration", None, f"alpha rule {rule.kind!r} needs an undisturbed trace "
                    "(states, free energies) and the goal")
@@ -129,10 +130,11 @@ def make_threshold(rule: AlphaRule, X: np.ndarray | None = None, F: np.ndarray |
     if finite.size < 2:
         raise fail("F", F, "need at least two finite calibration free energies")
     if rule.kind == "start":
-        return ConstantThreshold(rule.factor * float(finite[0]))
+        return ConstantThreshold(value=rule.factor * float(finite[0]))
     if rule.kind == "quantile":
-        return ConstantThreshold(float(np.quantile(finite, rule.quantile)))
+        return ConstantThreshold(value=float(np.quantile(finite, rule.quantile)))
     goal = np.asarray(goal, float)[: len(position)]
     d = np.linalg.norm(np.asarray(X, float)[:, list(position)] - goal, axis=1)
     log_d, vals = progress_curve(d, F)
-    return ProgressThreshold(log_d, vals, rule.kappa, goal, tuple(position))
+    return ProgressThreshold(log_d=log_d, F=vals, kappa=rule.kappa, goal=goal,
+                             position=tuple(position))

@@ -1,19 +1,20 @@
-"""The navigation study's set-up (SPEC 3.2, 8.2, 10.3) with every assumed value in one place."""
+"""The navigation set-up: a map of circles, the double-integrator plant, the barrier-embedded
+sampling problem and the sampler settings, and the controllers built on them."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.models import Model, double_integrator
+from workbench.sampling.calibration import calibrate
 from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
 from workbench.sampling.problem import SamplingProblem, navigation_costs
-from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
+from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.scenes import CircleScene, NavigationScene
-from workbench.sim import closed_loop
 from workbench.validation import fail, one_of
 
 CONTROLLERS = ("bas_mppi", "sa_rmppi", "rmppi", "mppi_crash")
@@ -21,7 +22,7 @@ CONTROLLERS = ("bas_mppi", "sa_rmppi", "rmppi", "mppi_crash")
 # [A] SPEC 8.2 starts from sigma = 2, lambda = 1, q_beta = 1 and asks to tune the undisturbed
 # BaS-MPPI to reach the goal. With q_beta = 1 the robot stalls in a local minimum of this map at
 # (3.8, 2.2); the values below reach the goal (final error ~0.01 m in 20 s); the grid that
-# chose them is in NOTES.md ("BaS-MPPI tuning").
+# chose them is documented with the navigation study.
 TUNED_SIGMA = (5.0, 5.0)
 TUNED_LAMBDA = 10.0
 TUNED_Q_BETA = 0.01
@@ -29,14 +30,14 @@ TUNED_Q_BETA = 0.01
 
 @dataclass(frozen=True, eq=False)
 class NavigationSetup:
+    """The plant, the barrier-embedded sampling problem and the sampler settings of one map."""
+
     scene: NavigationScene | CircleScene
     plant: Model
     problem: SamplingProblem
     goal: np.ndarray  # physical goal state (4,)
     x0: np.ndarray  # physical start state (4,)
     mppi: MPPIConfig
-
-    _traces: dict = field(default_factory=dict, repr=False)
 
     def physical_problem(self) -> SamplingProblem:
         """The same costs on the plant without a barrier state (crash cost only)."""
@@ -49,44 +50,32 @@ class NavigationSetup:
         model = self.problem.model if kind == "bas_ilqg" else physical_model(self.problem.model)
         return ILQGFeedback(model, self.mppi.horizon, self.problem.nx, weights)
 
-    def calibration_trace(self, feedback: str = "bas_ilqg", robust: RMPPIConfig = RMPPIConfig(),
-                          steps: int = 600, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """Undisturbed run of the robust controller with alpha = inf: visited states (n, 4)
-        and the real-state candidate free energies (n,), for threshold calibration."""
-        key = (feedback, replace(robust, diagnostics=False), steps, seed)
-        if key not in self._traces:
-            # diagnostics off: the trace keeps every step's info, and a diagnostic batch is MBs
-            ctrl = RobustMPPI(self.problem, self.goal, self.mppi,
-                              replace(robust, alpha=np.inf, diagnostics=False),
-                              self.feedback(feedback))
-            ep = closed_loop(ctrl, self.plant, self.x0, steps, np.random.default_rng(seed),
-                             np.random.default_rng(seed + 1))
-            F = np.array([i.candidate_free_energy[-1] if i.candidate_free_energy.size
-                          else np.nan for i in ep.infos])
-            self._traces[key] = (ep.X[: len(F)], F)
-        return self._traces[key]
-
     def threshold(self, rule: AlphaRule = AlphaRule(), feedback: str = "bas_ilqg",
-                  robust: RMPPIConfig = RMPPIConfig(), seed: int = 0) -> Threshold:
-        """The selection threshold of a rule, calibrated on this map (SPEC 10.3)."""
-        if not rule.needs_calibration:
-            return make_threshold(rule)
-        X, F = self.calibration_trace(feedback, robust, rule.calibration_steps, seed)
-        return make_threshold(rule, X, F, self.goal, self.plant.position)
+                  robust: RMPPIConfig = RMPPIConfig(),
+                  weights: FeedbackWeights = FeedbackWeights(), seed: int = 0) -> Threshold:
+        """The selection threshold of ``rule`` on this map (:func:`calibrate`: one undisturbed
+        episode of the robust controller with this feedback, seeded with ``seed``)."""
+        return calibrate(rule, self.problem, self.goal, self.plant, self.x0, self.mppi,
+                         self.feedback(feedback, weights), robust, seed=seed)
 
     def controller(self, name: str, rule: AlphaRule = AlphaRule(),
                    robust: RMPPIConfig = RMPPIConfig(),
-                   weights: FeedbackWeights = FeedbackWeights(), seed: int = 0):
-        """One of :data:`CONTROLLERS`: BaS-MPPI, SA-RMPPI, RMPPI (plain iLQG feedback, the same
-        alpha rule calibrated on RMPPI itself) or MPPI with a crash cost only."""
+                   weights: FeedbackWeights = FeedbackWeights(), seed: int = 0,
+                   threshold: Threshold | None = None):
+        """One of :data:`CONTROLLERS`: BaS-MPPI, SA-RMPPI, RMPPI (plain iLQG feedback) or MPPI
+        with a crash cost only. The robust ones use ``threshold``; without one, they calibrate
+        ``rule`` here (:meth:`threshold`, on the controller itself, seeded with ``seed``): pass a
+        threshold computed once when you build many controllers."""
         one_of("controller", name, CONTROLLERS)
         if name == "bas_mppi":
             return MPPI(self.problem, self.goal, self.mppi)
         if name == "mppi_crash":
             return MPPI(self.physical_problem(), self.goal, self.mppi)
         kind = "bas_ilqg" if name == "sa_rmppi" else "ilqg"
+        if threshold is None:
+            threshold = self.threshold(rule, kind, robust, weights, seed)
         return RobustMPPI(self.problem, self.goal, self.mppi, robust,
-                          self.feedback(kind, weights), self.threshold(rule, kind, robust, seed))
+                          self.feedback(kind, weights), threshold)
 
 
 def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,

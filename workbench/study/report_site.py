@@ -3,7 +3,7 @@
 For each registered study whose run directory (``ROOT/<dir of its default_out>``) exists: its
 report.md rendered to report.html beside it (so the report's relative figure links keep
 working), links to report.md, summary.json, manifest.json, config.toml and the tidy tables, the
-paper's numbers beside ours (``StudyEntry.paper``) and every figure as a thumbnail. Studies not
+paper's numbers beside ours (``StudySpec.paper``) and every figure as a thumbnail. Studies not
 run yet are listed with the command that runs them. No scripts, no network: plain HTML and CSS.
 """
 
@@ -83,7 +83,7 @@ def _paper_table(entry, d: Path) -> str:
     if entry.paper is None:
         return "<p class=\"muted\">The paper reports no numbers for this study.</p>"
     try:
-        rows = entry.paper(d)
+        rows = entry.fn("paper")(d)
     except Exception as exc:  # a report site must not fail over one study's old files
         return (f"<p class=\"muted\">Paper comparison unavailable: "
                 f"{html.escape(type(exc).__name__)}: {html.escape(str(exc))}</p>")

@@ -1,4 +1,4 @@
-"""Generated sampler kernels (issue: sampling core): MPPI rollouts, the SAIS dual rollout of
+"""Generated sampler kernels: MPPI rollouts, the SAIS dual rollout of
 Algorithm 1 and the RMPPI candidate evaluation, emitted by :mod:`workbench.sampling.kernels.emit`.
 
 Run-time constants (``const`` role, shared by all samples):
@@ -81,7 +81,8 @@ def layouts(sp: SamplingProblem, kernel: str) -> tuple[Layout, Layout]:
         if kernel == "candidates":
             carry += (("delay", 1), ("stride", 1))
         result = (("S", 1), ("crashed", 1))
-    return Layout(f"{kernel} carry", carry), Layout(f"{kernel} result", result)
+    return (Layout(name=f"{kernel} carry", fields=carry),
+            Layout(name=f"{kernel} result", fields=result))
 
 
 def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False) -> KernelSpec:
@@ -119,7 +120,7 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False)
                         [ca.vertcat(S + phi(x, c["p"]), cr)], ["carry", "p"], ["result"], _OPTS)
     roles = {"carry": "carry", "z": "noise", "u": "time", "u_next": "time",
              **{k: "const" for k in _CONSTS}}
-    return KernelSpec(name, step, final, roles)
+    return KernelSpec(name=name, step=step, final=final, roles=roles)
 
 
 def candidate_spec(sp: SamplingProblem) -> KernelSpec:
@@ -171,7 +172,7 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:
     roles = {"carry": "carry", "z": "noise", "u": "time", "K": "time", "alpha": "const",
              "clip_cost": "const",
              **{k: "const" for k in _CONSTS}}
-    return KernelSpec(name, step, final, roles)
+    return KernelSpec(name=name, step=step, final=final, roles=roles)
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,8 +193,9 @@ class CompiledKernel:
 
     def __init__(self, spec: KernelSpec, cdll: ctypes.CDLL, carry: Layout | None = None,
                  result: Layout | None = None):
-        carry = carry or Layout(f"{spec.name} carry", (("carry", spec.n_carry),))
-        result = result or Layout(f"{spec.name} result", (("result", spec.n_result),))
+        carry = carry or Layout(name=f"{spec.name} carry", fields=(("carry", spec.n_carry),))
+        result = result or Layout(name=f"{spec.name} result",
+                                  fields=(("result", spec.n_result),))
         if (carry.size, result.size) != (spec.n_carry, spec.n_result):
             raise ValueError(f"{spec.name}: layouts ({carry.size}, {result.size}) do not match "
                              f"the kernel ({spec.n_carry}, {spec.n_result})")
@@ -343,8 +345,9 @@ def _sampler_library(cdll: ctypes.CDLL, specs, lays) -> SamplerLibrary:
     cdll.wb_normals.argtypes = [ctypes.c_int] * 3 + [ctypes.c_ulonglong, ctypes.c_void_p]
     cdll.wb_set_threads.argtypes = [ctypes.c_int]
     cdll.wb_get_threads.restype = ctypes.c_int
-    kernels = [CompiledKernel(s, cdll, *lay) for s, lay in zip(specs, lays, strict=True)]
-    return SamplerLibrary(*kernels, cdll=cdll)
+    mppi, sais, candidates = (CompiledKernel(s, cdll, *lay)
+                              for s, lay in zip(specs, lays, strict=True))
+    return SamplerLibrary(mppi=mppi, sais=sais, candidates=candidates, cdll=cdll)
 
 
 def kernel_source(specs: list[KernelSpec], vector_math: bool | None = None) -> str:

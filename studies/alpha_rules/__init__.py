@@ -1,1 +1,0 @@
-"""Activation of SA-RMPPI's robust machinery under each alpha rule (issue: SA-RMPPI)."""

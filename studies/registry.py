@@ -1,0 +1,8 @@
+"""The registered studies: one line per study package (each defines ``STUDY``)."""
+
+STUDIES = [
+    "studies.tracking_demo",
+    "studies.tracking_comparison",
+    "studies.navigation",
+    "studies.free_energy_bound",
+]

@@ -1,0 +1,54 @@
+"""Calibrating the selection threshold alpha of Robust MPPI: one explicit, seeded step.
+
+An alpha rule (:class:`~workbench.sampling.threshold.AlphaRule`) is read off an undisturbed
+closed loop of the robust controller whose selection is switched off (alpha = +inf, so the
+real-state candidate is always taken): the visited states and the free energy of the real-state
+candidate at each step. :func:`calibrate` runs that episode and returns the threshold; call it
+once and hand the threshold to every controller (and worker) that needs it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from workbench.problem.models import Model
+from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI
+from workbench.sampling.feedback import FeedbackLaw
+from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
+from workbench.sim import closed_loop
+from workbench.validation import integer
+
+
+def calibration_trace(problem: SamplingProblem, goal, plant: Model, x0, mppi: MPPIConfig,
+                      feedback: FeedbackLaw, robust: RMPPIConfig = RMPPIConfig(), *,
+                      steps: int = 600, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The undisturbed episode of ``steps`` plant steps from ``x0`` with alpha = +inf: visited
+    plant states (n, nx_plant) and the real-state candidate free energies (n,) (NaN where a step
+    evaluated no candidate). The controller draws from ``default_rng(seed)``, the plant from
+    ``default_rng(seed + 1)`` (it draws nothing without a disturbance)."""
+    steps = integer("steps", steps, 1)
+    seed = integer("seed", seed, 0)
+    # diagnostics off: the episode keeps every step's info, and a diagnostic batch is MBs
+    ctrl = RobustMPPI(problem, goal, mppi, replace(robust, alpha=np.inf, diagnostics=False),
+                      feedback)
+    ep = closed_loop(ctrl, plant, x0, steps, np.random.default_rng(seed),
+                     np.random.default_rng(seed + 1))
+    F = np.array([i.candidate_free_energy[-1] if i.candidate_free_energy.size else np.nan
+                  for i in ep.infos])
+    return ep.X[: len(F)], F
+
+
+def calibrate(rule: AlphaRule, problem: SamplingProblem, goal, plant: Model, x0,
+              mppi: MPPIConfig, feedback: FeedbackLaw, robust: RMPPIConfig = RMPPIConfig(), *,
+              seed: int = 0) -> Threshold:
+    """The threshold of ``rule`` for this problem, goal and start: a fixed rule directly, every
+    other rule from :func:`calibration_trace` (``rule.calibration_steps`` steps, ``seed``);
+    progress is measured as the distance to the goal in the plant's position coordinates."""
+    if not rule.needs_calibration:
+        return make_threshold(rule)
+    X, F = calibration_trace(problem, goal, plant, x0, mppi, feedback, robust,
+                             steps=rule.calibration_steps, seed=seed)
+    return make_threshold(rule, X, F, goal, plant.position)

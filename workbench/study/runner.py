@@ -1,0 +1,167 @@
+"""One runner for every study: resolve the config, prepare, execute, summarise, report.
+
+A run directory ends up holding ``config.toml`` (the resolved config: every size that ran),
+``manifest.json`` and the per-task results (:mod:`workbench.study.store`), the tidy tables,
+``summary.json`` (a function of the results only), ``run.json`` (profile, wall time, tasks
+computed and loaded, back end, cores and load) and the study's ``report.md`` with its figures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from workbench.study import config_io
+from workbench.study.config_io import ConfigError
+from workbench.study.execute import RunResult, run_study
+from workbench.study.io import atomic_write_json, atomic_write_text
+from workbench.study.report import tasks_phrase
+from workbench.study.spec import Finished, StudySpec, Summary
+from workbench.study.store import RunStore, study_manifest
+from workbench.study.summary import to_jsonable
+from workbench.study.tasks import Study
+
+RUN_FILE = "run.json"
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """A finished run: the study's summary, the framework's run record and the report's path."""
+
+    summary: Summary
+    run: RunResult
+    report: Path
+
+
+def _no_profile_key(layer: dict, where: str, spec: StudySpec) -> None:
+    if "profile" in layer:
+        raise ConfigError(
+            f"{where}: profile = {layer['profile']!r} is not a config key: a profile is a set of "
+            f"sizes chosen with --profile NAME ({', '.join(spec.profiles)}); the run records the "
+            "profile in run.json and every resolved size in config.toml")
+
+
+def resolve_config(spec: StudySpec, profile: str | None = None, config: Path | None = None,
+                   sets: list[str] | tuple[str, ...] = ()) -> Any:
+    """The validated config from its layers: the config dataclass's defaults <- the profile's
+    TOML file (``profile``; the study's default profile when neither a profile nor a config
+    file is given) <- the config file <- each ``key=value`` of ``sets``."""
+    layers = []
+    if profile is None and config is None:
+        profile = spec.default_profile
+    if profile is not None:
+        if profile not in spec.profiles:
+            raise ConfigError(f"--profile {profile!r} is invalid: study {spec.name!r} has the "
+                              f"profiles {', '.join(spec.profiles)}")
+        layers.append(config_io.read_toml(spec.profiles[profile]))
+        _no_profile_key(layers[-1], str(spec.profiles[profile]), spec)
+    if config is not None:
+        layers.append(config_io.read_toml(config))
+        _no_profile_key(layers[-1], str(config), spec)
+    layers.append(config_io.parse_sets(sets, spec.aliases))
+    _no_profile_key(layers[-1], "--set", spec)
+    return config_io.load(spec.config_type, config_io.merge(*layers), aliases=spec.aliases)
+
+
+def profile_config(spec: StudySpec, profile: str, **overrides: Any) -> Any:
+    """The config of a profile with fields replaced (and checked again) by ``overrides``."""
+    return dataclasses.replace(resolve_config(spec, profile), **overrides)
+
+
+def declare(spec: StudySpec, config: Any, prepared: Any = None) -> tuple[Study, Any]:
+    """The framework's :class:`~workbench.study.Study` for ``config`` and the study's plan.
+    ``prepared`` is bound into the task function when the study prepares something."""
+    d = spec.fn("tasks")(config)
+    run_task = partial(d.run_task, config=config)
+    if spec.prepare is not None:
+        run_task = partial(d.run_task, config=config, prepared=prepared)
+    study = Study(spec.store_name, d.tasks, run_task, seed=config.seed,
+                  config=config_io.to_dict(config), fingerprint=d.fingerprint, version=d.version)
+    return study, d.plan
+
+
+def dry_manifest(spec: StudySpec, config: Any) -> dict:
+    """What a run would record before computing anything (study, version, seed, config,
+    fingerprint, task count and a hash of the task ids)."""
+    return study_manifest(declare(spec, config)[0])
+
+
+def _finished(spec: StudySpec, config: Any, out: Path, prepared: Any, study: Study,
+              plan: Any, run_line: str) -> Finished:
+    return Finished(config, out, RunStore(out), plan,
+                    dict(zip(study.tasks, study.task_ids(), strict=True)), prepared, run_line)
+
+
+def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers: int = 2,
+        scheduler: str | None = None, progress: bool = True,
+        profile: str | None = None) -> Outcome:
+    """Run (or continue) a study in ``out`` (default: the study's folder under reports/).
+    Raises RuntimeError listing the tasks that raised (tracebacks in errors.json) and
+    :class:`~workbench.study.StudyInterrupted` on Ctrl-C (rerun to continue)."""
+    if not isinstance(config, spec.config_type):
+        raise ConfigError(f"config = {type(config).__name__} is invalid: study {spec.name!r} "
+                          f"takes a {spec.config_type.__name__}")
+    t0, load0 = time.perf_counter(), os.getloadavg()[0]
+    out = Path(out or spec.default_out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.toml", config_io.dump(
+        config, header=f"resolved config of this run; rerun: workbench run {spec.name} "
+                       f"--config {out / 'config.toml'} --out {out}"))
+    prepared = spec.fn("prepare")(config, out) if spec.prepare is not None else None
+    study, plan = declare(spec, config, prepared)
+    result = run_study(study, out, workers=workers, scheduler=scheduler, progress=progress)
+    result.raise_for_errors()
+    summary = spec.fn("summarise")(_finished(spec, config, out, prepared, study, plan, ""))
+    atomic_write_json(out / "summary.json", {"study": study.name, **to_jsonable(summary.data)})
+    wall = time.perf_counter() - t0
+    where = f"scheduler {scheduler}" if scheduler else f"{workers} workers"
+    cpu, load = os.cpu_count(), (load0, os.getloadavg()[0])
+    atomic_write_json(out / RUN_FILE, {
+        "study": spec.name, "profile": profile,
+        "tasks": {"total": result.n_tasks, "computed": result.computed, "loaded": result.loaded},
+        "wall_time_s": wall, "backend": where, "cpu_count": cpu, "load_average_1min": load})
+    run_line = (f"Wall time {wall:.1f} s ({tasks_phrase(result.computed, result.n_tasks)}; "
+                f"{where}; {cpu} cores, 1-min load average {load[0]:.1f} at the start and "
+                f"{load[1]:.1f} at the end: compute times are wall-clock and grow with the "
+                "load).")
+    finished = _finished(spec, config, out, prepared, study, plan, run_line)
+    report = spec.fn("report")(finished, summary)
+    for line in summary.lines:
+        print(line)
+    return Outcome(summary, result, Path(report))
+
+
+def rebuild_report(spec: StudySpec, out: Path | str) -> Path:
+    """Rebuild summary.json and report.md of a finished run from its stored results (nothing
+    is computed; run.json, the record of the run, is left as it is)."""
+    out = Path(out)
+    store = RunStore(out)
+    try:
+        config = config_io.load(spec.config_type, store.manifest()["config"])
+    except (OSError, KeyError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{out}: no readable manifest.json; run `workbench run {spec.name} "
+                          f"--out {out}` first") from exc
+    prepared = spec.fn("prepare")(config, out) if spec.prepare is not None else None
+    study, plan = declare(spec, config, prepared)
+    missing = len(study.tasks) - len(store.finished(study.task_ids()))
+    if missing:
+        raise ConfigError(f"{out}: {missing} of {len(study.tasks)} tasks are not finished; "
+                          f"`workbench run {spec.name} --config {out / 'config.toml'} --out "
+                          f"{out}` completes them")
+    summary = spec.fn("summarise")(_finished(spec, config, out, prepared, study, plan, ""))
+    atomic_write_json(out / "summary.json", {"study": study.name, **to_jsonable(summary.data)})
+    try:
+        record = json.loads((out / RUN_FILE).read_text())
+        run_line = (f"Wall time {record['wall_time_s']:.1f} s ({record['tasks']['computed']} of "
+                    f"{record['tasks']['total']} tasks computed in the last run; "
+                    f"{record['backend']}).")
+    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+        run_line = "Report rebuilt from stored results (no run record found)."
+    return Path(spec.fn("report")(_finished(spec, config, out, prepared, study, plan, run_line),
+                            summary))

@@ -1,0 +1,170 @@
+"""What a study declares: its config, tasks, summary and report (:class:`StudySpec`).
+
+The framework (:mod:`workbench.study.runner`) does everything else once for every study:
+resolving the config from its profile files, preparing shared inputs in the coordinating process,
+executing the tasks resumably, writing ``config.toml``, ``summary.json``, ``run.json`` and the
+report. A study package ``studies/<pkg>/`` holds one ``<profile>.toml`` per profile and defines
+``STUDY = StudySpec(...)`` in its ``__init__.py``; one line in ``studies/registry.py`` registers
+it (or, for a study outside this repository, the ``WORKBENCH_STUDIES`` environment variable:
+comma-separated module names).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+from workbench.validation import fail
+
+if TYPE_CHECKING:
+    from workbench.study.store import RunStore
+
+
+class PaperRow(NamedTuple):
+    """One number of the paper beside ours, for the report site."""
+
+    quantity: str
+    paper: str
+    ours: str
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class Declaration:
+    """A study's tasks for one config.
+
+    tasks: frozen task descriptions in dispatch order (slow first); run_task(task, ctx,
+    config=..., prepared=...) -> TaskOutput, a module-level function (the framework binds the
+    config and, when the study prepares something, the prepared value); fingerprint: every input
+    the results depend on beyond the task descriptions (enters each task id); version: bump when
+    the meaning of stored results changes; plan: the study's own grouping of its tasks (cells),
+    handed back to its summary."""
+
+    tasks: tuple[Any, ...]
+    run_task: Callable[..., Any]
+    fingerprint: Mapping[str, Any] = field(default_factory=dict)
+    version: int = 1
+    plan: Any = None
+
+
+@dataclass(frozen=True)
+class Finished:
+    """A run whose tasks are all stored: what a study's summary and report read."""
+
+    config: Any
+    out: Path
+    store: RunStore
+    plan: Any
+    ids: Mapping[Any, str]  # task -> task id
+    prepared: Any = None
+    run_line: str = ""  # wall time, tasks, back end and load: for the report
+
+
+@dataclass(frozen=True)
+class Summary:
+    """A study's summary: ``data`` is written as ``summary.json`` (after ``"study"``; it must
+    depend only on the results), ``value`` is the study's typed summary for its report, and
+    ``lines`` are printed when a run ends."""
+
+    data: Mapping[str, Any]
+    value: Any = None
+    lines: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """A study as the framework runs it.
+
+    name: ``workbench run NAME``; description: one line for ``workbench list``; config_type: the
+    study's frozen config dataclass (validated in ``__post_init__``, with an integer ``seed``);
+    directory: the study's folder, holding one ``<profile>.toml`` per profile.
+    tasks(config) -> :class:`Declaration`; summarise(finished) -> :class:`Summary`;
+    report(finished, summary) -> path of the report.md it wrote (figures beside it).
+    Each function may be given as ``"module:function"``, imported on first use, so that listing
+    the studies and checking a config stay fast.
+    Optional: prepare(config, out) -> a value computed once per run in the coordinating process
+    and handed to every task (a calibration, shared constants; deterministic in the config);
+    paper(out) -> [PaperRow] for the report site; aliases: short ``--set`` keys -> dotted keys;
+    figure: the headline figure's file name; default_profile; store_name: the name that enters
+    task ids (default: the folder's name); default_out: ``reports/<folder name>``.
+    """
+
+    name: str
+    description: str
+    config_type: type
+    directory: Path
+    tasks: Callable[[Any], Declaration] | str
+    summarise: Callable[[Finished], Summary] | str
+    report: Callable[[Finished, Summary], Path] | str
+    prepare: Callable[[Any, Path], Any] | str | None = None
+    paper: Callable[[Path], list[PaperRow]] | str | None = None
+    aliases: Mapping[str, str] = field(default_factory=dict)
+    figure: str | None = None
+    default_profile: str = "quick"
+    store_name: str = ""
+    default_out: Path | None = None
+
+    def __post_init__(self) -> None:
+        if not self.name or not self.name.replace("-", "").replace("_", "").isalnum():
+            raise fail("StudySpec.name", self.name, "must be letters, digits, - and _")
+        if not (isinstance(self.config_type, type) and dataclasses.is_dataclass(self.config_type)):
+            raise fail("StudySpec.config_type", self.config_type, "must be a dataclass")
+        if "seed" not in {f.name for f in dataclasses.fields(self.config_type)}:
+            raise fail("StudySpec.config_type", self.config_type.__name__,
+                       "must have an integer field 'seed' (the root of every random stream)")
+        directory = Path(self.directory)
+        object.__setattr__(self, "directory", directory)
+        if not self.profiles:
+            raise fail("StudySpec.directory", str(directory), "holds no <profile>.toml file")
+        if self.default_profile not in self.profiles:
+            raise fail("StudySpec.default_profile", self.default_profile,
+                       f"must be one of the profiles {sorted(self.profiles)}")
+        for name in ("tasks", "summarise", "report", "prepare", "paper"):
+            value = getattr(self, name)
+            if value is None and name in ("prepare", "paper"):
+                continue
+            if not (callable(value) or (isinstance(value, str) and value.count(":") == 1)):
+                raise fail(f"StudySpec.{name}", value, "must be callable or 'module:function'")
+        object.__setattr__(self, "store_name", self.store_name or directory.name)
+        object.__setattr__(self, "default_out",
+                           Path(self.default_out or Path("reports") / directory.name))
+
+    def fn(self, name: str) -> Callable[..., Any] | None:
+        """The study's function ``name`` (tasks, summarise, report, prepare, paper), imported
+        if it was given as ``"module:function"``."""
+        value = getattr(self, name)
+        if isinstance(value, str):
+            module, attr = value.split(":")
+            value = getattr(importlib.import_module(module), attr)
+        return value
+
+    @property
+    def profiles(self) -> dict[str, Path]:
+        """Every ``<profile>.toml`` in the study's folder, by profile name."""
+        return {p.stem: p for p in sorted(self.directory.glob("*.toml"))}
+
+
+REGISTRY_MODULE = "studies.registry"
+ENVIRONMENT = "WORKBENCH_STUDIES"
+
+
+def registry(modules: list[str] | None = None) -> dict[str, StudySpec]:
+    """Every registered study by name: the modules listed in ``studies/registry.py`` plus those
+    in ``$WORKBENCH_STUDIES`` (comma-separated), each defining ``STUDY``."""
+    if modules is None:
+        modules = list(importlib.import_module(REGISTRY_MODULE).STUDIES)
+        modules += [m.strip() for m in os.environ.get(ENVIRONMENT, "").split(",") if m.strip()]
+    out: dict[str, StudySpec] = {}
+    for name in modules:
+        spec = getattr(importlib.import_module(name), "STUDY", None)
+        if not isinstance(spec, StudySpec):
+            raise TypeError(f"{name}.STUDY must be a workbench.study.StudySpec")
+        if spec.name in out:
+            raise ValueError(f"two studies are named {spec.name!r}")
+        out[spec.name] = spec
+    return out
