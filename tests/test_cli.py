@@ -101,7 +101,9 @@ def test_show_config_round_trips_to_an_identical_manifest(study, profile, tmp_pa
     rc, direct = call("run", study, "--profile", profile, "--dry-run")
     rc2, fed_back = call("run", study, "--config", str(path), "--dry-run")
     assert rc == rc2 == 0
-    assert json.loads(direct) == json.loads(fed_back)
+    direct, fed_back = json.loads(direct), json.loads(fed_back)
+    assert (direct.pop("profile"), fed_back.pop("profile")) == (profile, None)
+    assert direct == fed_back
     entry = REGISTRY[study]
     assert resolve_config(entry, profile) == resolve_config(entry, config=path)
 

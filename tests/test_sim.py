@@ -1,6 +1,9 @@
-"""Plant disturbance models (SPEC 2.3) and crash detection on the true plant."""
+"""Plant disturbance models (SPEC 2.3), crash detection on the true plant, plants of other
+state sizes."""
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 import pytest
@@ -48,3 +51,87 @@ def test_controls_are_clipped_to_the_plant_box():
     ep = closed_loop(_Constant([9.0, -9.0]), plant, np.zeros(4), 5, np.random.default_rng(0),
                      np.random.default_rng(1))
     np.testing.assert_array_equal(ep.U, np.tile([2.0, -2.0], (5, 1)))
+
+
+# ---------------------------------------------------------------------------------------------
+# plants with other state sizes in closed_loop
+
+
+class _Hold:
+    def __init__(self, u):
+        self.u = np.asarray(u, float)
+
+    def initial_state(self, x0):
+        return 0
+
+    def step(self, state, x, rng):
+        return state + 1, self.u, {}
+
+
+def test_class8_single_integrator_closed_loop_disturbs_the_positions():
+    from workbench.problem.models import single_integrator
+    from workbench.sim import Disturbance, closed_loop
+
+    plant = single_integrator(dt=0.02, u_limit=5.0)
+    u = np.array([1.0, -0.5])
+    ep = closed_loop(_Hold(u), plant, np.zeros(2), 4000, np.random.default_rng(0),
+                     np.random.default_rng(1), Disturbance(10.0))
+    W = np.diff(ep.X, axis=0) - 0.02 * u  # SPEC 2.4: w = dt xi on the position
+    np.testing.assert_allclose(W.std(axis=0), 0.02 * np.sqrt(10.0), rtol=0.05)
+
+
+def test_class8_one_state_plant_runs():
+    import casadi as ca
+
+    from workbench.problem.models import Model
+    from workbench.sim import Disturbance, closed_loop
+
+    x, u = ca.SX.sym("x", 1), ca.SX.sym("u", 1)
+    plant = Model.from_expressions("scalar", x, u, 0.9 * x + 0.1 * u, dt=0.1, u_min=[-1],
+                                   u_max=[1], h=1.0 - x**2)
+    ep = closed_loop(_Hold([0.0]), plant, [0.0], 20, np.random.default_rng(0),
+                     np.random.default_rng(1), Disturbance(0.01))
+    assert ep.X.shape == (21, 1) and np.any(ep.X[1:] != 0.0)
+
+
+@pytest.mark.parametrize("index", [(), (-1,), (2, 2), (1.5,)])
+def test_class8_bad_disturbance_indices_are_rejected(index):
+    from workbench.sim import Disturbance
+
+    with pytest.raises(ValueError, match=r"^Disturbance.velocity_index = "):
+        Disturbance(1.0, velocity_index=index)
+
+
+def test_class8_disturbance_index_out_of_range_for_the_plant_is_named():
+    from workbench.problem.models import single_integrator
+    from workbench.sim import Disturbance, closed_loop
+
+    with pytest.raises(ValueError, match=r"^Disturbance.velocity_index = .*out of range.*2 states"):
+        closed_loop(_Hold([0.0, 0.0]), single_integrator(), np.zeros(2), 3,
+                    np.random.default_rng(0), np.random.default_rng(1),
+                    Disturbance(1.0, velocity_index=(2, 3)))
+
+
+def test_class8_double_integrator_default_is_unchanged():
+    """Guard (passes before the fix too): the plant-derived indices of the double integrator
+    are (2, 3), so default episodes are bit-for-bit those of the explicit velocity indices."""
+    from workbench.sim import Disturbance, closed_loop
+
+    plant = double_integrator(u_limit=5.0)
+    runs = [closed_loop(_Hold([1.0, 0.5]), plant, np.zeros(4), 50, np.random.default_rng(0),
+                        np.random.default_rng(1), d).X
+            for d in (Disturbance(10.0), Disturbance(10.0, velocity_index=(2, 3)))]
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
+@pytest.mark.parametrize(("make", "message"), [
+    (lambda: Disturbance(True), "Disturbance.level = True is invalid: must be a finite number"),
+    (lambda: Disturbance(1.0, velocity_index=(2, True)),
+     "Disturbance.velocity_index = True is invalid: must be an integer >= 0"),
+    (lambda: closed_loop(_Hold([0.0, 0.0]), double_integrator(), np.zeros(4), True,
+                         np.random.default_rng(0), np.random.default_rng(1)),
+     "steps = True is invalid: must be an integer >= 1"),
+])
+def test_bool_is_neither_an_integer_nor_a_real(make, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        make()

@@ -11,7 +11,7 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
-from workbench.validation import fail, one_of, positive
+from workbench.validation import fail, integer, one_of, real
 
 DisturbanceModel = Literal["velocity_variance", "velocity_std", "white_noise", "kick"]
 DISTURBANCE_MODELS: tuple[str, ...] = ("velocity_variance", "velocity_std", "white_noise", "kick")
@@ -36,18 +36,18 @@ class Disturbance:
     velocity_index: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
-        positive("Disturbance.level", self.level, allow_zero=True)
+        real("Disturbance.level", self.level, 0.0)
         one_of("Disturbance.model", self.model, DISTURBANCE_MODELS)
         if self.velocity_index is not None:
             idx = self.velocity_index
-            if (not isinstance(idx, tuple | list) or not idx
-                    or not all(isinstance(i, int | np.integer) and not isinstance(i, bool)
-                               and i >= 0 for i in idx)
-                    or len(set(idx)) != len(idx)):
-                raise fail("Disturbance.velocity_index", idx,
-                           "must be a non-empty tuple of distinct state indices >= 0, or None "
-                           "(take them from the plant)")
-            object.__setattr__(self, "velocity_index", tuple(int(i) for i in idx))
+            allowed = ("must be a non-empty tuple of distinct state indices >= 0, or None "
+                       "(take them from the plant)")
+            if not isinstance(idx, tuple | list) or not idx:
+                raise fail("Disturbance.velocity_index", idx, allowed)
+            ints = tuple(integer("Disturbance.velocity_index", i, 0) for i in idx)
+            if len(set(ints)) != len(ints):
+                raise fail("Disturbance.velocity_index", idx, allowed)
+            object.__setattr__(self, "velocity_index", ints)
 
     def indices(self, plant: Model) -> tuple[int, ...]:
         """The disturbed states for ``plant``: the given ones (checked) or the plant's own."""
@@ -125,8 +125,7 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
                 keep_infos: bool = True) -> Episode:
     """Run ``controller`` on the plant x+ = F(x, u) + w for ``steps`` steps; stop at a crash
     (min_i h_i <= 0 on the true plant). w acts on ``disturbance.indices(plant)``."""
-    if not isinstance(steps, int) or steps < 1:
-        raise fail("steps", steps, "must be an integer >= 1")
+    integer("steps", steps, 1)
     x = np.asarray(x0, dtype=float)
     if x.shape != (plant.nx,) or not np.all(np.isfinite(x)):
         raise fail("x0", x0, f"must be {plant.nx} finite numbers")
@@ -153,5 +152,5 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
             if h <= 0:
                 crashed, crash_step = True, k + 1
                 break
-    return Episode(np.array(X), np.array(U), crashed, crash_step, min_h, np.array(times),
-                   tuple(infos))
+    return Episode(X=np.array(X), U=np.array(U), crashed=crashed, crash_step=crash_step,
+                   min_margin=min_h, step_time_s=np.array(times), infos=tuple(infos))

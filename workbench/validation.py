@@ -74,6 +74,15 @@ def real(field: str, value: object, minimum: float | None = None, *, strict: boo
     return float(value)
 
 
+def real_or_inf(field: str, value: object) -> float:
+    """A real number (never ``bool``) or +inf: NaN and -inf are rejected."""
+    ok = (isinstance(value, Real) and not isinstance(value, bool | np.bool_)
+          and not np.isnan(value) and value != -np.inf)
+    if not ok:
+        raise fail(field, value, "must be a number or +inf")
+    return float(value)
+
+
 def flag(field: str, value: object) -> bool:
     """A ``bool`` (Python or NumPy), nothing else: 0 and 1 are not flags."""
     if not isinstance(value, bool | np.bool_):
@@ -82,11 +91,8 @@ def flag(field: str, value: object) -> bool:
 
 
 def positive(field: str, value: float, *, allow_zero: bool = False) -> float:
-    """Check a positive (or non-negative) finite scalar."""
-    ok = np.isfinite(value) and (value >= 0 if allow_zero else value > 0)
-    if not ok:
-        raise fail(field, value, "must be a finite number " + (">= 0" if allow_zero else "> 0"))
-    return float(value)
+    """A finite real number > 0 (``allow_zero``: >= 0): :func:`real` with minimum 0."""
+    return real(field, value, 0.0, strict=not allow_zero)
 
 
 def one_of(field: str, value: str, allowed: Sequence[str]) -> str:

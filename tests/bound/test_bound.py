@@ -3,6 +3,7 @@ the NumPy/CasADi twins, T1 on the navigation map, and bad input."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -217,11 +218,16 @@ def test_disturbance_bound_and_d_f():
 
 
 def _step(F_real, F_nom, E, R, Lq, Lphi, gap, alpha=10.0, D_F=2.0, n_q=3) -> BoundStep:
-    fe = [FreeEnergy(v, E, 0.0, 0.0, 1.0, 2, "delta", 3.0) for v in (F_real, F_nom)]
-    L = Lipschitz(Lq, Lphi, 0.0, 0.0, 0, 0, 0, 0)
-    return BoundStep(1.0, alpha, fe[0], fe[1], F_real, F_nom, E, np.nan,
-                     Tube(R, R, R, R, np.zeros(1)), L, replace(L, L_q=10 * Lq), n_q, 0.1, D_F,
-                     gap, gap, 4, 0, 0, False, True)
+    fe = [FreeEnergy(value=v, E=E, sd=0.0, bias=0.0, ess=1.0, n=2, method="delta", z=3.0)
+          for v in (F_real, F_nom)]
+    L = Lipschitz(L_q=Lq, L_phi=Lphi, secant_q=0.0, secant_phi=0.0, points_q=0, points_phi=0,
+                  excluded_q=0, excluded_phi=0)
+    return BoundStep(lam=1.0, alpha=alpha, F_real=fe[0], F_nom=fe[1], F_real_code=F_real,
+                     F_nom_code=F_nom, E=E, E_bootstrap=np.nan,
+                     tube=Tube(R=R, R99=R, R_position=R, R_mean_nominal=R, per_sample=np.zeros(1)),
+                     local=L, global_=replace(L, L_q=10 * Lq), n_q=n_q, D=0.1, D_F=D_F,
+                     t1_gap=gap, t1_gap_safe=gap, n_samples=4, n_crashed_real=0, n_crashed_nom=0,
+                     fallback_used=False, nominal_differs=True)
 
 
 def test_checks_follow_spec_11_3():
@@ -441,7 +447,8 @@ def test_t1_holds_on_navigation_steps_where_all_real_samples_stay_safe(nav_small
 def test_independent_batch_gives_t2e(nav_small):
     """A second batch of the same step (same inputs, other seed) feeds T2E; same seed refused."""
     nav, ctrl = nav_small
-    unit = Lipschitz(1.0, 1.0, 0.0, 0.0, 0, 0, 0, 0)  # skip the global grid
+    unit = Lipschitz(L_q=1.0, L_phi=1.0, secant_q=0.0, secant_phi=0.0, points_q=0, points_phi=0,
+                     excluded_q=0, excluded_phi=0)  # skip the global grid
     est = BoundEstimator(ctrl, Disturbance(10.0), BoundConfig(bootstrap=200),
                          global_constant=unit)
     state = ctrl.initial_state(nav.x0)
@@ -505,3 +512,18 @@ def test_estimators_reject_bad_shapes_and_values(quadratic, scene):
         check_batch(replace(b, LR=np.where(np.arange(8) == 3, np.nan, b.LR)))
     with pytest.raises(ValueError, match=r"batch = .*SAISDiagBatch"):
         check_batch(sampler.sais(x0, xs0, U, K, 8, c, 1))
+
+
+@pytest.mark.parametrize(("make", "message"), [
+    (lambda: BoundConfig(bootstrap=True), "BoundConfig.bootstrap = True is invalid: must be an "
+                                          "integer"),
+    (lambda: BoundConfig(z=True), "BoundConfig.z = True is invalid: must be a finite number > 0"),
+    (lambda: LipschitzGrid(n_v=True), "LipschitzGrid.n_v = True is invalid: must be an integer"),
+    (lambda: LipschitzGrid(spacing=True), "LipschitzGrid.spacing = True is invalid: must be a "
+                                          "finite number > 0"),
+    (lambda: tube_radius(np.zeros((3, 4, 2)), np.zeros((3, 4, 2)), True),
+     "physical = True is invalid: must be an integer in [1, 4]"),
+])
+def test_bool_is_neither_an_integer_nor_a_real(make, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        make()

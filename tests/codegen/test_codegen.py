@@ -1,7 +1,9 @@
-"""Generated C against the CasADi virtual machine; the content-addressed cache and its failures."""
+"""Generated C against the CasADi virtual machine; the content-addressed cache and its failures;
+compiler overrides, unlinkable operations, swapped libraries."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import warnings
@@ -119,3 +121,163 @@ def test_missing_compiler_warns_once_and_falls_back(monkeypatch, bas_tracking, s
 def test_cache_dir_from_environment(monkeypatch, tmp_path):
     monkeypatch.setenv("WORKBENCH_CACHE_DIR", str(tmp_path / "cc"))
     assert cg.cache_dir() == (tmp_path / "cc").resolve()
+
+
+# ---------------------------------------------------------------------------------------------
+# environment overrides that break or weaken the build
+
+
+def _tiny_function():
+    import casadi as ca
+
+    x = ca.SX.sym("x", 2)
+    return ca.Function("wbrel_tiny", [x], [ca.vertcat(x[0] * x[1], ca.exp(x[0]))], ["x"], ["y"])
+
+
+def test_class6_extra_cflags_are_appended_to_the_required_ones(monkeypatch, tmp_path):
+    from workbench.codegen import build_library, find_toolchain
+    from workbench.codegen.toolchain import DEFAULT_FLAGS
+
+    monkeypatch.setenv("WORKBENCH_CFLAGS", "-O2")
+    tc = find_toolchain()
+    assert tc.flags == (*DEFAULT_FLAGS, "-O2")
+    assert {"-shared", "-fPIC"} <= set(tc.flags)
+    lib = build_library("wbrel_cflags", [_tiny_function()], root=tmp_path)
+    np.testing.assert_allclose(np.asarray(lib.functions["wbrel_tiny"]([0.5, 2.0])).ravel(),
+                               [1.0, np.exp(0.5)])
+
+
+@pytest.mark.parametrize("flag", ["-ffast-math", "-Ofast", "-funsafe-math-optimizations",
+                                  "-ffinite-math-only", "-ffp-contract=fast", "-fno-honor-nans"])
+def test_class6_flags_changing_floating_point_semantics_are_refused(monkeypatch, flag):
+    from workbench.codegen import find_toolchain
+
+    monkeypatch.setenv("WORKBENCH_CFLAGS", f"-O2 {flag}")
+    with pytest.raises(ValueError, match=rf"^WORKBENCH_CFLAGS = .*{flag} changes floating-point"):
+        find_toolchain()
+
+
+def test_class6_missing_workbench_cc_is_named_with_the_compiler_used(monkeypatch):
+    from workbench.codegen import find_toolchain
+
+    monkeypatch.delenv("WORKBENCH_CFLAGS", raising=False)
+    monkeypatch.setenv("WORKBENCH_CC", "/nonexistent/wbrel-cc")
+    with pytest.warns(RuntimeWarning, match=r"WORKBENCH_CC = '/nonexistent/wbrel-cc'.*using /"):
+        tc = find_toolchain()
+    assert tc is not None and tc.cc != "/nonexistent/wbrel-cc"
+
+# ---------------------------------------------------------------------------------------------
+# operations the C back ends cannot compile: a clear error or a correct fallback
+
+_ERFINV_BUILD = """
+import sys, pathlib
+import casadi as ca
+from workbench.codegen import cache as cg
+x = ca.SX.sym("x", 2)
+f = ca.Function("wbrel_erfinv", [x], [ca.erfinv(0.5 * ca.tanh(x[0])) + x[1]])
+root = pathlib.Path(sys.argv[1])
+if sys.argv[2] == "stale":  # a library published by a build without the link check
+    import subprocess
+    saved = {n: getattr(cg, n) for n in ("_run_compiler", "_verify", "_load_now")
+             if hasattr(cg, n)}
+    cg._run_compiler = lambda tc, src, out, extra: subprocess.run(
+        [tc.cc, *tc.flags, *extra, str(src), "-o", str(out), "-lm"], check=True,
+        capture_output=True)
+    cg._verify = lambda lib, fns: {}
+    cg._load_now = lambda lib: (None, lib)
+    try:
+        cg.build_library("wbrel_erfinv", [f], root=root)
+    except Exception:
+        pass
+    for n, v in saved.items():
+        setattr(cg, n, v)
+    print("SO", sorted(p.name for p in root.rglob("*.so")))
+try:
+    lib = cg.build_library("wbrel_erfinv", [f], root=root)
+    print("LOADED", lib.functions["wbrel_erfinv"]([0.1, 0.2]))
+except cg.CompileError as exc:
+    print("COMPILE_ERROR", str(exc).splitlines()[0])
+print("CACHED", sorted(p.name for p in root.rglob("*.so")))
+"""
+
+
+@pytest.mark.parametrize("cache", ["empty", "stale"])
+def test_class4_unlinkable_operation_is_a_clear_error_and_nothing_is_cached(tmp_path, cache):
+    """erfinv compiles (implicit declaration) but libm has no erfinv: before the fix the
+    library was published and the process died with 'undefined symbol' on first call (run in a
+    subprocess so that the old behaviour cannot take the test run down)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", _ERFINV_BUILD, str(tmp_path), cache],
+                          capture_output=True, text=True, timeout=300,
+                          cwd=os.path.dirname(os.path.dirname(os.path.dirname(__file__))))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.splitlines()
+    if cache == "stale":
+        assert lines[0] == "SO ['libwbrel_erfinv.so']"  # the broken library was in the cache
+    error = [ln for ln in lines if ln.startswith("COMPILE_ERROR")]
+    assert error and "erfinv" in error[0] and "nothing was cached" in error[0]
+    assert lines[-1] == "CACHED []"
+
+
+# ---------------------------------------------------------------------------------------------
+# every loaded library is checked against CasADi's evaluation before first use
+
+
+def _swap(victim, donor) -> None:
+    """Put donor's library bytes in victim's place and update victim's manifest hash."""
+    import hashlib
+    import json
+
+    data = donor.path.read_bytes()
+    tmp = victim.path.with_suffix(".swap")
+    tmp.write_bytes(data)
+    os.replace(tmp, victim.path)  # never rewrite a mapped library in place
+    manifest = victim.path.parent / "manifest.json"
+    meta = json.loads(manifest.read_text())
+    meta["sha256"] = hashlib.sha256(data).hexdigest()
+    manifest.write_text(json.dumps(meta))
+
+
+def test_class5_swapped_ilqg_library_is_detected_and_rebuilt(tmp_path):
+    """The iLQG library's Functions are compared with CasADi on load; a swapped library must
+    be rebuilt and the rebuilt one actually loaded (the dynamic loader would hand back the
+    swapped one already open at that path)."""
+    import casadi as ca
+
+    from workbench.codegen import build_library
+
+    x = ca.SX.sym("x", 2)
+
+    def fns(k):
+        return [ca.Function("wbrel_swap", [x], [ca.vertcat(k * x[0] + x[1], ca.sin(x[1]))],
+                            ["x"], ["y"])]
+
+    a = build_library("wbrel_swap", fns(2.0), root=tmp_path)
+    b = build_library("wbrel_swap", fns(3.0), root=tmp_path)
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    # first loads of the victim happen below, in this process, after the swap
+    import shutil
+
+    for lib in (a, b):
+        shutil.copytree(lib.path.parent, fresh / lib.path.parent.name)
+    victim = type(a)(path=fresh / a.path.parent.name / a.path.name, key=a.key, cdll=a.cdll,
+                     functions={}, cache_hit=True)
+    donor = type(b)(path=fresh / b.path.parent.name / b.path.name, key=b.key, cdll=b.cdll,
+                    functions={}, cache_hit=True)
+    _swap(victim, donor)
+    again = build_library("wbrel_swap", fns(2.0), root=fresh)
+    assert not again.cache_hit
+    np.testing.assert_allclose(np.asarray(again.functions["wbrel_swap"]([1.0, 0.5])).ravel(),
+                               [2.5, np.sin(0.5)], rtol=1e-15)
+
+def test_class7_cache_directory_that_is_a_file_names_the_variable(tmp_path, monkeypatch):
+    from workbench.codegen import build_library
+
+    a_file = tmp_path / "cache_file"
+    a_file.write_text("x")
+    monkeypatch.setenv("WORKBENCH_CACHE_DIR", str(a_file))
+    with pytest.raises(ValueError, match=r"^WORKBENCH_CACHE_DIR = .*not a directory"):
+        build_library("wbrel_cachefile", [_tiny_function()])

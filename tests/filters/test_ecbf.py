@@ -1,6 +1,13 @@
-"""ECBF safety filter (SPEC 7): Lie derivatives, closed forms, a second QP solver, infeasibility."""
+"""ECBF safety filter (SPEC 7): Lie derivatives, closed forms, a second QP solver, infeasibility;
+interrupts, non-finite and wrongly shaped inputs."""
 
 from __future__ import annotations
+
+import os
+import re
+import signal
+import threading
+import time
 
 import casadi as ca
 import numpy as np
@@ -12,6 +19,9 @@ from workbench.problem.models import Model, double_integrator, single_integrator
 from workbench.problem.obstacles import Circle, circle_margins
 
 OBSTACLES = (Circle((0.0, 0.1), 1.5), Circle((2.5, -1.0), 0.7))
+ECBF_OBSTACLES = (Circle((0.0, 0.1), 1.5), Circle((0.5, 2.0), 0.7))
+X_ACTIVE = np.array([-1.7, 0.1, 3.0, 0.0])  # near the first obstacle, moving towards it
+U_TOWARDS = np.array([10.0, 0.0])
 
 
 def _random_states(rng, n, around=(0.0, 0.1), r_min=1.6, r_max=3.5, speed=6.0):
@@ -264,3 +274,152 @@ def test_relative_degree_is_detected_from_the_discrete_model(dt):
     assert relative_degrees(double_integrator(obstacles=(c,), dt=dt, integrator="zoh")) == (2,)
     assert relative_degrees(single_integrator(obstacles=(c,), dt=dt)) == (1,)
     assert relative_degrees(_rotating_plane(c, dt=dt)) == (1,)
+
+
+# ---------------------------------------------------------------------------------------------
+# a filter for the fault tests below
+
+
+def _filter(**options) -> ECBFFilter:
+    return ECBFFilter(double_integrator(obstacles=ECBF_OBSTACLES, u_limit=15.0),
+                      ECBFOptions(**options))
+
+
+# ---------------------------------------------------------------------------------------------
+# an interrupt inside the QP solve must propagate, not become a fallback step
+
+
+def _endless(filt: ECBFFilter) -> ECBFFilter:
+    """Make every OSQP solve run until interrupted (no termination checks, huge max_iter)."""
+    filt._solver.update_settings(max_iter=10**9, check_termination=0)
+    return filt
+
+
+def _sigint_after(seconds: float) -> threading.Timer:
+    timer = threading.Timer(seconds, lambda: os.kill(os.getpid(), signal.SIGINT))
+    timer.start()
+    return timer
+
+
+@pytest.mark.parametrize("call", ["single", "batch"])
+def test_class1_sigint_inside_osqp_raises_keyboard_interrupt_promptly(call):
+    filt = _endless(_filter())
+    t0 = time.perf_counter()
+    timer = _sigint_after(0.3)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            if call == "single":
+                filt(X_ACTIVE, U_TOWARDS)
+            else:
+                filt.filter_batch(np.array([X_ACTIVE, X_ACTIVE]), np.array([U_TOWARDS] * 2))
+    finally:
+        timer.cancel()
+    assert time.perf_counter() - t0 < 5.0
+
+
+def test_class1_filter_is_usable_after_an_interrupt():
+    filt = _endless(_filter())
+    timer = _sigint_after(0.3)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            filt(X_ACTIVE, U_TOWARDS)
+    finally:
+        timer.cancel()
+    res = filt(X_ACTIVE, U_TOWARDS)  # the workspace was set up afresh (normal settings)
+    assert res.status == "solved" and not res.fallback_used
+    np.testing.assert_allclose(res.u, _filter()(X_ACTIVE, U_TOWARDS).u, atol=1e-9)
+
+
+def test_class1_interrupted_status_is_never_a_fallback(monkeypatch):
+    """The status OSQP returns after catching SIGINT maps to KeyboardInterrupt (no signal)."""
+    import osqp
+
+    filt = _filter()
+    real = filt._solver
+
+    class Interrupted:
+        def update(self, **kw):
+            real.update(**kw)
+
+        def solve(self, raise_error=False):
+            res = real.solve(raise_error=False)
+            res.info.status, res.info.status_val = "interrupted", osqp.SolverStatus.OSQP_SIGINT
+            return res
+
+    filt._solver = Interrupted()
+    with pytest.raises(KeyboardInterrupt):
+        filt(X_ACTIVE, U_TOWARDS)
+
+
+# ---------------------------------------------------------------------------------------------
+# a NaN state must not poison the OSQP workspace
+
+
+@pytest.mark.parametrize("bad", [
+    [np.nan, 0.1, 3.0, 0.0], [-1.7, np.inf, 3.0, 0.0], [-1.7, 0.1, 3.0, -np.inf]])
+def test_class2_non_finite_state_is_rejected_before_the_solver(bad):
+    filt = _filter()
+    with pytest.raises(ValueError, match=r"^x = .* finite"):
+        filt(np.array(bad), U_TOWARDS)
+    res = filt(X_ACTIVE, U_TOWARDS)  # the next normal step is solved, not a fallback
+    assert res.status == "solved" and not res.fallback_used
+
+
+def test_class2_non_finite_batch_state_names_the_row():
+    X = np.array([X_ACTIVE, [np.nan, 0.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"(?s)^X = .*row 1"):
+        _filter().filter_batch(X, np.array([U_TOWARDS] * 2))
+
+
+@pytest.mark.parametrize("field", ["a", "b"])
+def test_class2_non_finite_rows_are_rejected(field):
+    filt = _filter()
+    a, b = filt.rows(X_ACTIVE)
+    (a if field == "a" else b)[0] = np.nan
+    with pytest.raises(ValueError, match=rf"(?s)^{field} = .*finite"):
+        filt.solve_rows(a, b, U_TOWARDS)
+    assert filt(X_ACTIVE, U_TOWARDS).status == "solved"
+
+
+def test_class2_broken_workspace_is_reset_and_the_step_solved(capfd):
+    """A workspace left broken (non-quasidefinite KKT after NaN data reached OSQP) is set up
+    afresh on the error status: the step is solved, and so are the later ones."""
+    filt = _filter()
+    expected = _filter()(X_ACTIVE, U_TOWARDS).u
+    # what one step at a NaN state did before the input check: NaN rows through OSQP
+    nh, pos = filt.nh, filt._a_pos
+    filt._l[:nh], filt._Ax[pos] = np.nan, np.nan
+    filt._solver.update(q=filt._q, l=filt._l, Ax=filt._Ax)
+    filt._solver.solve(raise_error=False)
+    for _ in range(3):
+        res = filt(X_ACTIVE, U_TOWARDS)
+        assert res.status == "solved" and not res.fallback_used
+        np.testing.assert_allclose(res.u, expected, atol=1e-9)
+    capfd.readouterr()
+
+
+# a state of the wrong length names the state, not numpy broadcasting
+
+
+@pytest.mark.parametrize("x", [[1.0, 2.0], [1.0, 2.0, 3.0, 4.0, 5.0], [[-1.7, 0.1, 3.0, 0.0]]])
+def test_class7_ecbf_state_of_wrong_shape_names_x(x):
+    with pytest.raises(ValueError, match=r"^x = .*shape \(4,\)"):
+        _filter()(x, U_TOWARDS)
+
+
+def test_class7_ecbf_batch_of_wrong_width_names_X():
+    with pytest.raises(ValueError, match=r"(?s)^X = .*shape \(N, 4\)"):
+        _filter().filter_batch(np.zeros((3, 2)), np.zeros((3, 2)))
+
+
+@pytest.mark.parametrize(("kw", "message"), [
+    ({"max_iter": True}, "ECBFOptions.max_iter = True is invalid: must be an integer >= 1"),
+    ({"relative_degree": True},
+     "ECBFOptions.relative_degree = True is invalid: must be an integer in [1, 2]"),
+    ({"gamma": True}, "ECBFOptions.gamma = True is invalid: must be a finite number > 0"),
+    ({"polish": 1}, "ECBFOptions.polish = 1 is invalid: must be true or false"),
+    ({"warm_start": 0.0}, "ECBFOptions.warm_start = 0. is invalid: must be true or false"),
+])
+def test_options_reject_bool_numbers_and_numeric_flags(kw, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        ECBFOptions(**kw)

@@ -53,18 +53,19 @@ def test_second_order_passes_equal_numpy_twin(bas_tracking, scene, rng, reg, box
     res = ilqg(problem, x0, np.zeros((T, 2)), P, ILQGOptions(max_iter=12))
     X, U = res.X, np.clip(res.U + rng.normal(0, 0.5, res.U.shape), umin, umax)
     X = slow.forward(x0, X, U, np.zeros((T, 2)), np.zeros((T, 2, 5)), P, 0.0, umin, umax,
-                     use_policy=False)[0]
+                     use_policy=False).X
     d_s, d_f = slow.derivatives(X, U, P), fast.derivatives(X, U, P)
     np.testing.assert_array_equal(d_f["X"], d_s["X"])
     mu = 1e3  # large enough that Quu stays positive definite with the second-order terms
-    st_s, k_s, K_s, dV_s = slow.backward(d_s, U, umin, umax, mu, reg, boxed, True)
-    st_f, k_f, K_f, dV_f = fast.backward(d_f, U, umin, umax, mu, reg, boxed, True)
-    assert st_s == st_f == 0
-    np.testing.assert_allclose(k_f, k_s, rtol=1e-12, atol=1e-12 * np.abs(k_s).max())
-    np.testing.assert_allclose(K_f, K_s, rtol=1e-12, atol=1e-12 * np.abs(K_s).max())
-    np.testing.assert_allclose(dV_f, dV_s, rtol=1e-12)
+    bw_s = slow.backward(d_s, U, umin, umax, mu, reg, boxed, True)
+    bw_f = fast.backward(d_f, U, umin, umax, mu, reg, boxed, True)
+    assert bw_s.status == bw_f.status == 0
+    k_s, K_s = bw_s.k, bw_s.K
+    np.testing.assert_allclose(bw_f.k, k_s, rtol=1e-12, atol=1e-12 * np.abs(k_s).max())
+    np.testing.assert_allclose(bw_f.K, K_s, rtol=1e-12, atol=1e-12 * np.abs(K_s).max())
+    np.testing.assert_allclose(bw_f.dV, bw_s.dV, rtol=1e-12)
     # the second-order terms change the pass (the test would not see a missing term otherwise)
-    _, _, K_1, _ = slow.backward(d_s, U, umin, umax, mu, reg, boxed, False)
+    K_1 = slow.backward(d_s, U, umin, umax, mu, reg, boxed, False).K
     assert np.abs(K_1 - K_s).max() > 1e-6 * np.abs(K_s).max()
 
 

@@ -1,13 +1,22 @@
-"""iLQG: Riccati oracle, control limits, box QP vs a QP solver, compiled passes vs NumPy twin."""
+"""iLQG: Riccati oracle, control limits, box QP vs a QP solver, compiled passes vs NumPy twin,
+the C outer loop's options record."""
 
 from __future__ import annotations
+
+import ctypes
+import re
 
 import numpy as np
 import pytest
 import qpsolvers
 
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
-from workbench.ilqg.compiled import box_qp_compiled, problem_library
+from workbench.ilqg.compiled import (
+    SolveOptions,
+    box_qp_compiled,
+    problem_library,
+    solve_options_layout,
+)
 from workbench.ilqg.reference import NumpyPasses, box_qp
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import double_integrator
@@ -80,21 +89,20 @@ def test_box_qp_agrees_with_qp_solver(bas_tracking, rng):
         x_ref = qpsolvers.solve_qp(H, g, lb=lo, ub=hi, solver=solver, eps_abs=1e-12) \
             if solver == "osqp" else qpsolvers.solve_qp(H, g, lb=lo, ub=hi, solver=solver)
         x0 = rng.normal(size=n)
-        x_np, res_np, free_np, _ = box_qp(H, g, lo, hi, x0)
-        x_c, res_c, free_c = box_qp_compiled(lib, H, g, lo, hi, x0)
-        assert res_np >= 1 and res_c == res_np
-        np.testing.assert_allclose(x_np, x_ref, atol=1e-7)
-        np.testing.assert_allclose(x_c, x_np, rtol=1e-12, atol=1e-14)
-        np.testing.assert_array_equal(free_c, free_np)
-        n_active += int(np.any(~free_np))
+        qp_np = box_qp(H, g, lo, hi, x0)
+        qp_c = box_qp_compiled(lib, H, g, lo, hi, x0)
+        assert qp_np.result >= 1 and qp_c.result == qp_np.result
+        np.testing.assert_allclose(qp_np.x, x_ref, atol=1e-7)
+        np.testing.assert_allclose(qp_c.x, qp_np.x, rtol=1e-12, atol=1e-14)
+        np.testing.assert_array_equal(qp_c.free, qp_np.free)
+        n_active += int(np.any(~qp_np.free))
     assert n_active > 50  # the test exercises clamped coordinates
 
 
 def test_box_qp_reports_non_convex():
     H = np.array([[1.0, 0.0], [0.0, -1.0]])
-    _, res, _, _ = box_qp(H, np.array([0.1, 0.1]), -np.inf * np.ones(2), np.inf * np.ones(2),
-                          np.zeros(2))
-    assert res == -1
+    qp = box_qp(H, np.array([0.1, 0.1]), -np.inf * np.ones(2), np.inf * np.ones(2), np.zeros(2))
+    assert qp.result == -1
 
 
 @pytest.mark.parametrize(("reg", "boxed"), [(0, True), (1, True), (0, False), (1, False)])
@@ -105,26 +113,28 @@ def test_compiled_passes_equal_numpy_twin(bas_tracking, scene, rng, reg, boxed):
     x0 = problem.check_initial_state(scene.start)
     U = rng.normal(0, 4, (T, 2))
     umin, umax = problem.model.u_min, problem.model.u_max
-    X, _, J = slow.forward(x0, np.zeros((T + 1, 5)), U, np.zeros((T, 2)), np.zeros((T, 2, 5)),
-                           P, 0.0, umin, umax, use_policy=False)
-    Xc, _, Jc = fast.forward(x0, np.zeros((T + 1, 5)), U, np.zeros((T, 2)),
-                             np.zeros((T, 2, 5)), P, 0.0, umin, umax, use_policy=False)
-    np.testing.assert_allclose(Xc, X, rtol=1e-12, atol=1e-13)
-    assert Jc == pytest.approx(J, rel=1e-12)
+    fw_s = slow.forward(x0, np.zeros((T + 1, 5)), U, np.zeros((T, 2)), np.zeros((T, 2, 5)),
+                        P, 0.0, umin, umax, use_policy=False)
+    fw_f = fast.forward(x0, np.zeros((T + 1, 5)), U, np.zeros((T, 2)), np.zeros((T, 2, 5)),
+                        P, 0.0, umin, umax, use_policy=False)
+    X, J = fw_s.X, fw_s.cost
+    np.testing.assert_allclose(fw_f.X, X, rtol=1e-12, atol=1e-13)
+    assert fw_f.cost == pytest.approx(J, rel=1e-12)
     U = np.clip(U, umin, umax)
     d_s, d_f = slow.derivatives(X, U, P), fast.derivatives(X, U, P)
     for name in d_s:
         np.testing.assert_allclose(d_f[name], d_s[name], rtol=1e-12, atol=1e-14, err_msg=name)
-    st_s, k_s, K_s, dV_s = slow.backward(d_s, U, umin, umax, 0.3, reg, boxed)
-    st_f, k_f, K_f, dV_f = fast.backward(d_f, U, umin, umax, 0.3, reg, boxed)
-    assert st_s == st_f == 0
-    np.testing.assert_allclose(k_f, k_s, rtol=1e-9, atol=1e-10)
-    np.testing.assert_allclose(K_f, K_s, rtol=1e-9, atol=1e-10)
-    np.testing.assert_allclose(dV_f, dV_s, rtol=1e-9)
+    bw_s = slow.backward(d_s, U, umin, umax, 0.3, reg, boxed)
+    bw_f = fast.backward(d_f, U, umin, umax, 0.3, reg, boxed)
+    assert bw_s.status == bw_f.status == 0
+    np.testing.assert_allclose(bw_f.k, bw_s.k, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(bw_f.K, bw_s.K, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(bw_f.dV, bw_s.dV, rtol=1e-9)
+    k_s, K_s, dV_s = bw_s.k, bw_s.K, bw_s.dV
     out_s = slow.line_search(x0, X, U, k_s, K_s, P, J, dV_s, (1.0, 0.5, 0.1), 0.0, umin, umax)
     out_f = fast.line_search(x0, X, U, k_s, K_s, P, J, dV_s, (1.0, 0.5, 0.1), 0.0, umin, umax)
-    assert out_s[0] == out_f[0] and out_s[4] == out_f[4]
-    np.testing.assert_allclose(out_f[1], out_s[1], rtol=1e-12, atol=1e-13)
+    assert out_s.accepted == out_f.accepted and out_s.alpha == out_f.alpha
+    np.testing.assert_allclose(out_f.X, out_s.X, rtol=1e-12, atol=1e-13)
 
 
 def test_whole_solves_agree_across_backends(bas_tracking, scene):
@@ -182,3 +192,50 @@ def test_compiled_outer_loop_equals_python_loop(scene, q_beta):
     np.testing.assert_allclose(a.cost, b.cost, rtol=1e-14)
     np.testing.assert_allclose(a.U, b.U, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(a.K, b.K, rtol=1e-10, atol=1e-10)
+
+
+def test_solve_options_record_has_the_c_layout(bas_tracking):
+    """The ctypes mirror and core.c's wb_solve_options: same size, names, offsets, sizes."""
+    size, fields = solve_options_layout(problem_library(bas_tracking[0]))
+    assert size == ctypes.sizeof(SolveOptions)
+    assert fields == tuple((name, getattr(SolveOptions, name).offset,
+                            getattr(SolveOptions, name).size) for name, _ in SolveOptions._fields_)
+    assert [f[0] for f in fields] == [
+        "max_iter", "reg", "boxed", "second_order", "mu_init", "mu_factor", "mu_min", "mu_max",
+        "z_min", "tol_abs", "tol_rel", "tol_grad"]
+
+
+@pytest.mark.parametrize("options", [
+    {"max_iter": 4},
+    {"regularization": "state", "mu_init": 3.0, "mu_factor": 2.5},
+    {"box_qp": False, "mu_min": 1e-3},
+    {"z_min": 0.5, "tol_rel": 1e-3},
+    {"tol_abs": 50.0},
+    {"tol_grad": 0.5, "mu_init": 0.0},
+    {"mu_max": 1.0, "mu_init": 0.9, "second_order": True},
+], ids=lambda o: ",".join(o))
+def test_compiled_outer_loop_reads_each_option(bas_tracking, scene, options):
+    """Each option reaches wb_solve in its own field: with non-default values the C loop takes
+    the same steps and stops for the same reason as the Python loop."""
+    problem, P = bas_tracking
+    U0 = np.zeros((scene.horizon, 2))
+    a = ilqg(problem, scene.start, U0, P, ILQGOptions(outer_loop="compiled", **options))
+    b = ilqg(problem, scene.start, U0, P, ILQGOptions(outer_loop="python", **options))
+    assert (a.iterations, a.stop_reason, a.converged) == (b.iterations, b.stop_reason,
+                                                          b.converged)
+    for field in ("accepted", "alpha", "mu"):
+        assert [getattr(h, field) for h in a.history] == [getattr(h, field) for h in b.history]
+    np.testing.assert_allclose(a.U, b.U, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize(("kw", "message"), [
+    ({"max_iter": True}, "ILQGOptions.max_iter = True is invalid: must be an integer >= 1"),
+    ({"mu_init": True}, "ILQGOptions.mu_init = True is invalid: must be a finite number >= 0"),
+    ({"alphas": (1.0, True)}, "ILQGOptions.alphas = True is invalid: must be a finite number"),
+    ({"z_min": False}, "ILQGOptions.z_min = False is invalid: must be a finite number"),
+    ({"box_qp": 1}, "ILQGOptions.box_qp = 1 is invalid: must be true or false"),
+    ({"second_order": 0}, "ILQGOptions.second_order = 0 is invalid: must be true or false"),
+])
+def test_options_reject_bool_numbers_and_numeric_flags(kw, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        ILQGOptions(**kw)

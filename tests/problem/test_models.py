@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -197,3 +199,16 @@ def test_hessian_override_replaces_exact_state_hessian():
     assert not np.allclose(np.asarray(a[3]), np.asarray(b[3]))
     with pytest.raises(ValueError, match="stage_hessian_x"):
         Problem.build(model, dataclasses.replace(cost, stage_hessian_x=ca.DM.eye(3)))
+
+
+@pytest.mark.parametrize(("make", "message"), [
+    (lambda: BarrierOptions(kappa=True), "BarrierOptions.kappa = True is invalid: must be a "
+                                         "finite number > 0"),
+    (lambda: BarrierOptions(gamma=False), "BarrierOptions.gamma = False is invalid: must be a "
+                                          "finite number >= -1 and <= 1"),
+    (lambda: Circle((0.0, 0.0), True), "Circle.radius = True is invalid: must be a finite number"),
+    (lambda: double_integrator(dt=True), "dt = True is invalid: must be a finite number > 0"),
+])
+def test_bool_is_not_a_real(make, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        make()

@@ -43,7 +43,7 @@ def test_a_fixed_rule_needs_no_episode_and_bad_steps_name_the_field(nav):
     th = calibrate(AlphaRule(kind="fixed", value=3.0), None, None, None, None, None, None)
     assert isinstance(th, ConstantThreshold) and th.value == 3.0
     for bad in (True, 0, 2.5):
-        with pytest.raises(ValueError, match="^steps = "):
+        with pytest.raises(ValueError, match=r"^steps = "):
             calibration_trace(nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi,
                               nav.feedback("ilqg"), steps=bad)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -125,3 +127,27 @@ def test_savitzky_golay_smoothing_option(nav):
     np.testing.assert_allclose(b.U[:-1], expected[1:], atol=1e-12)
     with pytest.raises(ValueError, match="smoothing"):
         replace(nav.mppi, smoothing=(8, 2))
+
+
+@pytest.mark.parametrize(("config", "kw", "message"), [
+    (MPPIConfig, {"n_samples": True}, "MPPIConfig.n_samples = True is invalid: must be an integer"),
+    (MPPIConfig, {"horizon": np.True_}, "MPPIConfig.horizon = True is invalid: must be an integer"),
+    (MPPIConfig, {"smoothing": (True, 0)}, "MPPIConfig.smoothing = True is invalid: must be an "
+                                           "integer"),
+    (MPPIConfig, {"lam": True}, "MPPIConfig.lam = True is invalid: must be a finite number"),
+    (MPPIConfig, {"nu_mix": False}, "MPPIConfig.nu_mix = False is invalid: must be a finite"),
+    (RMPPIConfig, {"candidate_samples": True},
+     "RMPPIConfig.candidate_samples = True is invalid: must be an integer"),
+    (RMPPIConfig, {"alpha": True}, "RMPPIConfig.alpha = True is invalid: must be a number or"),
+    (RMPPIConfig, {"clip_in_cost": 1}, "RMPPIConfig.clip_in_cost = 1 is invalid: must be true or"),
+    (RMPPIConfig, {"diagnostics": 0}, "RMPPIConfig.diagnostics = 0 is invalid: must be true or"),
+])
+def test_bool_is_not_a_number_and_a_number_is_not_a_flag(config, kw, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message)):
+        config(**kw)
+
+
+def test_numpy_integers_and_plus_inf_are_accepted():
+    assert MPPIConfig(n_samples=np.int64(64), horizon=np.int32(20)).n_samples == 64
+    assert RMPPIConfig(alpha=np.inf).alpha == np.inf
+    assert RMPPIConfig(diagnostics=np.True_).diagnostics

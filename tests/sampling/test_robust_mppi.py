@@ -9,6 +9,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from workbench.ilqg.passes import BackwardResult
 from workbench.sampling.controllers import (
     MPPI,
     RMPPIConfig,
@@ -155,8 +156,9 @@ def test_k_safe_fallbacks_shift_the_previous_gains_and_say_why(nav, monkeypatch)
     fb = nav.feedback("bas_ilqg")
     x0 = nav.problem.model.lift(nav.x0)
     U = np.zeros((100, 2))
-    prev = Gains(np.random.default_rng(0).standard_normal((100, 2, 5)))
-    monkeypatch.setattr(fb.passes, "backward", lambda *a: (1, None, None, None))
+    prev = Gains(K=np.random.default_rng(0).standard_normal((100, 2, 5)))
+    monkeypatch.setattr(fb.passes, "backward",
+                        lambda *a: BackwardResult(status=1, k=None, K=None, dV=None))
     g = fb.gains(x0, U, prev, 1)
     assert g.fallback == "backward_failed"
     np.testing.assert_array_equal(g.K, shifted(prev.K, 1))
@@ -256,7 +258,8 @@ def test_nonfinite_plan_and_q_beta_are_rejected(nav):
             navigation_costs(nav.problem.model, q_beta=q)
     rob = RobustMPPI(nav.problem, nav.goal, nav.mppi)
     with pytest.raises(ValueError, match=r"state\.U"):
-        rob.step(RMPPIState(np.zeros((99, 2)), None, 0), nav.x0, np.random.default_rng(0))
+        rob.step(RMPPIState(U=np.zeros((99, 2)), x_nom=None, index=0), nav.x0,
+                 np.random.default_rng(0))
 
 
 @pytest.fixture(scope="module")

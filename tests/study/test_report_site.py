@@ -11,8 +11,8 @@ from urllib.parse import unquote, urlparse
 
 import pytest
 
-from workbench.study.spec import registry as discover
 from workbench.study.report_site import build_site
+from workbench.study.spec import registry as discover
 
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
 

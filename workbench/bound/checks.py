@@ -48,8 +48,8 @@ class Check:
 
 
 def _check(test, constants, lhs, rhs, term) -> Check:
-    return Check(test, constants, bool(lhs <= rhs), float(rhs - lhs), float(lhs), float(rhs),
-                 float(term))
+    return Check(test=test, constants=constants, holds=bool(lhs <= rhs), slack=float(rhs - lhs),
+                 lhs=float(lhs), rhs=float(rhs), lipschitz_term=float(term))
 
 
 def _F(s: BoundStep, estimate: Estimate) -> tuple[float, float]:

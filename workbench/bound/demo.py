@@ -44,7 +44,7 @@ def main(argv=None) -> None:
     # progress-indexed alpha (one undisturbed calibration run)
     ctrl = nav.controller("sa_rmppi", rule=AlphaRule(kappa=a.kappa))
     t1 = time.perf_counter()
-    dist = Disturbance(a.variance)
+    dist = Disturbance(level=a.variance)
     est = BoundEstimator(ctrl, dist, BoundConfig(space=a.space))
     t2 = time.perf_counter()
     print(f"set-up: controller + alpha calibration {t1 - t0:.1f} s, global Lipschitz constant "

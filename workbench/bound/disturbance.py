@@ -12,20 +12,20 @@ import numpy as np
 from scipy.stats import chi2
 
 from workbench.sim import Disturbance
-from workbench.validation import as_array, fail
+from workbench.validation import as_array, fail, integer, real
 
 
 def chi_radius(prob: float = 0.999, dof: int = 2) -> float:
     """√(χ²_{dof, prob}): the prob-quantile of ‖ξ‖ for ξ ~ N(0, I_dof)."""
-    if isinstance(prob, bool) or not 0.0 < prob < 1.0:
+    if not 0.0 < real("prob", prob) < 1.0:
         raise fail("prob", prob, "must lie in (0, 1)")
+    integer("dof", dof, 1)
     return float(np.sqrt(chi2.ppf(prob, dof)))
 
 
 def disturbance_scale(disturbance: Disturbance, dt: float) -> float:
     """c with w = c ξ on the velocities (:class:`workbench.sim.Disturbance`)."""
-    if isinstance(dt, bool) or not (np.isfinite(dt) and dt > 0):
-        raise fail("dt", dt, "must be a finite number > 0")
+    real("dt", dt, 0.0, strict=True)
     lvl = float(disturbance.level)
     return {"velocity_variance": dt * np.sqrt(lvl), "velocity_std": dt * lvl,
             "white_noise": np.sqrt(dt) * np.sqrt(lvl), "kick": np.sqrt(lvl)}[disturbance.model]
@@ -46,9 +46,9 @@ def d_f(x, x_next_model, x_nom0, D: float, physical: int) -> float:
     """D̂_F = ‖F(x_t, u_t) − x_t‖ + ‖x*_0 − x_t‖ + D̂ on the physical state (SPEC 11.2 item 8);
     ``x_next_model`` = F(x_t, u_t), the model step without disturbance; the norm uses the
     ``physical`` leading coordinates (nx for the augmented reading)."""
+    integer("physical", physical, 1)
     x = as_array("x", np.ravel(x)[:physical], (physical,))
     xn = as_array("x_next_model", np.ravel(x_next_model)[:physical], (physical,))
     xs = as_array("x_nom0", np.ravel(x_nom0)[:physical], (physical,))
-    if isinstance(D, bool) or not (np.isfinite(D) and D >= 0):
-        raise fail("D", D, "must be a finite number >= 0")
+    real("D", D, 0.0)
     return float(np.linalg.norm(xn - x) + np.linalg.norm(xs - x) + D)

@@ -19,7 +19,7 @@ from typing import Literal
 
 import numpy as np
 
-from workbench.validation import fail, one_of
+from workbench.validation import fail, integer, one_of, real
 
 Method = Literal["delta", "mppig"]
 
@@ -44,9 +44,7 @@ def check_costs(name: str, S, n: int | None = None) -> np.ndarray:
 
 
 def _lam(lam: float) -> float:
-    if isinstance(lam, bool) or not (np.isfinite(lam) and lam > 0):
-        raise fail("lam", lam, "the temperature must be a finite number > 0")
-    return float(lam)
+    return real("lam", lam, 0.0, strict=True)
 
 
 def free_energy_lse(S, lam: float) -> float:
@@ -78,8 +76,7 @@ def free_energy_estimate(S, lam: float, z: float = 3.0, method: Method = "delta"
     """F̂ and Ê of a batch of costs (module docstring); needs N >= 2."""
     S, lam = check_costs("S", S), _lam(lam)
     one_of("method", method, ("delta", "mppig"))
-    if isinstance(z, bool) or not (np.isfinite(z) and z > 0):
-        raise fail("z", z, "must be a finite number > 0")
+    real("z", z, 0.0, strict=True)
     N = S.size
     if N < 2:
         raise fail("S", S.shape, "the uncertainty needs at least 2 samples")
@@ -97,8 +94,8 @@ def free_energy_estimate(S, lam: float, z: float = 3.0, method: Method = "delta"
         t = var / (wbar * np.sqrt(N))
         E = lam * (t + 0.5 * t * t)
     wn = w / w.sum()
-    return FreeEnergy(value, float(E), float(sd), float(bias), float(1.0 / np.sum(wn * wn)), N,
-                      method, float(z))
+    return FreeEnergy(value=value, E=float(E), sd=float(sd), bias=float(bias),
+                      ess=float(1.0 / np.sum(wn * wn)), n=N, method=method, z=float(z))
 
 
 @dataclass(frozen=True)
@@ -116,13 +113,12 @@ def bootstrap_free_energy(S, lam: float, rng: np.random.Generator, n_resamples: 
                           z: float = 3.0) -> Bootstrap:
     """Nonparametric bootstrap (resampling the batch with replacement) of F̂."""
     S, lam = check_costs("S", S), _lam(lam)
-    if isinstance(n_resamples, bool) or not isinstance(n_resamples, int | np.integer) \
-            or n_resamples < 2:
-        raise fail("n_resamples", n_resamples, "must be an integer >= 2")
+    integer("n_resamples", n_resamples, 2)
     rho = float(S.min())
     w = np.exp(-(S - rho) / lam)
     idx = rng.integers(0, S.size, size=(int(n_resamples), S.size))
     Fb = rho - lam * np.log(w[idx].mean(axis=1))
     value = rho - lam * float(np.log(w.mean()))
     sd, bias = float(Fb.std(ddof=1)), float(Fb.mean() - value)
-    return Bootstrap(value, sd, bias, z * sd + abs(bias), int(n_resamples))
+    return Bootstrap(value=value, sd=sd, bias=bias, E=z * sd + abs(bias),
+                     n_resamples=int(n_resamples))

@@ -41,7 +41,7 @@ from workbench.sampling.kernels.diagnostics import (
     diagnostics_library,
 )
 from workbench.sampling.problem import SamplingProblem
-from workbench.validation import as_array, fail, one_of
+from workbench.validation import as_array, fail, integer, one_of, real
 
 
 @dataclass(frozen=True)
@@ -93,21 +93,17 @@ class LipschitzGrid:
 
     def __post_init__(self) -> None:
         for name in ("spacing", "v_max", "max_margin"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not (np.isfinite(v) and v > 0):
-                raise fail(f"LipschitzGrid.{name}", v, "must be a finite number > 0")
+            real(f"LipschitzGrid.{name}", getattr(self, name), 0.0, strict=True)
         if self.min_margin is not None and not (
-                np.isfinite(self.min_margin) and 0 < self.min_margin < self.max_margin):
+                0 < real("LipschitzGrid.min_margin", self.min_margin) < self.max_margin):
             raise fail("LipschitzGrid.min_margin", self.min_margin,
                        f"must be None or a number in (0, max_margin = {self.max_margin:g})")
         for name in ("x_range", "y_range"):
-            lo, hi = getattr(self, name)
-            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            lo, hi = (real(f"LipschitzGrid.{name}", v) for v in getattr(self, name))
+            if not lo < hi:
                 raise fail(f"LipschitzGrid.{name}", (lo, hi), "need finite lo < hi")
         for name in ("ring_angles", "n_v", "n_rings"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
-                raise fail(f"LipschitzGrid.{name}", v, "must be an integer >= 1")
+            integer(f"LipschitzGrid.{name}", getattr(self, name), 1)
 
     def margins(self, eps_h: float) -> np.ndarray:
         lo = self.min_margin if self.min_margin is not None else 2.0 * max(eps_h, 1e-12)
@@ -203,9 +199,12 @@ class CostGradients:
             else:  # the grid's states on the model's manifold: beta = B(h(p))
                 X[0] = np.asarray(lift.map(Yc.shape[0])(Yc.T))
             parts.append(self._run(X, X, np.ones((1, 1)), np.ones((1, 1)), p))
-        return Lipschitz(max(q.L_q for q in parts), max(q.L_phi for q in parts), 0.0, 0.0,
-                         sum(q.points_q for q in parts), sum(q.points_phi for q in parts),
-                         sum(q.excluded_q for q in parts), sum(q.excluded_phi for q in parts))
+        return Lipschitz(L_q=max(q.L_q for q in parts), L_phi=max(q.L_phi for q in parts),
+                         secant_q=0.0, secant_phi=0.0,
+                         points_q=sum(q.points_q for q in parts),
+                         points_phi=sum(q.points_phi for q in parts),
+                         excluded_q=sum(q.excluded_q for q in parts),
+                         excluded_phi=sum(q.excluded_phi for q in parts))
 
     def _run(self, X, X_nom, wq, wphi, p) -> Lipschitz:
         if self.lib is not None:
@@ -216,10 +215,13 @@ class CostGradients:
             r = k.result.unpack(out.result)
         else:
             r = self._reference(X, X_nom, wq, wphi, p)
-        return Lipschitz(float(np.sqrt(r["L2_q"].max())), float(np.sqrt(r["L2_phi"].max())),
-                         float(np.sqrt(r["sec2_q"].max())), float(np.sqrt(r["sec2_phi"].max())),
-                         int(r["points_q"].sum()), int(r["points_phi"].sum()),
-                         int(r["excluded_q"].sum()), int(r["excluded_phi"].sum()))
+        return Lipschitz(L_q=float(np.sqrt(r["L2_q"].max())),
+                         L_phi=float(np.sqrt(r["L2_phi"].max())),
+                         secant_q=float(np.sqrt(r["sec2_q"].max())),
+                         secant_phi=float(np.sqrt(r["sec2_phi"].max())),
+                         points_q=int(r["points_q"].sum()), points_phi=int(r["points_phi"].sum()),
+                         excluded_q=int(r["excluded_q"].sum()),
+                         excluded_phi=int(r["excluded_phi"].sum()))
 
     def _reference(self, X, X_nom, wq, wphi, p) -> dict[str, np.ndarray]:
         """The kernel's computation with the CasADi VM, per sample (the kernel's twin)."""

@@ -35,7 +35,7 @@ from workbench.codegen.fastcall import FastFunction
 from workbench.sampling.controllers import RMPPIInfo, RobustMPPI, physical_model
 from workbench.sampling.sampler import SAISDiagBatch
 from workbench.sim import Disturbance
-from workbench.validation import fail, one_of
+from workbench.validation import fail, integer, one_of, real
 
 Constants = Literal["local", "global"]
 
@@ -57,11 +57,13 @@ class BoundConfig:
         one_of("BoundConfig.method", self.method, ("delta", "mppig"))
         one_of("BoundConfig.space", self.space, ("physical", "augmented"))
         one_of("BoundConfig.n_q", self.n_q, ("T", "T-1"))
-        if isinstance(self.bootstrap, bool) or not isinstance(self.bootstrap, int) \
-                or self.bootstrap < 0 or self.bootstrap == 1:
+        real("BoundConfig.z", self.z, 0.0, strict=True)
+        bootstrap = integer("BoundConfig.bootstrap", self.bootstrap)
+        if bootstrap < 0 or bootstrap == 1:
             raise fail("BoundConfig.bootstrap", self.bootstrap, "must be 0 (off) or >= 2")
-        if not 0.0 < self.quantile <= 1.0:
-            raise fail("BoundConfig.quantile", self.quantile, "must lie in (0, 1]")
+        real("BoundConfig.quantile", self.quantile, 0.0, strict=True, maximum=1.0)
+        if not 0.0 < real("BoundConfig.disturbance_prob", self.disturbance_prob) < 1.0:
+            raise fail("BoundConfig.disturbance_prob", self.disturbance_prob, "must lie in (0, 1)")
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workbench.validation import fail
+from workbench.validation import fail, integer
 
 
 @dataclass(frozen=True)
@@ -44,8 +44,7 @@ def tube_radius(X, X_nom, physical: int, position=(0, 1), quantile: float = 0.99
     """Radii of the real samples X about the nominal samples X_nom (module docstring); the
     norm uses the ``physical`` leading coordinates (nx for the augmented reading)."""
     X, X_nom = check_trajectories(X, X_nom)
-    if not 1 <= physical <= X.shape[1]:
-        raise fail("physical", physical, f"must lie in [1, {X.shape[1]}]")
+    integer("physical", physical, 1, X.shape[1])
     pos = set(position)
     d2, dp2, dm2 = (np.zeros((X.shape[0], X.shape[2])) for _ in range(3))
     for i in range(physical):  # per coordinate: (T+1, N) planes, no strided temporaries
@@ -58,5 +57,6 @@ def tube_radius(X, X_nom, physical: int, position=(0, 1), quantile: float = 0.99
         m *= m
         dm2 += m
     per = np.sqrt(d2.max(axis=0))
-    return Tube(float(per.max()), float(np.quantile(per, quantile)),
-                float(np.sqrt(dp2.max())), float(np.sqrt(dm2.max())), per)
+    return Tube(R=float(per.max()), R99=float(np.quantile(per, quantile)),
+                R_position=float(np.sqrt(dp2.max())), R_mean_nominal=float(np.sqrt(dm2.max())),
+                per_sample=per)

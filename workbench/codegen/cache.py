@@ -233,7 +233,7 @@ def build_library(
         _compile_and_publish(tc, source, folder, stem, extra_flags)
         hit = False
         cdll, loaded = _load_and_verify(lib, functions)
-    return Library(lib, key, cdll, loaded, hit)
+    return Library(path=lib, key=key, cdll=cdll, functions=loaded, cache_hit=hit)
 
 
 def _load_and_verify(lib: Path, functions: list[ca.Function]):

@@ -105,7 +105,7 @@ def find_toolchain() -> Toolchain | None:
     for name in names:
         path = shutil.which(name)
         if path and (version := _version(path)):
-            tc = Toolchain(path, version, flags)
+            tc = Toolchain(cc=path, version=version, flags=flags)
             if wanted and name != wanted and (wanted, path) not in _WARNED:
                 _WARNED.add((wanted, path))
                 warnings.warn(f"WORKBENCH_CC = {wanted!r} is not a working C compiler (not found "

@@ -30,7 +30,7 @@ import osqp
 import scipy.sparse as sp
 
 from workbench.problem.models import Model
-from workbench.validation import fail, one_of, positive
+from workbench.validation import fail, flag, integer, one_of, real
 
 Mode = Literal["soft", "hard"]
 RelativeDegree = Literal["auto", 1, 2]
@@ -76,17 +76,19 @@ class ECBFOptions:
         if p.shape != (2,) or not np.all(np.isfinite(p)) or np.any(p <= 0):
             raise fail("ECBFOptions.poles", self.poles, "need two finite poles p1, p2 > 0")
         object.__setattr__(self, "poles", (float(p[0]), float(p[1])))
-        positive("ECBFOptions.gamma", self.gamma)
-        if self.relative_degree not in ("auto", 1, 2):
-            raise fail("ECBFOptions.relative_degree", self.relative_degree,
-                       "allowed values are 'auto', 1, 2")
+        real("ECBFOptions.gamma", self.gamma, 0.0, strict=True)
+        if isinstance(self.relative_degree, str):
+            one_of("ECBFOptions.relative_degree", self.relative_degree, ("auto",))
+        else:  # or a fixed degree, 1 or 2
+            integer("ECBFOptions.relative_degree", self.relative_degree, 1, 2)
         one_of("ECBFOptions.mode", self.mode, ("soft", "hard"))
-        positive("ECBFOptions.slack_linear", self.slack_linear)
-        positive("ECBFOptions.slack_quadratic", self.slack_quadratic, allow_zero=True)
+        real("ECBFOptions.slack_linear", self.slack_linear, 0.0, strict=True)
+        real("ECBFOptions.slack_quadratic", self.slack_quadratic, 0.0)
         for name in ("slack_tol", "eps_abs", "eps_rel"):
-            positive(f"ECBFOptions.{name}", getattr(self, name))
-        if not isinstance(self.max_iter, int) or self.max_iter < 1:
-            raise fail("ECBFOptions.max_iter", self.max_iter, "must be an integer >= 1")
+            real(f"ECBFOptions.{name}", getattr(self, name), 0.0, strict=True)
+        flag("ECBFOptions.polish", self.polish)
+        flag("ECBFOptions.warm_start", self.warm_start)
+        integer("ECBFOptions.max_iter", self.max_iter, 1)
 
     @property
     def k0(self) -> float:
@@ -334,15 +336,17 @@ class ECBFFilter:
         violation = (b - a @ u_box) / norms
         if (violation <= self.options.eps_abs).all():  # the shortcut (class docstring)
             status = "unconstrained" if (u_box == u_ref).all() else "box"
-            return FilterResult(u_box, status, np.maximum(violation, 0.0), (), False, False)
+            return FilterResult(u=u_box, status=status, slack=np.maximum(violation, 0.0),
+                                active_rows=(), infeasible=False, fallback_used=False)
         an, bn = a / norms[:, None], b / norms  # rows with ||a_i|| = 1
         u, status, fallback = self._qp(an, bn, u_ref)
         residual = bn - an @ u
         slack = np.maximum(residual, 0.0)
         tol = self.options.slack_tol
         active = tuple(np.flatnonzero(residual >= -tol).tolist())
-        return FilterResult(u, status, slack, active, bool(fallback or (slack > tol).any()),
-                            fallback)
+        return FilterResult(u=u, status=status, slack=slack, active_rows=active,
+                            infeasible=bool(fallback or (slack > tol).any()),
+                            fallback_used=fallback)
 
     def _qp(self, an: np.ndarray, bn: np.ndarray, u_ref: np.ndarray) -> tuple:
         """OSQP on normalised rows: (u in the box, status, fallback used).
@@ -407,7 +411,8 @@ class ECBFFilter:
         slack = np.where(solved[:, None], np.maximum(0.0, bn - np.einsum("nij,nj->ni", an, U)),
                          np.maximum(violation, 0.0))
         infeasible = fallback | np.any(slack > self.options.slack_tol, axis=1)
-        return BatchFilterResult(U, slack, infeasible, fallback, solved)
+        return BatchFilterResult(u=U, slack=slack, infeasible=infeasible, fallback_used=fallback,
+                                 qp_solved=solved)
 
 
 @dataclass(frozen=True)

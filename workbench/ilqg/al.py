@@ -27,7 +27,7 @@ from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.problem.costs import Cost
 from workbench.problem.models import Model
 from workbench.problem.problem import Problem
-from workbench.validation import fail, one_of, positive
+from workbench.validation import fail, integer, one_of, real
 
 
 @dataclass(frozen=True)
@@ -49,18 +49,16 @@ class ALOptions:
     inner: ILQGOptions = field(default_factory=lambda: ILQGOptions(tol_rel=1e-6))
 
     def __post_init__(self) -> None:
-        positive("ALOptions.lambda_init", self.lambda_init, allow_zero=True)
-        positive("ALOptions.mu_init", self.mu_init)
-        if not (np.isfinite(self.phi) and self.phi > 1):
-            raise fail("ALOptions.phi", self.phi, "must be a finite number > 1")
-        if not (np.isfinite(self.tau) and 0 < self.tau < 1):
+        real("ALOptions.lambda_init", self.lambda_init, 0.0)
+        real("ALOptions.mu_init", self.mu_init, 0.0, strict=True)
+        real("ALOptions.phi", self.phi, 1.0, strict=True)
+        if not 0 < real("ALOptions.tau", self.tau) < 1:
             raise fail("ALOptions.tau", self.tau, "must lie in (0, 1)")
-        positive("ALOptions.mu_max", self.mu_max)
+        real("ALOptions.mu_max", self.mu_max, 0.0, strict=True)
         if self.mu_max < self.mu_init:
             raise fail("ALOptions.mu_max", self.mu_max, f"must be >= mu_init = {self.mu_init}")
-        if not isinstance(self.max_outer, int) or self.max_outer < 1:
-            raise fail("ALOptions.max_outer", self.max_outer, "must be an integer >= 1")
-        positive("ALOptions.constraint_tol", self.constraint_tol)
+        integer("ALOptions.max_outer", self.max_outer, 1)
+        real("ALOptions.constraint_tol", self.constraint_tol, 0.0, strict=True)
         one_of("ALOptions.mu_update", self.mu_update, ("individual", "uniform"))
         if not isinstance(self.inner, ILQGOptions):
             raise fail("ALOptions.inner", self.inner, "must be an ILQGOptions")
@@ -206,8 +204,9 @@ def al_ilqg(alp: ALProblem, x0, U0, P_base, options: ALOptions | None = None,
         viol[0] = 0.0
         max_viol = float(viol.max())
         history.append(OuterIteration(
-            it, alp.base_cost(res.X, res.U, P_base), res.cost, max_viol, res.iterations,
-            res.converged, float(mu.max()), float(lam.max())))
+            iteration=it, cost=alp.base_cost(res.X, res.U, P_base), al_cost=res.cost,
+            max_violation=max_viol, inner_iterations=res.iterations,
+            inner_converged=res.converged, mu_max=float(mu.max()), lambda_max=float(lam.max())))
         if max_viol <= opts.constraint_tol and res.converged:
             converged, stop = True, "converged"
             break

@@ -11,7 +11,7 @@ from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.costs import BetaCost, quadratic_tracking
 from workbench.problem.models import Model
 from workbench.problem.problem import Problem
-from workbench.validation import as_array, fail
+from workbench.validation import as_array, fail, real
 
 
 @dataclass(frozen=True)
@@ -33,9 +33,7 @@ class TrackingWeights:
                 raise fail(f"TrackingWeights.{name}", w, "must be finite diagonal entries >= 0")
             object.__setattr__(self, name, tuple(float(v) for v in w))
         for name in ("q_beta", "s_beta"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
-                raise fail(f"TrackingWeights.{name}", v, "must be a finite number >= 0")
+            real(f"TrackingWeights.{name}", getattr(self, name), 0.0)
 
 
 def tracking_problem(model: Model, weights: TrackingWeights = TrackingWeights(), *,

@@ -9,11 +9,48 @@ import casadi as ca
 import numpy as np
 
 from workbench.codegen import Library, build_library
+from workbench.ilqg.passes import (
+    BackwardResult,
+    BoxQPResult,
+    ForwardResult,
+    LineSearchResult,
+    SolveResult,
+)
 from workbench.ilqg.reference import step_function
 from workbench.problem.problem import FUNCTION_NAMES, Problem
 
 _LIBS: dict[str, Library | None] = {}
 _dp = ctypes.c_void_p  # raw addresses: numpy's .ctypes.data_as costs microseconds per call
+
+
+class SolveOptions(ctypes.Structure):
+    """The options of the C outer loop: core.c's ``wb_solve_options``, field by field (same
+    names, types and order; :func:`solve_options_layout` reports the C side's layout)."""
+
+    _fields_ = [
+        ("max_iter", ctypes.c_int),
+        ("reg", ctypes.c_int),  # 0 control-space, 1 state-space regularisation
+        ("boxed", ctypes.c_int),  # 1: control limits through the box QP
+        ("second_order", ctypes.c_int),  # 1: full DDP
+        ("mu_init", ctypes.c_double),
+        ("mu_factor", ctypes.c_double),
+        ("mu_min", ctypes.c_double),
+        ("mu_max", ctypes.c_double),
+        ("z_min", ctypes.c_double),
+        ("tol_abs", ctypes.c_double),
+        ("tol_rel", ctypes.c_double),
+        ("tol_grad", ctypes.c_double),
+    ]
+
+
+def solve_options_layout(library: Library) -> tuple[int, tuple[tuple[str, int, int], ...]]:
+    """The C layout of ``wb_solve_options``: (sizeof, ((field, offset, size), ...))."""
+    out, names = (ctypes.c_longlong * 64)(), ctypes.c_char_p()  # room for 31 fields
+    n = library.cdll.wb_solve_options_layout(out, ctypes.byref(names))
+    fields = (names.value or b"").decode().split()
+    if len(fields) != n:
+        raise RuntimeError(f"wb_solve_options_layout reported {n} fields named {fields}")
+    return out[0], tuple((f, out[1 + 2 * i], out[2 + 2 * i]) for i, f in enumerate(fields))
 
 
 def row_major_functions(problem: Problem) -> list[ca.Function]:
@@ -76,7 +113,11 @@ def _declare(c: ctypes.CDLL) -> None:
     c.wb_backward.restype = i
     c.wb_backward.argtypes = [i] + [_dp] * 10 + [d, i, i, _dp, _dp, _dp, _dp, i]
     c.wb_solve.restype = None
-    c.wb_solve.argtypes = [i] + [_dp] * 9 + [i] + [_dp] * 16
+    c.wb_solve.argtypes = ([i] + [_dp] * 7 + [ctypes.POINTER(SolveOptions), _dp, i]
+                           + [_dp] * 16)
+    c.wb_solve_options_layout.restype = i
+    c.wb_solve_options_layout.argtypes = [ctypes.POINTER(ctypes.c_longlong),
+                                          ctypes.POINTER(ctypes.c_char_p)]
     c.wb_box_qp.restype = i
     c.wb_box_qp.argtypes = [i, _dp, _dp, _dp, _dp, _dp, _dp, _dp, _dp, _dp]
 
@@ -109,7 +150,7 @@ class CompiledPasses:
             "X": (T + 1, nx), "U": (T, nu), "P": (T + 1, max(problem.n_p, 1)), "x0": (nx,),
             "k": (T, nu), "K": (T, nu, nx), "dV": (2,), "umin": (nu,), "umax": (nu,),
             "Xn": (T + 1, nx), "Un": (T, nu), "out": (3,), "alphas": (32,),
-            "k2": (T, nu), "K2": (T, nu, nx), "J": (1,), "opt": (12,), "sout": (4,),
+            "k2": (T, nu), "K2": (T, nu, nx), "J": (1,), "sout": (4,),
             "Xd": (T + 1, nx),
         }
         self._b = {n: np.zeros(s) for n, s in shapes.items()}
@@ -138,7 +179,8 @@ class CompiledPasses:
             self.T, *self._pd, self._put("U", U), self._put("umin", umin),
             self._put("umax", umax), float(mu), int(reg), int(boxed), self._a["k"],
             self._a["K"], self._a["dV"], self._a["Xd"], int(second_order))
-        return status, self._b["k"].copy(), self._b["K"].copy(), self._b["dV"].copy()
+        return BackwardResult(status=status, k=self._b["k"].copy(), K=self._b["K"].copy(),
+                              dV=self._b["dV"].copy())
 
     def _policy(self, x0, X, U, k, K, P) -> list[int]:
         return [self._put("x0", x0), self._put("X", X), self._put("U", U), self._put("k", k),
@@ -149,25 +191,24 @@ class CompiledPasses:
         J = self._c.wb_forward(self.T, *ptrs, float(alpha), self._put("umin", umin),
                                self._put("umax", umax), int(use_policy), self._a["Xn"],
                                self._a["Un"])
-        return self._b["Xn"].copy(), self._b["Un"].copy(), float(J)
+        return ForwardResult(X=self._b["Xn"].copy(), U=self._b["Un"].copy(), cost=float(J))
 
-    def solve(self, x0, X, U, J, P, umin, umax, opt, alphas, max_iter):
-        """The whole outer loop in C (``wb_solve``); returns (X, U, k, K, J, stop code,
-        converged, history (n, 7), final mu)."""
+    def solve(self, x0, X, U, J, P, umin, umax, options: SolveOptions, alphas):
+        """The whole outer loop in C (``wb_solve``), from the accepted rollout (X, U, J)."""
         b, a = self._b, self._a
         self._put("X", X), self._put("U", U), self._put("P", P), self._put("x0", x0)
         b["J"][0] = J
-        b["opt"][:] = opt
         n = len(alphas)
         b["alphas"][:n] = alphas
-        hist = np.empty((max_iter, 7))
+        hist = np.empty((options.max_iter, 7))
         self._c.wb_solve(self.T, a["x0"], a["X"], a["U"], a["J"], a["P"],
-                         self._put("umin", umin), self._put("umax", umax), a["opt"],
-                         a["alphas"], n, a["k"], a["K"], _ptr(hist), a["sout"], *self._pd,
-                         a["k2"], a["K2"], a["Xn"], a["Un"], a["out"])
+                         self._put("umin", umin), self._put("umax", umax),
+                         ctypes.byref(options), a["alphas"], n, a["k"], a["K"], _ptr(hist),
+                         a["sout"], *self._pd, a["k2"], a["K2"], a["Xn"], a["Un"], a["out"])
         stop, conv, n_hist, mu = b["sout"]
-        return (b["X"].copy(), b["U"].copy(), b["k"].copy(), b["K"].copy(), float(b["J"][0]),
-                int(stop), bool(conv), hist[: int(n_hist)].copy(), float(mu))
+        return SolveResult(X=b["X"].copy(), U=b["U"].copy(), k=b["k"].copy(), K=b["K"].copy(),
+                           cost=float(b["J"][0]), stop=int(stop), converged=bool(conv),
+                           history=hist[: int(n_hist)].copy(), mu=float(mu))
 
     def line_search(self, x0, X, U, k, K, P, J, dV, alphas, z_min, umin, umax):
         ptrs = self._policy(x0, X, U, k, K, P)
@@ -178,18 +219,18 @@ class CompiledPasses:
                                    self._put("umax", umax), self._a["Xn"], self._a["Un"],
                                    self._a["out"])
         if i < 0:
-            return False, X, U, J, 0.0, 0.0
-        out = self._b["out"]
-        return (True, self._b["Xn"].copy(), self._b["Un"].copy(), float(out[0]), float(out[1]),
-                float(out[2]))
+            return LineSearchResult(accepted=False, X=X, U=U, cost=J, alpha=0.0, expected=0.0)
+        out = self._b["out"]  # (J_new, alpha, expected), as wb_line_search writes it
+        return LineSearchResult(accepted=True, X=self._b["Xn"].copy(), U=self._b["Un"].copy(),
+                                cost=float(out[0]), alpha=float(out[1]), expected=float(out[2]))
 
 
 def box_qp_compiled(library: Library, H, g, lo, hi, x0):
-    """The C box QP (for tests): returns (x, result, free mask)."""
+    """The C box QP (for tests); its Cholesky factor is not returned (``L`` is None)."""
     n = g.size
     x, L = np.zeros(n), np.zeros(n * n)
     free, nf = np.zeros(n, np.int32), np.zeros(1, np.int32)
     H, g, lo, hi, x0 = (_c(a) for a in (H, g, lo, hi, x0))
     res = library.cdll.wb_box_qp(n, _ptr(H), _ptr(g), _ptr(lo), _ptr(hi), _ptr(x0), _ptr(x),
                                  _ptr(free), _ptr(L), _ptr(nf))
-    return x, res, free.astype(bool)
+    return BoxQPResult(x=x, result=res, free=free.astype(bool))

@@ -15,6 +15,7 @@
  * two are compared in tests/ilqg/test_ilqg.py. Keep them in step.
  */
 #include <math.h>
+#include <stddef.h>
 #include <string.h>
 
 /* Full unrolling of the sparse products: after it, the pattern arrays are constants and the
@@ -394,24 +395,66 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
   return 0;
 }
 
+/* The options of wb_solve, one entry per field: F(C type, name). The struct below, its
+ * layout report and the ctypes mirror (compiled.SolveOptions, same names, same order) all
+ * follow this list; tests compare the two layouts. */
+#define WB_SOLVE_OPTIONS(F) \
+  F(int, max_iter)        /* iteration limit (ILQGOptions.max_iter) */ \
+  F(int, reg)             /* 0 control-space (Quu + mu I), 1 state-space regularisation */ \
+  F(int, boxed)           /* 1: control limits through the box QP */ \
+  F(int, second_order)    /* 1: full DDP (dynamics' Hessians in the backward pass) */ \
+  F(double, mu_init)      /* first regularisation */ \
+  F(double, mu_factor)    /* its growth factor (> 1) */ \
+  F(double, mu_min)       /* regularisation floor */ \
+  F(double, mu_max)       /* regularisation limit: stop above it */ \
+  F(double, z_min)        /* line search: least actual / expected decrease */ \
+  F(double, tol_abs)      /* stop when the accepted decrease is <= max(tol_abs, */ \
+  F(double, tol_rel)      /*   tol_rel |J|) */ \
+  F(double, tol_grad)     /* stop when the mean relative gain is below it (and mu < 1e-5) */
+
+typedef struct {
+#define WB_FIELD(type, name) type name;
+  WB_SOLVE_OPTIONS(WB_FIELD)
+#undef WB_FIELD
+} wb_solve_options;
+
+/* The layout of wb_solve_options: out = [sizeof, then offset and size of each field in
+ * order] (1 + 2 n entries, n = the number of fields, returned). *names: the field names,
+ * space-separated. */
+int wb_solve_options_layout(long long* out, const char** names) {
+#define WB_NAME(type, name) #name " "
+  static const char field_names[] = WB_SOLVE_OPTIONS(WB_NAME);
+#undef WB_NAME
+  int i = 0;
+  out[i++] = (long long)sizeof(wb_solve_options);
+#define WB_FIELD(type, name) \
+  out[i++] = (long long)offsetof(wb_solve_options, name); \
+  out[i++] = (long long)sizeof(((wb_solve_options*)0)->name);
+  WB_SOLVE_OPTIONS(WB_FIELD)
+#undef WB_FIELD
+  *names = field_names;
+  return (i - 1) / 2;
+}
+
 /* The outer loop of workbench/ilqg/solver.py (ilqg, python loop) in C, for small problems where
  * the Python loop costs more than the passes. Keep the two in step; tests compare them.
- * opt = [max_iter, mu_init, mu_factor, mu_min, mu_max, reg, boxed, z_min, tol_abs, tol_rel,
- *        tol_grad, second_order]; X, U hold the initial (accepted) rollout and are updated in place; *J its
- * cost. hist rows (max_iter, 7): cost, dJ, expected, alpha, mu, grad_norm, accepted.
+ * X, U hold the initial (accepted) rollout and are updated in place; *J its cost.
+ * hist rows (max_iter, 7): cost, dJ, expected, alpha, mu, grad_norm, accepted.
  * out = [stop code (0 max_iter, 1 regularization_limit, 2 gradient, 3 cost_change,
  * 4 line_search_failed), converged, n_hist, final mu]. Work: derivative arrays (7, as
  * wb_derivatives), k2 (T,NU), K2 (T,NU,NX), Xn, Un, ls_out (3). */
 void wb_solve(int T, const double* x0, double* X, double* U, double* J, const double* P,
-              const double* umin, const double* umax, const double* opt, const double* alphas,
-              int n_alpha, double* k, double* K, double* hist, double* out, double* A,
-              double* B, double* lx, double* lu, double* lxx, double* luu, double* lux,
-              double* k2, double* K2, double* Xn, double* Un, double* ls) {
-  const int max_iter = (int)opt[0], reg = (int)opt[5], boxed = (int)opt[6];
-  const double f = opt[2], mu_min = opt[3], mu_max = opt[4], z_min = opt[7];
-  const double tol_abs = opt[8], tol_rel = opt[9], tol_grad = opt[10];
-  const int second_order = (int)opt[11];
-  double mu = opt[1], delta = 1.0, dV[2];
+              const double* umin, const double* umax, const wb_solve_options* opt,
+              const double* alphas, int n_alpha, double* k, double* K, double* hist,
+              double* out, double* A, double* B, double* lx, double* lu, double* lxx,
+              double* luu, double* lux, double* k2, double* K2, double* Xn, double* Un,
+              double* ls) {
+  const int max_iter = opt->max_iter, reg = opt->reg, boxed = opt->boxed;
+  const double f = opt->mu_factor, mu_min = opt->mu_min, mu_max = opt->mu_max;
+  const double z_min = opt->z_min;
+  const double tol_abs = opt->tol_abs, tol_rel = opt->tol_rel, tol_grad = opt->tol_grad;
+  const int second_order = opt->second_order;
+  double mu = opt->mu_init, delta = 1.0, dV[2];
   int d_valid = 0, stop = 0, converged = 0, n_hist = 0;
   for (int it = 1; it <= max_iter; ++it) {
     if (!d_valid) {

@@ -10,6 +10,12 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from workbench.ilqg.passes import (
+    BackwardResult,
+    BoxQPResult,
+    ForwardResult,
+    LineSearchResult,
+)
 from workbench.problem.problem import Problem
 
 CRASH_PENALTY = 1e10
@@ -37,7 +43,7 @@ def step_function(problem: Problem) -> ca.Function:
 def box_qp(H, g, lo, hi, x0, max_iter: int = 100):
     """Projected-Newton box QP (Tassa et al. 2014): min ½x'Hx + g'x, lo <= x <= hi.
 
-    Returns (x, result, free mask, Cholesky factor of H[free, free]); result codes as in core.c.
+    Result codes as in core.c; ``L`` is the Cholesky factor of H[free, free].
     """
     n = g.size
     min_grad, min_rel, step_dec, min_step, armijo = 1e-8, 1e-8, 0.6, 1e-22, 0.1
@@ -91,7 +97,7 @@ def box_qp(H, g, lo, hi, x0, max_iter: int = 100):
             break
     else:
         result = 1
-    return x, result, free, L
+    return BoxQPResult(x=x, result=result, free=free, L=L)
 
 
 def _chol_solve(L, b):
@@ -133,7 +139,7 @@ class NumpyPasses:
         }
 
     def backward(self, d, U, umin, umax, mu, reg, boxed, second_order=False):
-        """Returns (status, k, K, dV); status 0 ok or t+1 where Quu failed.
+        """The gains k, K and expected decrease dV; status 0 ok or t+1 where Quu failed.
 
         second_order: full DDP, Q's second derivatives include sum_i V'_x,i Hess F_i (the
         dynamics' Hessians contracted with the next value gradient, ``dyn_hess``)."""
@@ -158,14 +164,15 @@ class NumpyPasses:
                 Quu_r, Qux_r = Quu + mu * B.T @ B, Qux + mu * B.T @ A
             if boxed:
                 warm = np.zeros(nu) if t == T - 1 else k[t + 1]
-                kk, res, free, L = box_qp(Quu_r, Qu, umin - U[t], umax - U[t], warm)
-                if res < 1:
-                    return t + 1, k, K, dV
+                qp = box_qp(Quu_r, Qu, umin - U[t], umax - U[t], warm)
+                if qp.result < 1:
+                    return BackwardResult(status=t + 1, k=k, K=K, dV=dV)
+                kk, free, L = qp.x, qp.free, qp.L
             else:
                 try:
                     L = np.linalg.cholesky(Quu_r)
                 except np.linalg.LinAlgError:
-                    return t + 1, k, K, dV
+                    return BackwardResult(status=t + 1, k=k, K=K, dV=dV)
                 kk, free = -_chol_solve(L, Qu), np.ones(nu, bool)
             k[t] = kk
             if free.any():
@@ -175,10 +182,10 @@ class NumpyPasses:
             Vx = Qx + Kt.T @ Quu @ kt + Kt.T @ Qu + Qux.T @ kt
             Vxx = Qxx + Kt.T @ Quu @ Kt + Kt.T @ Qux + Qux.T @ Kt
             Vxx = 0.5 * (Vxx + Vxx.T)
-        return 0, k, K, dV
+        return BackwardResult(status=0, k=k, K=K, dV=dV)
 
     def forward(self, x0, X, U, k, K, P, alpha, umin, umax, use_policy=True):
-        """Closed-loop rollout u = clip(ubar + alpha k + K(x - xbar)); returns (Xn, Un, J)."""
+        """Closed-loop rollout u = clip(ubar + alpha k + K(x - xbar))."""
         T = self.T
         Xn = np.zeros_like(X)
         Un = np.zeros_like(U)
@@ -190,17 +197,16 @@ class NumpyPasses:
             xn, c = self._step(Xn[t], Un[t], P[t])
             Xn[t + 1] = np.asarray(xn).ravel()
             J += float(c)
-        return Xn, Un, J + float(self._term(Xn[T], P[T]))
+        return ForwardResult(X=Xn, U=Un, cost=J + float(self._term(Xn[T], P[T])))
 
     def line_search(self, x0, X, U, k, K, P, J, dV, alphas, z_min, umin, umax):
-        """First step size whose actual/expected decrease ratio z exceeds z_min.
-
-        Returns (accepted, Xn, Un, Jn, alpha, expected).
-        """
+        """First step size whose actual/expected decrease ratio z exceeds z_min."""
         for alpha in alphas:
-            Xn, Un, Jn = self.forward(x0, X, U, k, K, P, alpha, umin, umax)
+            fw = self.forward(x0, X, U, k, K, P, alpha, umin, umax)
+            Jn = fw.cost
             expected = -alpha * (dV[0] + alpha * dV[1])
             z = (J - Jn) / expected if expected > 0 else np.sign(J - Jn)
             if np.isfinite(Jn) and z > z_min:
-                return True, Xn, Un, Jn, alpha, expected
-        return False, X, U, J, 0.0, 0.0
+                return LineSearchResult(accepted=True, X=fw.X, U=fw.U, cost=Jn, alpha=alpha,
+                                        expected=expected)
+        return LineSearchResult(accepted=False, X=X, U=U, cost=J, alpha=0.0, expected=0.0)

@@ -13,10 +13,10 @@ from typing import Literal
 
 import numpy as np
 
-from workbench.ilqg.compiled import CompiledPasses, problem_library
+from workbench.ilqg.compiled import CompiledPasses, SolveOptions, problem_library
 from workbench.ilqg.reference import NumpyPasses
 from workbench.problem.problem import Problem
-from workbench.validation import fail, one_of, positive
+from workbench.validation import fail, flag, integer, one_of, real
 
 Backend = Literal["auto", "compiled", "numpy"]
 
@@ -43,23 +43,26 @@ class ILQGOptions:
     outer_loop: Literal["compiled", "python"] = "compiled"  # compiled: wb_solve, when available
 
     def __post_init__(self) -> None:
-        if not isinstance(self.max_iter, int) or self.max_iter < 1:
-            raise fail("ILQGOptions.max_iter", self.max_iter, "must be an integer >= 1")
-        positive("ILQGOptions.mu_init", self.mu_init, allow_zero=True)
-        if not self.mu_factor > 1:
-            raise fail("ILQGOptions.mu_factor", self.mu_factor, "must be > 1")
-        positive("ILQGOptions.mu_min", self.mu_min, allow_zero=True)
-        positive("ILQGOptions.mu_max", self.mu_max)
+        integer("ILQGOptions.max_iter", self.max_iter, 1)
+        real("ILQGOptions.mu_init", self.mu_init, 0.0)
+        real("ILQGOptions.mu_factor", self.mu_factor, 1.0, strict=True)
+        real("ILQGOptions.mu_min", self.mu_min, 0.0)
+        real("ILQGOptions.mu_max", self.mu_max, 0.0, strict=True)
         one_of("ILQGOptions.regularization", self.regularization, ("control", "state"))
-        if not 0 < len(self.alphas) <= 32 or any(not (0 < a <= 1) for a in self.alphas):
+        if not 0 < len(self.alphas) <= 32:
             raise fail("ILQGOptions.alphas", self.alphas, "need 1 to 32 step sizes in (0, 1]")
+        for a in self.alphas:
+            real("ILQGOptions.alphas", a, 0.0, strict=True, maximum=1.0)
+        real("ILQGOptions.z_min", self.z_min)
         for name in ("tol_abs", "tol_rel", "tol_grad"):
-            positive(f"ILQGOptions.{name}", getattr(self, name), allow_zero=True)
+            real(f"ILQGOptions.{name}", getattr(self, name), 0.0)
+        flag("ILQGOptions.box_qp", self.box_qp)
+        flag("ILQGOptions.second_order", self.second_order)
         one_of("ILQGOptions.backend", self.backend, ("auto", "compiled", "numpy"))
         one_of("ILQGOptions.outer_loop", self.outer_loop, ("compiled", "python"))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Iteration:
     """One accepted or rejected iteration of the outer loop."""
 
@@ -130,14 +133,15 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
         return passes.forward(x0, np.zeros((T + 1, problem.nx)), Uc, zeros_k, zeros_K, P, 0.0,
                               umin, umax, use_policy=False)
 
-    X, U, J = open_loop(U)
+    fw = open_loop(U)
     replaced = False
-    if not np.isfinite(J) or J >= 1e10:
-        X, U, J = open_loop(np.zeros_like(U))
+    if not np.isfinite(fw.cost) or fw.cost >= 1e10:
+        fw = open_loop(np.zeros_like(U))
         replaced = True
-        if not np.isfinite(J) or J >= 1e10:
+        if not np.isfinite(fw.cost) or fw.cost >= 1e10:
             raise fail("U0", U0, "neither the initial guess nor zero controls give a safe, "
                        "finite rollout")
+    X, U, J = fw.X, fw.U, fw.cost
     if opts.outer_loop == "compiled" and hasattr(passes, "solve"):
         return _compiled_loop(passes, opts, x0, X, U, J, P, reg, boxed, t_start, replaced)
     mu, delta = opts.mu_init, 1.0
@@ -149,9 +153,9 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
         if d is None:
             d = passes.derivatives(X, U, P)
         while True:
-            status, k, K, dV = passes.backward(d, U, umin, umax, mu, reg, boxed,
-                                               opts.second_order)
-            if status == 0:
+            bw = passes.backward(d, U, umin, umax, mu, reg, boxed, opts.second_order)
+            k, K, dV = bw.k, bw.K, bw.dV
+            if bw.status == 0:
                 break
             delta = max(delta * opts.mu_factor, opts.mu_factor)
             mu = max(mu * delta, opts.mu_min)
@@ -165,34 +169,37 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
             delta = min(delta / opts.mu_factor, 1.0 / opts.mu_factor)
             mu = mu * delta * (mu > opts.mu_min)
             stop, converged = "gradient", True
-            history.append(Iteration(it, J, 0.0, 0.0, 0.0, mu, grad_norm, False,
-                                     time.perf_counter() - t_it))
+            history.append(Iteration(iteration=it, cost=J, cost_change=0.0, expected_change=0.0,
+                                     alpha=0.0, mu=mu, grad_norm=grad_norm, accepted=False,
+                                     time_s=time.perf_counter() - t_it))
             break
-        accepted, Xn, Un, Jn, alpha, expected = passes.line_search(
-            x0, X, U, k, K, P, J, dV, opts.alphas, opts.z_min, umin, umax)
-        dJ = J - Jn
-        if accepted:
+        ls = passes.line_search(x0, X, U, k, K, P, J, dV, opts.alphas, opts.z_min, umin, umax)
+        dJ = J - ls.cost
+        if ls.accepted:
             delta = min(delta / opts.mu_factor, 1.0 / opts.mu_factor)
             mu = mu * delta * (mu > opts.mu_min)
-            X, U, J, d = Xn, Un, Jn, None
-            history.append(Iteration(it, J, dJ, expected, alpha, mu, grad_norm, True,
-                                     time.perf_counter() - t_it))
+            X, U, J, d = ls.X, ls.U, ls.cost, None
+            history.append(Iteration(iteration=it, cost=J, cost_change=dJ,
+                                     expected_change=ls.expected, alpha=ls.alpha, mu=mu,
+                                     grad_norm=grad_norm, accepted=True,
+                                     time_s=time.perf_counter() - t_it))
             if dJ <= max(opts.tol_abs, opts.tol_rel * abs(J)):
                 stop, converged = "cost_change", True
                 break
         else:
             delta = max(delta * opts.mu_factor, opts.mu_factor)
             mu = max(mu * delta, opts.mu_min)
-            history.append(Iteration(it, J, 0.0, 0.0, 0.0, mu, grad_norm, False,
-                                     time.perf_counter() - t_it))
+            history.append(Iteration(iteration=it, cost=J, cost_change=0.0, expected_change=0.0,
+                                     alpha=0.0, mu=mu, grad_norm=grad_norm, accepted=False,
+                                     time_s=time.perf_counter() - t_it))
             if mu > opts.mu_max:
                 stop = "line_search_failed"
                 break
     if d is None:  # gains about the returned trajectory, for use as a feedback policy
         d = passes.derivatives(X, U, P)
-        status, k2, K2, _ = passes.backward(d, U, umin, umax, mu, reg, boxed, opts.second_order)
-        if status == 0:
-            k, K = k2, K2
+        bw = passes.backward(d, U, umin, umax, mu, reg, boxed, opts.second_order)
+        if bw.status == 0:
+            k, K = bw.k, bw.K
     return ILQGResult(
         X=X, U=U, k=k, K=K, cost=float(J), converged=converged, stop_reason=stop,
         iterations=len(history), history=tuple(history), backend=passes.name,
@@ -206,17 +213,21 @@ _STOPS = ("max_iter", "regularization_limit", "gradient", "cost_change", "line_s
 def _compiled_loop(passes, opts: ILQGOptions, x0, X, U, J, P, reg, boxed, t_start, replaced):
     """The same outer loop in C (core.c ``wb_solve``); per-iteration times are the mean."""
     problem = passes.problem
-    opt = np.array([opts.max_iter, opts.mu_init, opts.mu_factor, opts.mu_min, opts.mu_max, reg,
-                    int(boxed), opts.z_min, opts.tol_abs, opts.tol_rel, opts.tol_grad,
-                    int(opts.second_order)])
-    X, U, k, K, J, stop, converged, hist, _ = passes.solve(
-        x0, X, U, J, P, problem.model.u_min, problem.model.u_max, opt, opts.alphas,
-        opts.max_iter)
+    core = SolveOptions(
+        max_iter=int(opts.max_iter), reg=int(reg), boxed=int(boxed),
+        second_order=int(opts.second_order), mu_init=float(opts.mu_init),
+        mu_factor=float(opts.mu_factor), mu_min=float(opts.mu_min), mu_max=float(opts.mu_max),
+        z_min=float(opts.z_min), tol_abs=float(opts.tol_abs), tol_rel=float(opts.tol_rel),
+        tol_grad=float(opts.tol_grad))
+    res = passes.solve(x0, X, U, J, P, problem.model.u_min, problem.model.u_max, core,
+                       opts.alphas)
     elapsed = time.perf_counter() - t_start
-    per = elapsed / max(len(hist), 1)
-    history = tuple(Iteration(i + 1, float(h[0]), float(h[1]), float(h[2]), float(h[3]),
-                              float(h[4]), float(h[5]), bool(h[6]), per)
-                    for i, h in enumerate(hist))
-    return ILQGResult(X=X, U=U, k=k, K=K, cost=J, converged=converged, stop_reason=_STOPS[stop],
+    per = elapsed / max(len(res.history), 1)
+    history = tuple(Iteration(iteration=i + 1, cost=float(h[0]), cost_change=float(h[1]),
+                              expected_change=float(h[2]), alpha=float(h[3]), mu=float(h[4]),
+                              grad_norm=float(h[5]), accepted=bool(h[6]), time_s=per)
+                    for i, h in enumerate(res.history))
+    return ILQGResult(X=res.X, U=res.U, k=res.k, K=res.K, cost=res.cost,
+                      converged=res.converged, stop_reason=_STOPS[res.stop],
                       iterations=len(history), history=history, backend=passes.name,
                       solve_time_s=elapsed, initial_guess_replaced=replaced)

@@ -16,7 +16,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.models import Model
-from workbench.validation import fail, one_of, positive
+from workbench.validation import fail, one_of, real
 
 BarrierKind = Literal["inverse", "log", "exp"]
 BARRIER_KINDS: tuple[str, ...] = ("inverse", "log", "exp")
@@ -42,11 +42,10 @@ class BarrierOptions:
         one_of("BarrierOptions.kind", self.kind, BARRIER_KINDS)
         if isinstance(self.grouping, str):
             one_of("BarrierOptions.grouping", self.grouping, ("sum", "per_obstacle"))
-        if not (np.isfinite(self.gamma) and -1.0 <= self.gamma <= 1.0):
-            raise fail("BarrierOptions.gamma", self.gamma, "must lie in [-1, 1]")
-        positive("BarrierOptions.kappa", self.kappa)
-        positive("BarrierOptions.beta_max", self.beta_max)
-        positive("BarrierOptions.eps_h", self.eps_h, allow_zero=True)
+        real("BarrierOptions.gamma", self.gamma, -1.0, maximum=1.0)
+        real("BarrierOptions.kappa", self.kappa, 0.0, strict=True)
+        real("BarrierOptions.beta_max", self.beta_max, 0.0, strict=True)
+        real("BarrierOptions.eps_h", self.eps_h, 0.0)
 
     def groups(self, nh: int) -> tuple[tuple[int, ...], ...]:
         """Index groups of margins, one per barrier state."""
@@ -140,6 +139,6 @@ def embed_barrier(model: Model, options: BarrierOptions | None = None) -> Model:
         position=model.position,
         obstacles=model.obstacles,
         n_physical=model.nx,
-        barrier=BarrierSpec(opts, groups),
+        barrier=BarrierSpec(options=opts, groups=groups),
         lift_expr=ca.vertcat(model.x, now),
     )

@@ -15,7 +15,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.models import Model
-from workbench.validation import as_array, fail, one_of
+from workbench.validation import as_array, fail, one_of, real
 
 BetaCost = Literal["relative", "absolute"]
 
@@ -88,8 +88,7 @@ def quadratic_tracking(
     n, nu = model.n_physical, model.nu
     Qm, Rm, Sm = _weight("Q", Q, n), _weight("R", R, nu), _weight("S", S, n)
     for nm, val in (("q_beta", q_beta), ("s_beta", s_beta)):
-        if not np.isfinite(val) or val < 0:
-            raise fail(nm, val, "must be a finite number >= 0")
+        real(nm, val, 0.0)
     n_beta = model.nx - n
     layout = [("x_ref", n), ("u_ref", nu)] + ([("beta_ref", n_beta)] if n_beta else [])
     p = ca.SX.sym("p", sum(s for _, s in layout))

@@ -16,7 +16,7 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.obstacles import Circle, HForm, circle_margins
-from workbench.validation import as_array, bounds, fail, one_of, positive
+from workbench.validation import as_array, bounds, fail, integer, one_of, real
 
 Integrator = Literal["euler", "zoh"]
 INTEGRATORS: tuple[str, ...] = ("euler", "zoh")
@@ -94,7 +94,7 @@ class Model:
             if extra:
                 raise fail(fname, extra, "may depend only on the model's own symbols "
                            + ("x and u" if fname == "x_next" else "x"))
-        positive("dt", dt)
+        real("dt", dt, 0.0, strict=True)
         lo = as_array("u_min", u_min, (nu,), finite=False)
         hi = as_array("u_max", u_max, (nu,), finite=False)
         bounds("u_min", lo, "u_max", hi)
@@ -104,8 +104,9 @@ class Model:
             raise fail("state_names", sn, f"need {nx} names")
         if len(cn) != nu:
             raise fail("control_names", cn, f"need {nu} names")
-        if position is not None and not all(0 <= i < nx for i in position):
-            raise fail("position", position, f"indices must lie in [0, {nx})")
+        if position is not None:
+            for i in position:
+                integer("position", i, 0, nx - 1)
         return cls(
             name=name, x=x, u=u, x_next=x_next, h=h, dt=float(dt), u_min=lo, u_max=hi,
             state_names=tuple(sn), control_names=tuple(cn), position=position,

@@ -8,7 +8,7 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
-from workbench.validation import as_array, fail, one_of, positive
+from workbench.validation import as_array, fail, one_of, real
 
 HForm = Literal["squared", "signed_distance"]
 H_FORMS: tuple[str, ...] = ("squared", "signed_distance")
@@ -24,7 +24,7 @@ class Circle:
     def __post_init__(self) -> None:
         c = as_array("Circle.center", self.center, (2,))
         object.__setattr__(self, "center", (float(c[0]), float(c[1])))
-        object.__setattr__(self, "radius", positive("Circle.radius", self.radius))
+        object.__setattr__(self, "radius", real("Circle.radius", self.radius, 0.0, strict=True))
 
 
 def circle_margins(
@@ -35,7 +35,7 @@ def circle_margins(
     squared: ||p - c||^2 - (r + inflation)^2 ; signed_distance: ||p - c|| - (r + inflation).
     """
     one_of("h_form", h_form, H_FORMS)
-    positive("inflation", inflation, allow_zero=True)
+    real("inflation", inflation, 0.0)
     out = []
     for c in circles:
         r = c.radius + inflation
@@ -52,4 +52,5 @@ def circles_from_arrays(centers, radii) -> tuple[Circle, ...]:
     r = as_array("radii", radii, (c.shape[0],))
     if np.any(r <= 0):
         raise fail("radii", r, "every radius must be > 0")
-    return tuple(Circle((float(a), float(b)), float(rr)) for (a, b), rr in zip(c, r, strict=False))
+    return tuple(Circle(center=(float(a), float(b)), radius=float(rr))
+                 for (a, b), rr in zip(c, r, strict=False))

@@ -28,7 +28,7 @@ from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.sampler import Backend, SAISBatch, Sampler
 from workbench.sampling.threshold import ConstantThreshold, Threshold
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
-from workbench.validation import as_array, fail, one_of, positive
+from workbench.validation import as_array, fail, flag, integer, one_of, real, real_or_inf
 
 
 @cache
@@ -59,24 +59,23 @@ class MPPIConfig:
 
     def __post_init__(self) -> None:
         for name in ("n_samples", "horizon", "iterations"):
-            v = getattr(self, name)
-            if not isinstance(v, int | np.integer) or v < 1:
-                raise fail(f"MPPIConfig.{name}", v, "must be an integer >= 1")
-        if not (np.isfinite(self.lam) and self.lam > 0):
-            raise fail("MPPIConfig.lam", self.lam, "lambda must be a finite number > 0")
+            integer(f"MPPIConfig.{name}", getattr(self, name), 1)
+        real("MPPIConfig.lam", self.lam, 0.0, strict=True)
         s = np.asarray(self.sigma, dtype=float)
         if s.ndim != 1 or not np.all(np.isfinite(s)) or np.any(s <= 0):
             raise fail("MPPIConfig.sigma", s, "Sigma = diag(sigma^2) must be positive definite: "
                        "every sigma must be finite and > 0")
         object.__setattr__(self, "sigma", tuple(float(v) for v in s))
-        if not (0.0 <= self.nu_mix < 1.0):
+        if not 0.0 <= real("MPPIConfig.nu_mix", self.nu_mix) < 1.0:
             raise fail("MPPIConfig.nu_mix", self.nu_mix, "must lie in [0, 1)")
-        positive("MPPIConfig.crash_cost", self.crash_cost, allow_zero=True)
+        real("MPPIConfig.crash_cost", self.crash_cost, 0.0)
         one_of("MPPIConfig.tail", self.tail, ("hold", "zero"))
         if self.smoothing is not None:
-            w, o = self.smoothing
-            if not (isinstance(w, int) and isinstance(o, int) and w % 2 == 1
-                    and 0 <= o < w <= self.horizon):
+            ok = isinstance(self.smoothing, tuple | list) and len(self.smoothing) == 2
+            if ok:
+                w, o = (integer("MPPIConfig.smoothing", v) for v in self.smoothing)
+                ok = w % 2 == 1 and 0 <= o < w <= self.horizon
+            if not ok:
                 raise fail("MPPIConfig.smoothing", self.smoothing,
                            "need (window, order) with an odd window <= horizon and order < window")
 
@@ -123,7 +122,7 @@ class MPPIState:
     U: np.ndarray  # (T, nu) importance-sampling sequence
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class MPPIInfo:
     free_energy: float
     ess: float
@@ -146,7 +145,7 @@ class MPPI:
             u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost, p=goal)
 
     def initial_state(self, x0=None) -> MPPIState:
-        return MPPIState(np.zeros((self.cfg.horizon, self.sp.nu)))
+        return MPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)))
 
     def step(self, state: MPPIState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
@@ -160,9 +159,9 @@ class MPPI:
             if W.valid:
                 U = self.cfg.smooth(weighted_controls(batch.v, W.w))
         u = U[0].copy()
-        info = MPPIInfo(W.free_energy, W.ess, int(batch.crashed.sum()), W.valid,
-                        time.perf_counter() - t0)
-        return MPPIState(_shift(U, 1, self.cfg.tail)), u, info
+        info = MPPIInfo(free_energy=W.free_energy, ess=W.ess, n_crashed=int(batch.crashed.sum()),
+                        valid_weights=W.valid, time_s=time.perf_counter() - t0)
+        return MPPIState(U=_shift(U, 1, self.cfg.tail)), u, info
 
 
 @dataclass(frozen=True)
@@ -185,19 +184,15 @@ class RMPPIConfig:
     diagnostics: bool = False
 
     def __post_init__(self) -> None:
-        if isinstance(self.alpha, bool) or np.isnan(self.alpha) or self.alpha == -np.inf:
-            raise fail("RMPPIConfig.alpha", self.alpha, "must be a number or +inf")
-        for name, lo in (("n_candidates", 3), ("candidate_samples", 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < lo:
-                raise fail(f"RMPPIConfig.{name}", v, f"must be an integer >= {lo}")
+        real_or_inf("RMPPIConfig.alpha", self.alpha)
+        integer("RMPPIConfig.n_candidates", self.n_candidates, 3)
+        integer("RMPPIConfig.candidate_samples", self.candidate_samples, 1)
         if self.n_candidates % 2 == 0:
             raise fail("RMPPIConfig.n_candidates", self.n_candidates, "must be odd and >= 3")
         one_of("RMPPIConfig.fallback", self.fallback, ("propagated", "keep_previous"))
         one_of("RMPPIConfig.applied", self.applied, ("nominal_feedback", "real"))
-        for name in ("clip_in_cost", "diagnostics"):
-            if not isinstance(getattr(self, name), bool | np.bool_):
-                raise fail(f"RMPPIConfig.{name}", getattr(self, name), "must be True or False")
+        flag("RMPPIConfig.clip_in_cost", self.clip_in_cost)
+        flag("RMPPIConfig.diagnostics", self.diagnostics)
 
 
 @dataclass(frozen=True)
@@ -208,7 +203,7 @@ class RMPPIState:
     gains: Gains | None = None  # last feedback gains (shifted when a computation fails)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Selection:
     """Outcome of the nominal-state selection (SPEC 9.3)."""
 
@@ -222,7 +217,7 @@ class Selection:
     alpha_nominal: float  # threshold at the chosen nominal state (the SAIS clamp's alpha)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class RMPPIInfo:
     candidate: int
     candidate_free_energy: np.ndarray
@@ -277,22 +272,23 @@ class RobustMPPI:
         self.consts = replace(self.mppi.consts, alpha=robust.alpha,
                               clip_in_cost=bool(robust.clip_in_cost))
         self.feedback = feedback or ILQGFeedback(sp.model, config.horizon, sp.nx)
-        self.threshold = threshold or ConstantThreshold(robust.alpha)
+        self.threshold = threshold or ConstantThreshold(value=robust.alpha)
         self._dyn = FastFunction(sp.functions()["dyn"])
         self._lift_all = FastFunction(sp.model.lift_function, robust.n_candidates)
         self._W = candidate_weights(robust.n_candidates)
         self._strides = strides(robust.n_candidates)
 
     def initial_state(self, x0=None) -> RMPPIState:
-        return RMPPIState(np.zeros((self.cfg.horizon, self.sp.nu)), None, 0)
+        return RMPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)), x_nom=None, index=0)
 
     def select_nominal(self, state: RMPPIState, xb, rng) -> Selection:
         """Nominal-state selection (SPEC 9.3) with s = 1 plant step since the last call."""
         nc = self.rcfg.n_candidates
         if state.x_nom is None:
             n = self.sp.model.n_physical
-            return Selection(xb, state.U, nc - 1, 0, np.zeros(0), np.zeros(0), False,
-                             float(self.threshold(xb[None, :n])[0]))
+            return Selection(x_nom=xb, U=state.U, index=nc - 1, stride=0,
+                             free_energy=np.zeros(0), alpha=np.zeros(0), fallback=False,
+                             alpha_nominal=float(self.threshold(xb[None, :n])[0]))
         r, cfg, sp = self.rcfg, self.cfg, self.sp
         a0 = state.x_nom
         a1 = self._dyn(a0, state.U[0])[0]
@@ -317,8 +313,9 @@ class RobustMPPI:
         else:
             i_star = int(ok.max())
         s = int(self._strides[i_star])
-        return Selection(starts[i_star], _shift(state.U, s, cfg.tail), i_star, s, F, alpha,
-                         fallback, float(alpha[i_star]))
+        return Selection(x_nom=starts[i_star], U=_shift(state.U, s, cfg.tail), index=i_star,
+                         stride=s, free_energy=F, alpha=alpha, fallback=fallback,
+                         alpha_nominal=float(alpha[i_star]))
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
@@ -352,11 +349,15 @@ class RobustMPPI:
         t4 = time.perf_counter()
         timing = {"selection": t1 - t0, "k_safe": t2 - t1, "sais": t3 - t2, "update": t4 - t3,
                   "total": t4 - t0}
-        info = RMPPIInfo(sel.index, sel.free_energy, sel.alpha, sel.fallback,
-                         not np.array_equal(x_nom, xb), alpha, Wn.free_energy, Wr.free_energy,
-                         Wn.ess, Wr.ess, int(b.crashed_real.sum()), int(b.crashed_nom.sum()),
-                         gains.fallback, gains.nominal_unsafe, timing, x_nom, first)
-        return RMPPIState(U, x_nom, sel.index, gains), u, info
+        info = RMPPIInfo(
+            candidate=sel.index, candidate_free_energy=sel.free_energy,
+            candidate_alpha=sel.alpha, fallback_used=sel.fallback,
+            nominal_differs=not np.array_equal(x_nom, xb), alpha=alpha,
+            free_energy_nom=Wn.free_energy, free_energy_real=Wr.free_energy, ess_nom=Wn.ess,
+            ess_real=Wr.ess, n_crashed_real=int(b.crashed_real.sum()),
+            n_crashed_nom=int(b.crashed_nom.sum()), ksafe_fallback=gains.fallback,
+            nominal_unsafe=gains.nominal_unsafe, timing=timing, x_nom=x_nom, batch=first)
+        return RMPPIState(U=U, x_nom=x_nom, index=sel.index, gains=gains), u, info
 
 
 def _check_plan(U: np.ndarray, T: int, nu: int) -> None:

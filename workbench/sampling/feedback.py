@@ -30,7 +30,7 @@ from workbench.ilqg import make_passes
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import Model
 from workbench.problem.problem import Problem
-from workbench.validation import as_array, fail
+from workbench.validation import as_array, fail, real
 
 FALLBACK_REASONS = ("backward_failed", "nonfinite_derivatives", "nonfinite_gains")
 
@@ -53,9 +53,7 @@ class FeedbackWeights:
                            "must be a sequence of finite numbers >= 0")
             object.__setattr__(self, name, tuple(float(v) for v in w))
         for name in ("q_beta", "mu", "mu_max"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not np.isfinite(v) or v < 0:
-                raise fail(f"FeedbackWeights.{name}", v, "must be a finite number >= 0")
+            real(f"FeedbackWeights.{name}", getattr(self, name), 0.0)
         if not self.mu_max > self.mu:
             raise fail("FeedbackWeights.mu_max", self.mu_max, f"must exceed mu = {self.mu}")
 
@@ -93,7 +91,7 @@ class NoFeedback:
         self.nx, self.nu = nx, nu
 
     def gains(self, x_nom, U, previous, stride) -> Gains:
-        return Gains(np.zeros((U.shape[0], self.nu, self.nx)))
+        return Gains(K=np.zeros((U.shape[0], self.nu, self.nx)))
 
 
 def shifted(K: np.ndarray, stride: int) -> np.ndarray:
@@ -143,10 +141,9 @@ class ILQGFeedback:
     def nominal(self, x_nom: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The clipped open-loop nominal trajectory (X (T+1, nx), U (T, nu))."""
         m = self.problem.model
-        X, Uc, _ = self.passes.forward(x_nom[: self.problem.nx], self._X0, U, self._zk,
-                                       self._zK, self._P0, 0.0, m.u_min, m.u_max,
-                                       use_policy=False)
-        return X, Uc
+        fw = self.passes.forward(x_nom[: self.problem.nx], self._X0, U, self._zk, self._zK,
+                                 self._P0, 0.0, m.u_min, m.u_max, use_policy=False)
+        return fw.X, fw.U
 
     def _params(self, X, U) -> np.ndarray:
         """Track the nominal trajectory itself: x_ref = X (physical part), u_ref = U."""
@@ -165,19 +162,22 @@ class ILQGFeedback:
         else:
             mu = self.w.mu
             while mu <= self.w.mu_max:
-                status, _, K, _ = self.passes.backward(d, Uc, m.u_min, m.u_max, mu, 0, False)
-                if status == 0:
+                bw = self.passes.backward(d, Uc, m.u_min, m.u_max, mu, 0, False)
+                K = bw.K
+                if bw.status == 0:
                     if not np.all(np.isfinite(K)):
                         reason = "nonfinite_gains"
                         break
-                    return Gains(self._pad(K), None, unsafe, mu)
+                    return Gains(K=self._pad(K), fallback=None, nominal_unsafe=unsafe, mu=mu)
                 mu = max(mu * 10.0, 1e-8)
             else:
                 reason = "backward_failed"
         if previous is None:
             # no earlier gains to shift: the only honest finite choice left is K = 0, reported
-            return Gains(np.zeros((self.T, m.nu, self.nx_full)), reason, unsafe, np.nan)
-        return Gains(shifted(previous.K, stride), reason, unsafe, np.nan)
+            return Gains(K=np.zeros((self.T, m.nu, self.nx_full)), fallback=reason,
+                         nominal_unsafe=unsafe, mu=np.nan)
+        return Gains(K=shifted(previous.K, stride), fallback=reason, nominal_unsafe=unsafe,
+                     mu=np.nan)
 
     def _pad(self, K: np.ndarray) -> np.ndarray:
         if K.shape[2] == self.nx_full:

@@ -19,7 +19,7 @@ import numpy as np
 from workbench.problem.costs import Cost
 from workbench.problem.models import Model
 from workbench.problem.problem import Problem
-from workbench.validation import as_array, fail
+from workbench.validation import as_array, fail, real
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,9 +98,10 @@ def navigation_costs(model: Model, *, Qp=(1.0, 1.0), Qv=(0.1, 0.1), q_beta: floa
         raise fail("model", model.name, "navigation_costs expects a planar double integrator")
     Qp, Qv = as_array("Qp", Qp, (2,)), as_array("Qv", Qv, (2,))
     S = as_array("S", S, (model.nx,))
-    for name, w in (("Qp", Qp), ("Qv", Qv), ("S", S), ("q_beta", np.array([q_beta]))):
+    for name, w in (("Qp", Qp), ("Qv", Qv), ("S", S)):
         if not np.all(np.isfinite(w)) or np.any(w < 0):
             raise fail(name, w, "weights must be finite numbers >= 0")
+    real("q_beta", q_beta, 0.0)
     x, g = model.x, ca.SX.sym("goal", model.nx)
     ep, v = x[:2] - g[:2], x[2:4]
     q = ca.dot(Qp * ep, ep) + ca.dot(Qv * v, v)

@@ -19,19 +19,19 @@ from workbench.sampling.kernels.diagnostics import diagnostics_library
 from workbench.sampling.kernels.emit import LANES
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import mppi_reference, sais_reference
-from workbench.validation import as_array, fail, one_of
+from workbench.validation import as_array, fail, integer, one_of
 
 Backend = Literal["auto", "compiled", "numpy"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class MPPIBatch:
     S: np.ndarray  # (N,)
     crashed: np.ndarray  # (N,) bool
     v: np.ndarray  # (T, nu, N) applied (clipped) sample controls
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SAISBatch:
     S_nom: np.ndarray
     S_real: np.ndarray
@@ -44,7 +44,7 @@ class SAISBatch:
     v_real: np.ndarray  # (T, nu, N)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SAISDiagBatch(SAISBatch):
     """A SAIS batch with the diagnostics of SPEC 11.2: both systems' state trajectories
     (T+1, nx, N), k = 0..T (lane-major like v), and the pure state costs
@@ -78,8 +78,7 @@ class Sampler:
         return np.random.default_rng(seed).standard_normal((N, T, self.sp.nu))
 
     def _check(self, N: int, U, c: SamplerConstants) -> np.ndarray:
-        if isinstance(N, bool) or not isinstance(N, int | np.integer) or N < 1:
-            raise fail("N", N, "the sample count must be an integer >= 1")
+        integer("N", N, 1)
         U = np.asarray(U, dtype=float)
         if U.ndim != 2 or U.shape[1] != self.sp.nu or U.shape[0] < 1:
             raise fail("U", U.shape, f"the plan must have shape (T >= 1, {self.sp.nu})")
@@ -100,9 +99,9 @@ class Sampler:
             out = k(k.carry.pack(N, x=x0), consts=c.kernel_consts(), time_in={"u": U},
                     seed=seed)
             r = k.result.unpack(out.result)
-            return MPPIBatch(r["S"], r["crashed"] > 0, out.lane_out[0])
+            return MPPIBatch(S=r["S"], crashed=r["crashed"] > 0, v=out.lane_out[0])
         ref = mppi_reference(self.sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), c)
-        return MPPIBatch(ref["S"], ref["crashed"], np.transpose(ref["v"], (1, 2, 0)))
+        return MPPIBatch(S=ref["S"], crashed=ref["crashed"], v=np.transpose(ref["v"], (1, 2, 0)))
 
     def sais(self, x0, xs0, U, K, N: int, c: SamplerConstants, seed: int,
              diagnostics: bool = False) -> SAISBatch:
@@ -119,15 +118,17 @@ class Sampler:
             out = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
                     time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed)
             r = k.result.unpack(out.result)
-            return SAISBatch(r["S_nom"], r["S_real"], r["S_state_nom"], r["S_hat"], r["LR"],
-                             r["crashed_real"] > 0, r["crashed_nom"] > 0, out.lane_out[0],
-                             out.lane_out[1])
+            return SAISBatch(S_nom=r["S_nom"], S_real=r["S_real"], S_state_nom=r["S_state_nom"],
+                             S_hat=r["S_hat"], LR=r["LR"], crashed_real=r["crashed_real"] > 0,
+                             crashed_nom=r["crashed_nom"] > 0, v_nom=out.lane_out[0],
+                             v_real=out.lane_out[1])
         ref = sais_reference(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
                              self._noise(N, T, seed), c)
-        return SAISBatch(ref["S_nom"], ref["S_real"], ref["S_state_nom"], ref["S_hat"],
-                         ref["LR"], ref["crashed_real"], ref["crashed_nom"],
-                         np.transpose(ref["v_nom"], (1, 2, 0)),
-                         np.transpose(ref["v_real"], (1, 2, 0)))
+        return SAISBatch(S_nom=ref["S_nom"], S_real=ref["S_real"],
+                         S_state_nom=ref["S_state_nom"], S_hat=ref["S_hat"], LR=ref["LR"],
+                         crashed_real=ref["crashed_real"], crashed_nom=ref["crashed_nom"],
+                         v_nom=np.transpose(ref["v_nom"], (1, 2, 0)),
+                         v_real=np.transpose(ref["v_real"], (1, 2, 0)))
 
     def _sais_diag(self, x0, xs0, U, K, N, c, seed) -> SAISDiagBatch:
         T, nx = U.shape[0], self.sp.nx
@@ -143,20 +144,24 @@ class Sampler:
                     time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed, lane_out=bufs)
             r = k.result.unpack(out.result)
             X, Xs = X[..., :N], Xs[..., :N]
-            return SAISDiagBatch(r["S_nom"], r["S_real"], r["S_state_nom"], r["S_hat"],
-                                 r["LR"], r["crashed_real"] > 0, r["crashed_nom"] > 0,
-                                 out.lane_out[0], out.lane_out[1], X, Xs, r["Sx_real"].copy(),
-                                 r["Sx_nom"].copy(), U, K, c, int(seed))
+            return SAISDiagBatch(
+                S_nom=r["S_nom"], S_real=r["S_real"], S_state_nom=r["S_state_nom"],
+                S_hat=r["S_hat"], LR=r["LR"], crashed_real=r["crashed_real"] > 0,
+                crashed_nom=r["crashed_nom"] > 0, v_nom=out.lane_out[0], v_real=out.lane_out[1],
+                X=X, X_nom=Xs, Sx_real=r["Sx_real"].copy(), Sx_nom=r["Sx_nom"].copy(), U=U, K=K,
+                consts=c, seed=int(seed))
         ref = sais_reference(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
                              self._noise(N, T, seed), c, pure_costs=True)
 
         def lm(a):
             return np.ascontiguousarray(np.transpose(a, (1, 2, 0)))
 
-        return SAISDiagBatch(ref["S_nom"], ref["S_real"], ref["S_state_nom"], ref["S_hat"],
-                             ref["LR"], ref["crashed_real"], ref["crashed_nom"], lm(ref["v_nom"]),
-                             lm(ref["v_real"]), lm(ref["X"]), lm(ref["X_nom"]), ref["Sx_real"],
-                             ref["Sx_nom"], U, K, c, int(seed))
+        return SAISDiagBatch(
+            S_nom=ref["S_nom"], S_real=ref["S_real"], S_state_nom=ref["S_state_nom"],
+            S_hat=ref["S_hat"], LR=ref["LR"], crashed_real=ref["crashed_real"],
+            crashed_nom=ref["crashed_nom"], v_nom=lm(ref["v_nom"]), v_real=lm(ref["v_real"]),
+            X=lm(ref["X"]), X_nom=lm(ref["X_nom"]), Sx_real=ref["Sx_real"], Sx_nom=ref["Sx_nom"],
+            U=U, K=K, consts=c, seed=int(seed))
 
     def candidates(self, starts, U, stride, c: SamplerConstants, seed: int) -> np.ndarray:
         """Costs (N,) of rollouts from per-sample starts (N, nx) following U shifted by the

@@ -23,7 +23,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from workbench.validation import fail, one_of
+from workbench.validation import fail, integer, one_of, real, real_or_inf
 
 AlphaKind = Literal["progress", "quantile", "fixed", "start"]
 
@@ -43,18 +43,10 @@ class AlphaRule:
     def __post_init__(self) -> None:
         one_of("AlphaRule.kind", self.kind, ("progress", "quantile", "fixed", "start"))
         for name in ("kappa", "factor"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not (np.isfinite(v) and v >= 0):
-                raise fail(f"AlphaRule.{name}", v, "must be a finite number >= 0")
-        if isinstance(self.quantile, bool) or not 0.0 <= self.quantile <= 1.0:
-            raise fail("AlphaRule.quantile", self.quantile, "must lie in [0, 1]")
-        if isinstance(self.value, bool) or np.isnan(self.value) or self.value == -np.inf:
-            raise fail("AlphaRule.value", self.value, "must be a number or +inf")
-        if (isinstance(self.calibration_steps, bool)
-                or not isinstance(self.calibration_steps, int | np.integer)
-                or self.calibration_steps < 10):
-            raise fail("AlphaRule.calibration_steps", self.calibration_steps,
-                       "must be an integer >= 10")
+            real(f"AlphaRule.{name}", getattr(self, name), 0.0)
+        real("AlphaRule.quantile", self.quantile, 0.0, maximum=1.0)
+        real_or_inf("AlphaRule.value", self.value)
+        integer("AlphaRule.calibration_steps", self.calibration_steps, 10)
 
     @property
     def needs_calibration(self) -> bool:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workbench.validation import fail
+from workbench.validation import real
 
 
 @dataclass(frozen=True)
@@ -33,20 +33,20 @@ def importance_weights(S, lam: float) -> Weights:
 
     If no cost is finite, w is all zeros, F = +inf and ``valid`` is False (callers keep U).
     """
-    if not (np.isfinite(lam) and lam > 0):
-        raise fail("lambda", lam, "the temperature must be a finite number > 0")
+    real("lambda", lam, 0.0, strict=True)
     S = np.asarray(S, dtype=float)
     finite = np.isfinite(S)
     n = int(finite.sum())
     if n == 0:
-        return Weights(np.zeros_like(S), np.inf, np.inf, 0.0, 0)
+        return Weights(w=np.zeros_like(S), rho=np.inf, free_energy=np.inf, ess=0.0, n_finite=0)
     rho = float(S[finite].min())
     e = np.zeros_like(S)
     e[finite] = np.exp(-(S[finite] - rho) / lam)
     total = float(e.sum())
     w = e / total
     F = -lam * np.log(total / S.size) + rho
-    return Weights(w, rho, float(F), float(1.0 / np.sum(w * w)), n)
+    return Weights(w=w, rho=rho, free_energy=float(F), ess=float(1.0 / np.sum(w * w)),
+                   n_finite=n)
 
 
 def free_energy(S, lam: float) -> float:

@@ -26,7 +26,7 @@ from workbench.sampling.kernels.layout import Layout
 from workbench.sampling.kernels.vector_math import prelude
 from workbench.sampling.kernels.verify import KernelMismatch, verify_kernel
 from workbench.sampling.problem import SamplingProblem
-from workbench.validation import fail
+from workbench.validation import integer
 
 L = TypeVar("L")
 
@@ -304,8 +304,7 @@ def set_threads(n: int) -> None:
     """OpenMP threads of the compiled sampler kernels: every library loaded so far and every
     one loaded later (default: OpenMP's, one per core). Applies to kernels called from the
     calling thread (OpenMP's setting is per thread); study workers run with 1."""
-    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
-        raise fail("threads", n, "must be an integer >= 1")
+    integer("threads", n, 1)
     _THREADS[:] = [int(n)]
     for lib in _LIBS.values():
         if lib is not None:

@@ -47,8 +47,8 @@ def diag_layouts(sp: SamplingProblem) -> tuple[Layout, Layout]:
     """(carry, result) of ``wb_sais_diag``: the SAIS layouts + Sx_real, Sx_nom."""
     carry, result = layouts(sp, "sais")
     extra = (("Sx_real", 1), ("Sx_nom", 1))
-    return (Layout("sais_diag carry", carry.fields + extra),
-            Layout("sais_diag result", result.fields + extra))
+    return (Layout(name="sais_diag carry", fields=carry.fields + extra),
+            Layout(name="sais_diag result", fields=result.fields + extra))
 
 
 def sais_diag_spec(sp: SamplingProblem, name: str = "wb_sais_diag") -> KernelSpec:
@@ -77,7 +77,7 @@ def sais_diag_spec(sp: SamplingProblem, name: str = "wb_sais_diag") -> KernelSpe
     final = ca.Function(name + "_final", [carry, p, alpha],
                         [ca.vertcat(res, carry[nc] + phi(x, p), carry[nc + 1] + phi(xs, p))],
                         ["carry", "p", "alpha"], ["result"], _OPTS)
-    return KernelSpec(name, step, final, dict(base.roles))
+    return KernelSpec(name=name, step=step, final=final, roles=dict(base.roles))
 
 
 SPACES = ("physical", "augmented")
@@ -149,7 +149,7 @@ def gradient_spec(sp: SamplingProblem, space: str = "physical",
     final = ca.Function(name + "_final", [carry], [carry], ["carry"], ["result"], _OPTS)
     roles = {"carry": "carry", "x": "lane", "x_nom": "lane", "wq": "time", "wphi": "time",
              "p": "const"}
-    return KernelSpec(name, step, final, roles)
+    return KernelSpec(name=name, step=step, final=final, roles=roles)
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,13 +169,14 @@ def diagnostics_library(sp: SamplingProblem) -> DiagnosticsLibrary | None:
     if key not in _LIBS:
         specs = [sais_diag_spec(sp), gradient_spec(sp), gradient_spec(sp, "augmented")]
         source = kernel_source(specs)
-        g = Layout("gradients carry", tuple((r, 1) for r in GRADIENT_RESULTS))
-        res = Layout("gradients result", g.fields)
+        g = Layout(name="gradients carry", fields=tuple((r, 1) for r in GRADIENT_RESULTS))
+        res = Layout(name="gradients result", fields=g.fields)
 
         def build(cdll) -> DiagnosticsLibrary:
-            return DiagnosticsLibrary(CompiledKernel(specs[0], cdll, *diag_layouts(sp)),
-                                      CompiledKernel(specs[1], cdll, g, res),
-                                      CompiledKernel(specs[2], cdll, g, res), cdll)
+            return DiagnosticsLibrary(
+                sais_diag=CompiledKernel(specs[0], cdll, *diag_layouts(sp)),
+                gradients=CompiledKernel(specs[1], cdll, g, res),
+                gradients_augmented=CompiledKernel(specs[2], cdll, g, res), cdll=cdll)
 
         _LIBS[key] = load_verified(
             f"diag_{sp.model.name.replace('+', '_')}", source, build,

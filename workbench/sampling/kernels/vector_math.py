@@ -127,8 +127,9 @@ def probe_spec():
                        [c + vals[0] * w, ca.vertcat(*vals)],
                        ["carry", "x", "u", "y", "w"], ["carry_next", "values"])
     final = ca.Function("wb_vector_math_probe_final", [c], [c], ["carry"], ["result"])
-    return KernelSpec("wb_vector_math_probe", step, final,
-                      {"carry": "carry", "x": "lane", "u": "lane", "y": "lane", "w": "time"})
+    return KernelSpec(name="wb_vector_math_probe", step=step, final=final,
+                      roles={"carry": "carry", "x": "lane", "u": "lane", "y": "lane",
+                             "w": "time"})
 
 
 @cache

@@ -1,0 +1,128 @@
+"""Loading the sampler kernels: the NumPy twin when the C back end cannot compile a problem,
+and every loaded library checked against CasADi before first use."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from workbench.problem.models import double_integrator
+
+
+def _erfinv_sampling_problem():
+    import casadi as ca
+
+    from workbench.problem.models import Model
+    from workbench.sampling.problem import SamplingProblem
+
+    x, u, g = ca.SX.sym("x", 2), ca.SX.sym("u", 2), ca.SX.sym("g", 2)
+    x_next = x + 0.05 * (u + 0.1 * ca.erfinv(0.5 * ca.tanh(x)))
+    model = Model.from_expressions("wbrel_erfinv_plane", x, u, x_next, dt=0.05,
+                                   u_min=[-2, -2], u_max=[2, 2], h=ca.vertcat(4.0 - x[0]))
+    e = x - g
+    return SamplingProblem.from_costs(model, ca.dot(e, e), 10 * ca.dot(e, e), g)
+
+
+def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
+    import warnings
+
+    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels.constants import SamplerConstants
+    from workbench.sampling.reference import mppi_reference
+    from workbench.sampling.sampler import Sampler
+
+    monkeypatch.setattr(kernels, "_LIBS", {})
+    sp = _erfinv_sampling_problem()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        first, second = Sampler(sp), Sampler(sp)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert len(msgs) == 1 and "erfinv" in msgs[0] and "NumPy/CasADi" in msgs[0]
+    assert first.backend == second.backend == "numpy"
+    c = SamplerConstants(sigma=np.ones(2), lam=1.0, nu_mix=0.0, u_min=-2 * np.ones(2),
+                         u_max=2 * np.ones(2), crash_cost=1e3, p=np.array([1.0, 1.0]))
+    U = np.full((4, 2), 0.5)
+    out = first.mppi(np.zeros(2), U, 6, c, seed=3)
+    ref = mppi_reference(sp, np.zeros((6, 2)), U,
+                         np.random.default_rng(3).standard_normal((6, 4, 2)), c)
+    np.testing.assert_allclose(out.S, ref["S"], rtol=1e-12)
+    assert np.all(np.isfinite(out.S))
+
+# ---------------------------------------------------------------------------------------------
+# every loaded library is checked against CasADi's evaluation before first use
+
+
+def _small_navigation(center):
+    from workbench.problem.barrier import embed_barrier
+    from workbench.problem.obstacles import Circle
+    from workbench.sampling.problem import navigation_costs
+
+    return navigation_costs(embed_barrier(double_integrator(
+        obstacles=(Circle(center, 0.5),), u_limit=5.0)))
+
+
+def _swap(victim, donor) -> None:
+    """Put donor's library bytes in victim's place and update victim's manifest hash."""
+    import hashlib
+    import json
+
+    data = donor.path.read_bytes()
+    tmp = victim.path.with_suffix(".swap")
+    tmp.write_bytes(data)
+    os.replace(tmp, victim.path)  # never rewrite a mapped library in place
+    manifest = victim.path.parent / "manifest.json"
+    meta = json.loads(manifest.read_text())
+    meta["sha256"] = hashlib.sha256(data).hexdigest()
+    manifest.write_text(json.dumps(meta))
+
+
+def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkeypatch):
+    """Issue 9 acceptance: a sampler library swapped with another problem's (hash updated in
+    the manifest) is detected and rebuilt; the rebuilt kernels equal the twin."""
+    import shutil
+
+    from workbench.codegen import build_library
+    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels.constants import SamplerConstants
+    from workbench.sampling.reference import mppi_reference
+
+    sp_a, sp_b = _small_navigation((2.0, 2.0)), _small_navigation((1.0, 3.0))
+    built, cache = {}, tmp_path / "cache"
+    for name, sp in (("a", sp_a), ("b", sp_b)):
+        stem, _, source = kernels.library_sources(sp)
+        lib = build_library(stem, [], source, extra_flags=kernels.KERNEL_FLAGS,
+                            root=tmp_path / "build")
+        # the cache under test holds copies this process has never loaded (as a cache left
+        # by an earlier run would)
+        shutil.copytree(lib.path.parent, cache / lib.path.parent.name)
+        built[name] = type(lib)(path=cache / lib.path.parent.name / lib.path.name,
+                                key=lib.key, cdll=lib.cdll, functions={}, cache_hit=True)
+    assert built["a"].path != built["b"].path and built["a"].path.name == built["b"].path.name
+    _swap(built["a"], built["b"])
+    monkeypatch.setenv("WORKBENCH_CACHE_DIR", str(cache))
+    monkeypatch.setattr(kernels, "_LIBS", {})
+    with pytest.warns(RuntimeWarning, match=r"wb_mppi: .*differs.*rebuilding"):
+        lib = kernels.sampler_library(sp_a)
+    assert built["a"].path.read_bytes() != built["b"].path.read_bytes()
+    m = sp_a.model
+    c = SamplerConstants(sigma=np.array([2.0, 2.0]), lam=1.0, nu_mix=0.0, u_min=m.u_min,
+                         u_max=m.u_max, crash_cost=1e6, p=m.lift([3.0, 3.0, 0.0, 0.0]))
+    x0 = m.lift([0.5, 0.5, 1.0, 1.0])
+    U = np.full((6, 2), 0.5)
+    out = lib.mppi(np.tile(np.r_[x0, 0, 0], (9, 1)), consts=c.kernel_consts(),
+                   time_in={"u": U}, seed=5, keep_noise=True)
+    ref = mppi_reference(sp_a, np.tile(x0, (9, 1)), U, np.transpose(out.noise, (2, 0, 1)), c)
+    np.testing.assert_allclose(out.result[:, 0], ref["S"], rtol=1e-9)
+
+
+def test_class5_kernel_check_rejects_another_problems_kernel():
+    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels.verify import KernelMismatch, verify_kernel
+
+    lib_b = kernels.sampler_library(_small_navigation((1.0, 3.0)))
+    spec_a = kernels.mppi_spec(_small_navigation((2.0, 2.0)))
+    verify_kernel(lib_b.mppi)  # its own spec: fine
+    with pytest.raises(KernelMismatch, match="wb_mppi"):
+        verify_kernel(kernels.CompiledKernel(spec_a, lib_b.cdll))
