@@ -39,6 +39,7 @@ _EXPORTS = {
     "workbench.sampling.controllers": ("MPPI", "MPPIConfig", "RMPPIConfig", "RobustMPPI"),
     "workbench.sampling.feedback": ("FeedbackWeights", "ILQGFeedback"),
     "workbench.sampling.threshold": ("AlphaRule", "make_threshold"),
+    "workbench.sampling.calibration": ("calibrate", "calibration_trace"),
     "workbench.sampling.kernels.build": ("get_threads", "set_threads"),
     "workbench.sim": ("Disturbance", "Episode", "closed_loop"),
     "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "TrackingScene"),
@@ -72,6 +73,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.problem.models import Model, double_integrator, single_integrator
     from workbench.problem.obstacles import Circle, circle_margins, circles_from_arrays
     from workbench.problem.problem import Problem
+    from workbench.sampling.calibration import calibrate, calibration_trace
     from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
     from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
     from workbench.sampling.kernels.build import get_threads, set_threads

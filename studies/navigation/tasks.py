@@ -16,9 +16,10 @@ from studies.navigation.config import RESULT_VERSION, ROBUST, StudyConfig, varia
 from studies.navigation.illustration import illustrate
 from studies.navigation.metrics import episode_row, timing_row, velocity_rows
 from studies.navigation.scene import MapSpec
+from workbench.sampling.calibration import calibration_trace
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
-from workbench.sampling.threshold import AlphaRule, Threshold
+from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
@@ -100,7 +101,7 @@ Thresholds = dict[tuple[Controllers, str, AlphaRule], Threshold]
 def prepare(config: StudyConfig, out=None) -> Thresholds:
     """Every alpha rule a run uses, calibrated once (in the coordinating process) on the
     controller that uses it, with ``config.calibration_seed``: (settings, controller, rule) ->
-    threshold."""
+    threshold. Rules of one controller with the same calibration length share one episode."""
     p = plan(config)
     needed = dict.fromkeys((Controllers.of(config), t.controller, t.rule)
                            for t in p.tasks if isinstance(t, Realisation)
@@ -108,9 +109,22 @@ def prepare(config: StudyConfig, out=None) -> Thresholds:
     if p.illustration is not None:
         big = Controllers.of(config, illustration_map(config.scene, p.illustration))
         needed[(big, "sa_rmppi", p.illustration.rule)] = None
-    return {key: setup(key[0]).threshold(key[2], feedback_kind(key[1]), config.robust,
-                                         config.feedback, config.calibration_seed)
-            for key in needed}
+    traces: dict = {}
+    out_: Thresholds = {}
+    for c, name, rule in needed:
+        if not rule.needs_calibration:
+            out_[(c, name, rule)] = make_threshold(rule)
+            continue
+        nav, kind = setup(c), feedback_kind(name)
+        key = (c, kind, rule.calibration_steps)
+        if key not in traces:
+            traces[key] = calibration_trace(
+                nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi,
+                nav.feedback(kind, c.feedback), c.robust, steps=rule.calibration_steps,
+                seed=config.calibration_seed)
+        X, F = traces[key]
+        out_[(c, name, rule)] = make_threshold(rule, X, F, nav.goal, nav.plant.position)
+    return out_
 
 
 _CONTROLLERS: dict = {}
