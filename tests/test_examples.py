@@ -48,6 +48,20 @@ def test_custom_scene_through_sa_rmppi():
     assert 5 <= int(sa[5]) <= 80 and int(bas[5]) == 0
 
 
+def test_own_model_robust_bicycle_under_a_speed_disturbance():
+    import json
+
+    out = run_example("own_model_robust.py")
+    res = json.loads(out.strip().splitlines()[-1])
+    assert set(res) == {"bas_ilqg", "bas_mppi", "rmppi", "sa_rmppi"}, out
+    sa = res["sa_rmppi"]
+    assert sa["crashed"] is False and sa["steps"] == 150 and sa["final_distance"] < 0.5
+    # the robust part acts on some of SA-RMPPI's steps, not all; K_safe never falls back
+    assert 0.1 <= sa["nominal_differs"] <= 0.9 and sa["ksafe_fallback"] < 0.01
+    assert 0.0 < res["rmppi"]["nominal_differs"] < 1.0
+    assert res["bas_mppi"]["nominal_differs"] is None  # no robust part to act
+
+
 def test_set_threads_reaches_every_library_loaded_before_and_after():
     import pytest
 

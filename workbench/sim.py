@@ -17,6 +17,21 @@ DisturbanceModel = Literal["velocity_variance", "velocity_std", "white_noise", "
 DISTURBANCE_MODELS: tuple[str, ...] = ("velocity_variance", "velocity_std", "white_noise", "kick")
 
 
+# the built-in planar integrators (workbench.problem.models) and their physical state names:
+# only for these does a Disturbance without named states pick the states itself
+PLANAR_INTEGRATORS: dict[str, tuple[str, ...]] = {
+    "double_integrator": ("px", "py", "vx", "vy"),
+    "single_integrator": ("px", "py"),
+}
+
+
+def is_planar_integrator(plant: Model) -> bool:
+    """Whether ``plant`` is a built-in planar double or single integrator (barrier-embedded or
+    not): its name and its physical state names are the built-in ones."""
+    base = plant.name.removesuffix("+bas")
+    return PLANAR_INTEGRATORS.get(base) == tuple(plant.state_names[: plant.n_physical])
+
+
 @dataclass(frozen=True)
 class Disturbance:
     """Plant disturbance w on some states (SPEC 2.3): the velocities of the double integrator.
@@ -26,14 +41,18 @@ class Disturbance:
     white_noise: w = sqrt(dt) sqrt(level) xi01 on the disturbed states;
     kick: w = [0, 0, xi] without the dt factor, xi ~ N(0, level I).
 
-    velocity_index: the disturbed state indices; None (default) takes them from the plant in
-    :func:`closed_loop` (:func:`disturbed_states`: the velocities of the double integrator, the
-    positions of the single integrator).
+    The disturbed states: ``states`` names them, by the plant's state names or by index
+    (``Disturbance(1.0, states=("v",))``); ``velocity_index`` gives indices (the older
+    spelling; give one of the two). Without either, :func:`closed_loop` takes them from the
+    plant only for the built-in planar integrators (:func:`disturbed_states`: the velocities of
+    the double integrator, the positions of the single integrator); any other plant with
+    ``level > 0`` must name them (a ValueError lists its state names).
     """
 
     level: float = 0.0
     model: DisturbanceModel = "velocity_variance"
     velocity_index: tuple[int, ...] | None = None
+    states: tuple[str | int, ...] | None = None
 
     def __post_init__(self) -> None:
         real("Disturbance.level", self.level, 0.0)
@@ -48,19 +67,82 @@ class Disturbance:
             if len(set(ints)) != len(ints):
                 raise fail("Disturbance.velocity_index", idx, allowed)
             object.__setattr__(self, "velocity_index", ints)
+        if self.states is not None:
+            st = self.states
+            allowed = ("must be a non-empty tuple of distinct state names (str) or indices "
+                       "(int >= 0), e.g. states=(\"v\",) or states=(3,)")
+            if isinstance(st, str | int) and not isinstance(st, bool):
+                st = (st,)  # one state: Disturbance(1.0, states="v")
+            if not isinstance(st, tuple | list) or not st:
+                raise fail("Disturbance.states", self.states, allowed)
+            st = tuple(s if isinstance(s, str) else integer("Disturbance.states", s, 0)
+                       for s in st)
+            if len(set(st)) != len(st):
+                raise fail("Disturbance.states", self.states, allowed)
+            if self.velocity_index is not None:
+                raise fail("Disturbance.states", self.states,
+                           "give either states or velocity_index, not both")
+            object.__setattr__(self, "states", st)
+
+    @property
+    def named(self) -> tuple[str | int, ...] | None:
+        """The disturbed states this disturbance names itself (``states`` or
+        ``velocity_index``), None when it leaves them to the plant."""
+        return self.states if self.states is not None else self.velocity_index
 
     def indices(self, plant: Model) -> tuple[int, ...]:
-        """The disturbed states for ``plant``: the given ones (checked) or the plant's own."""
+        """The disturbed states for ``plant``: the named ones (checked against the plant), the
+        built-in planar integrators' own, or () for any other plant when ``level`` is 0 (nothing
+        to disturb). Any other plant with ``level > 0`` must name them: ValueError."""
+        if self.states is not None:
+            return self._resolve(plant)
         if self.velocity_index is None:
-            return disturbed_states(plant)
+            if is_planar_integrator(plant):
+                return disturbed_states(plant)
+            if self.level == 0:
+                return ()
+            raise fail("Disturbance.states", None,
+                       f"{plant.name} is not a built-in planar integrator, so the disturbed "
+                       f"states must be named: its states are {self._listing(plant)}; give "
+                       f"e.g. Disturbance({self.level!r}, states=({plant.state_names[0]!r},)) "
+                       "by name or states=(0,) by index")
         bad = [i for i in self.velocity_index if i >= plant.nx]
         if bad:
             raise fail("Disturbance.velocity_index", self.velocity_index,
                        f"index {bad[0]} is out of range for {plant.name} with {plant.nx} states")
         return self.velocity_index
 
+    @staticmethod
+    def _listing(plant: Model) -> str:
+        return ", ".join(f"{i}: {n!r}" for i, n in enumerate(plant.state_names))
+
+    def _resolve(self, plant: Model) -> tuple[int, ...]:
+        out = []
+        for s in self.states:
+            if isinstance(s, str):
+                if s not in plant.state_names:
+                    raise fail("Disturbance.states", self.states,
+                               f"{plant.name} has no state {s!r}; its states are "
+                               f"{self._listing(plant)}")
+                out.append(plant.state_names.index(s))
+            elif s >= plant.nx:
+                raise fail("Disturbance.states", self.states,
+                           f"index {s} is out of range for {plant.name} with {plant.nx} states "
+                           f"({self._listing(plant)})")
+            else:
+                out.append(s)
+        if len(set(out)) != len(out):
+            raise fail("Disturbance.states", self.states,
+                       f"names the same state twice on {plant.name} ({self._listing(plant)})")
+        return tuple(out)
+
     def sample(self, nx: int, dt: float, rng: np.random.Generator,
                index: tuple[int, ...] | None = None) -> np.ndarray:
+        if index is None and self.states is not None:
+            if not all(isinstance(s, int) for s in self.states):
+                raise fail("Disturbance.states", self.states, "names need the plant: pass "
+                           "index=disturbance.indices(plant)")
+            index = self.states
         idx = list(index if index is not None else self.velocity_index or ())
         if not idx:
             raise fail("Disturbance.velocity_index", self.velocity_index,
@@ -81,6 +163,10 @@ class Disturbance:
 def disturbed_states(plant: Model) -> tuple[int, ...]:
     """The physical states a plant disturbance acts on: those the control drives directly.
 
+    A guess, used by :meth:`Disturbance.indices` only for the built-in planar integrators
+    (:func:`is_planar_integrator`); on other models it can miss (a kinematic bicycle's largest
+    control gain is on the heading, not the speed): name the states there.
+
     A matched disturbance enters where the control enters. Per physical state i, the largest
     |dF_i/du| over seeded random states and controls; the states within a factor 2 of the
     largest are disturbed. Double integrator: the velocities (the position rows are 0 with
@@ -97,7 +183,7 @@ def disturbed_states(plant: Model) -> tuple[int, ...]:
         gain = np.maximum(gain, np.where(np.isfinite(J), J, 0.0).max(axis=1))
     if not gain.max() > 0:
         raise fail("plant", plant.name, "no state depends on u; give "
-                   "Disturbance(velocity_index=...) to choose the disturbed states")
+                   "Disturbance(states=...) to choose the disturbed states")
     return tuple(int(i) for i in np.flatnonzero(gain >= 0.5 * gain.max()))
 
 
@@ -124,7 +210,8 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
                 rng_plant: np.random.Generator, disturbance: Disturbance = Disturbance(),
                 keep_infos: bool = True) -> Episode:
     """Run ``controller`` on the plant x+ = F(x, u) + w for ``steps`` steps; stop at a crash
-    (min_i h_i <= 0 on the true plant). w acts on ``disturbance.indices(plant)``."""
+    (min_i h_i <= 0 on the true plant). w acts on ``disturbance.indices(plant)`` (none when
+    that is empty: a plant of one's own without a disturbance)."""
     integer("steps", steps, 1)
     x = np.asarray(x0, dtype=float)
     if x.shape != (plant.nx,) or not np.all(np.isfinite(x)):
@@ -141,7 +228,9 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
         state, u, info = controller.step(state, x, rng_controller)
         times.append(time.perf_counter() - t0)
         u = np.clip(u, plant.u_min, plant.u_max)
-        x = f(x, u)[0] + disturbance.sample(plant.nx, plant.dt, rng_plant, disturbed)
+        x_model = f(x, u)[0]
+        x = (x_model + disturbance.sample(plant.nx, plant.dt, rng_plant, disturbed)
+             if disturbed else x_model.copy())
         X.append(x.copy())
         U.append(u)
         if keep_infos:

@@ -118,7 +118,8 @@ def test_fallback_when_no_candidate_qualifies(nav, sa_state, mode):
 
 
 def test_first_call_takes_the_real_state(nav):
-    ctrl = RobustMPPI(nav.problem, nav.goal, nav.mppi)
+    ctrl = RobustMPPI(nav.problem, nav.goal, nav.mppi,
+                      threshold=ConstantThreshold.selection_off())
     xb = nav.problem.model.lift(nav.x0)
     sel = ctrl.select_nominal(ctrl.initial_state(), xb, np.random.default_rng(0))
     assert sel.index == 8 and sel.stride == 0 and sel.free_energy.size == 0
@@ -256,7 +257,7 @@ def test_nonfinite_plan_and_q_beta_are_rejected(nav):
     for q in (np.nan, np.inf):
         with pytest.raises(ValueError, match="q_beta"):
             navigation_costs(nav.problem.model, q_beta=q)
-    rob = RobustMPPI(nav.problem, nav.goal, nav.mppi)
+    rob = RobustMPPI(nav.problem, nav.goal, nav.mppi, threshold=ConstantThreshold.selection_off())
     with pytest.raises(ValueError, match=r"state\.U"):
         rob.step(RMPPIState(U=np.zeros((99, 2)), x_nom=None, index=0), nav.x0,
                  np.random.default_rng(0))
@@ -295,3 +296,51 @@ def test_sampler_rejects_misshapen_input(sampler, call, field):
     }
     with pytest.raises(ValueError, match=field):
         calls[call]()
+
+
+# ---------------------------------------------------------------------------------------------
+# RobustMPPI is never silently inert
+
+
+def test_robust_mppi_without_a_threshold_that_can_bind_is_refused(nav):
+    msg = (r"^threshold = None is invalid: RobustMPPI needs a selection threshold that can "
+           r"bind; RMPPIConfig.alpha = inf never does.*wb\.calibrate\(.*"
+           r"ConstantThreshold\(float\('inf'\)\)")
+    with pytest.raises(ValueError, match=msg):
+        RobustMPPI(nav.problem, nav.goal, nav.mppi)
+    with pytest.raises(ValueError, match=msg):
+        RobustMPPI(nav.problem, nav.goal, nav.mppi, RMPPIConfig(), nav.feedback("ilqg"))
+    # a finite alpha, a threshold, or the explicit opt-out are all accepted
+    assert RobustMPPI(nav.problem, nav.goal, nav.mppi, RMPPIConfig(alpha=2e4)).threshold(
+        np.zeros((2, 4))).tolist() == [2e4, 2e4]
+    off = ConstantThreshold.selection_off()
+    assert off == ConstantThreshold(np.inf)
+    assert RobustMPPI(nav.problem, nav.goal, nav.mppi, threshold=off).threshold is off
+
+
+def test_step_info_says_whether_the_selection_could_bind(nav, sa_state):
+    state, xb = sa_state
+    off = RobustMPPI(nav.problem, nav.goal, nav.mppi, threshold=ConstantThreshold.selection_off())
+    _, _, info = off.step(state, xb, np.random.default_rng(5))
+    assert not info.alpha_finite and info.candidate == 8 and not info.nominal_differs
+    on = RobustMPPI(nav.problem, nav.goal, nav.mppi, threshold=ConstantThreshold(2e4))
+    _, _, info = on.step(state, xb, np.random.default_rng(5))
+    assert info.alpha_finite
+    # finite at some candidate only (the chosen one at +inf): the selection could still bind
+    some = RobustMPPI(nav.problem, nav.goal, nav.mppi, threshold=Preset([1e9] + [np.inf] * 8))
+    _, _, info = some.step(state, xb, np.random.default_rng(5))
+    assert info.alpha_finite
+
+
+def test_robust_part_acts_on_the_default_map_under_disturbance():
+    """Through the public API: SA-RMPPI with a calibrated progress threshold, disturbance
+    variance 100: the nominal state differs from the real one on some steps."""
+    import workbench as wb
+
+    nav = wb.navigation_setup()
+    th = nav.threshold(wb.AlphaRule(kappa=0.1, calibration_steps=150))
+    ctrl = nav.controller("sa_rmppi", threshold=th)
+    ep = wb.closed_loop(ctrl, nav.plant, nav.x0, 80, np.random.default_rng(1),
+                        np.random.default_rng(2), wb.Disturbance(100.0))
+    assert all(i.alpha_finite for i in ep.infos[1:])
+    assert sum(i.nominal_differs for i in ep.infos) > 0

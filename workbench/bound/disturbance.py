@@ -35,8 +35,8 @@ def disturbance_bound(disturbance: Disturbance, dt: float, prob: float = 0.999,
                       plant=None) -> float:
     """D̂ = c √(χ²_{n,prob}) with n disturbed states: the disturbance's own indices, else the
     plant's (:meth:`Disturbance.indices`), else 2 (the planar velocity)."""
-    if disturbance.velocity_index is not None:
-        n = len(disturbance.velocity_index)
+    if disturbance.named is not None:
+        n = len(disturbance.named)
     else:
         n = len(disturbance.indices(plant)) if plant is not None else 2
     return disturbance_scale(disturbance, dt) * chi_radius(prob, n)

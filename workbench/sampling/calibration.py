@@ -17,7 +17,12 @@ from workbench.problem.models import Model
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI
 from workbench.sampling.feedback import FeedbackLaw
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
+from workbench.sampling.threshold import (
+    AlphaRule,
+    ConstantThreshold,
+    Threshold,
+    make_threshold,
+)
 from workbench.sim import closed_loop
 from workbench.validation import integer
 
@@ -33,7 +38,7 @@ def calibration_trace(problem: SamplingProblem, goal, plant: Model, x0, mppi: MP
     seed = integer("seed", seed, 0)
     # diagnostics off: the episode keeps every step's info, and a diagnostic batch is MBs
     ctrl = RobustMPPI(problem, goal, mppi, replace(robust, alpha=np.inf, diagnostics=False),
-                      feedback)
+                      feedback, ConstantThreshold.selection_off())  # the explicit opt-out
     ep = closed_loop(ctrl, plant, x0, steps, np.random.default_rng(seed),
                      np.random.default_rng(seed + 1))
     F = np.array([i.candidate_free_energy[-1] if i.candidate_free_energy.size else np.nan

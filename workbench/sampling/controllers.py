@@ -170,7 +170,9 @@ class RMPPIConfig:
 
     ``alpha`` is a fixed selection threshold, used when no calibrated
     :class:`~workbench.sampling.threshold.Threshold` is given to :class:`RobustMPPI` (the
-    navigation set-up calibrates one by default, see ``NavigationSetup.controller``).
+    navigation set-up calibrates one by default, see ``NavigationSetup.controller``). The
+    default +inf never binds, so :class:`RobustMPPI` refuses it unless a threshold is given
+    (``wb.calibrate(...)``, or ``ConstantThreshold.selection_off()`` to opt out explicitly).
     """
 
     alpha: float = np.inf
@@ -225,6 +227,9 @@ class RMPPIInfo:
     fallback_used: bool  # alpha fallback: no candidate admissible
     nominal_differs: bool  # x*_0 != the measured state after selection
     alpha: float  # threshold used in the SAIS clamp (at the chosen nominal state)
+    # some threshold of this step is finite: the selection could bind. False with the explicit
+    # opt-out (alpha = +inf everywhere): the real state is taken and the robust part is inert
+    alpha_finite: bool
     free_energy_nom: float
     free_energy_real: float
     ess_nom: float
@@ -272,7 +277,18 @@ class RobustMPPI:
         self.consts = replace(self.mppi.consts, alpha=robust.alpha,
                               clip_in_cost=bool(robust.clip_in_cost))
         self.feedback = feedback or ILQGFeedback(sp.model, config.horizon, sp.nx)
-        self.threshold = threshold or ConstantThreshold(value=robust.alpha)
+        if threshold is None:
+            if not np.isfinite(robust.alpha):
+                raise fail("threshold", None, "RobustMPPI needs a selection threshold that can "
+                           f"bind; RMPPIConfig.alpha = {robust.alpha} never does (the real "
+                           "state would always be taken and the robust part would never act). "
+                           "Calibrate one with wb.calibrate(rule, problem, goal, plant, x0, "
+                           "mppi, feedback, robust) (or nav.threshold(...)), give a finite "
+                           "RMPPIConfig(alpha=...), or pass threshold=ConstantThreshold("
+                           "float('inf')) (ConstantThreshold.selection_off()) to switch the "
+                           "selection off on purpose")
+            threshold = ConstantThreshold(value=robust.alpha)
+        self.threshold = threshold
         self._dyn = FastFunction(sp.functions()["dyn"])
         self._lift_all = FastFunction(sp.model.lift_function, robust.n_candidates)
         self._W = candidate_weights(robust.n_candidates)
@@ -353,6 +369,7 @@ class RobustMPPI:
             candidate=sel.index, candidate_free_energy=sel.free_energy,
             candidate_alpha=sel.alpha, fallback_used=sel.fallback,
             nominal_differs=not np.array_equal(x_nom, xb), alpha=alpha,
+            alpha_finite=bool(np.isfinite(alpha) or np.isfinite(sel.alpha).any()),
             free_energy_nom=Wn.free_energy, free_energy_real=Wr.free_energy, ess_nom=Wn.ess,
             ess_real=Wr.ess, n_crashed_real=int(b.crashed_real.sum()),
             n_crashed_nom=int(b.crashed_nom.sum()), ksafe_fallback=gains.fallback,

@@ -67,7 +67,17 @@ class Threshold(Protocol):
 
 @dataclass(frozen=True)
 class ConstantThreshold:
+    """alpha(x) = value everywhere. ``ConstantThreshold(np.inf)`` (or :meth:`selection_off`)
+    switches the nominal-state selection off: the real-state candidate is always taken and the
+    robust part of RMPPI never acts. :class:`~workbench.sampling.controllers.RobustMPPI` uses
+    that only when it is handed over explicitly (calibration runs do so on purpose)."""
+
     value: float
+
+    @classmethod
+    def selection_off(cls) -> ConstantThreshold:
+        """alpha = +inf: the explicit opt-out of RMPPI's selection (never binds)."""
+        return cls(value=np.inf)
 
     def __call__(self, X: np.ndarray) -> np.ndarray:
         return np.full(np.atleast_2d(X).shape[0], float(self.value))
