@@ -77,3 +77,19 @@ def cli_reports(tmp_path_factory):
             assert main(argv) == 0
         outputs.append(buf.getvalue())
     return root, outputs
+
+
+def swap_library(victim, donor) -> None:
+    """Put donor's library bytes in victim's place and update victim's manifest hash."""
+    import hashlib
+    import json
+    import os
+
+    data = donor.path.read_bytes()
+    tmp = victim.path.with_suffix(".swap")
+    tmp.write_bytes(data)
+    os.replace(tmp, victim.path)  # never rewrite a mapped library in place
+    manifest = victim.path.parent / "manifest.json"
+    meta = json.loads(manifest.read_text())
+    meta["sha256"] = hashlib.sha256(data).hexdigest()
+    manifest.write_text(json.dumps(meta))

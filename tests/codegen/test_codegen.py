@@ -225,19 +225,6 @@ def test_class4_unlinkable_operation_is_a_clear_error_and_nothing_is_cached(tmp_
 # every loaded library is checked against CasADi's evaluation before first use
 
 
-def _swap(victim, donor) -> None:
-    """Put donor's library bytes in victim's place and update victim's manifest hash."""
-    import hashlib
-    import json
-
-    data = donor.path.read_bytes()
-    tmp = victim.path.with_suffix(".swap")
-    tmp.write_bytes(data)
-    os.replace(tmp, victim.path)  # never rewrite a mapped library in place
-    manifest = victim.path.parent / "manifest.json"
-    meta = json.loads(manifest.read_text())
-    meta["sha256"] = hashlib.sha256(data).hexdigest()
-    manifest.write_text(json.dumps(meta))
 
 
 def test_class5_swapped_ilqg_library_is_detected_and_rebuilt(tmp_path):
@@ -267,7 +254,9 @@ def test_class5_swapped_ilqg_library_is_detected_and_rebuilt(tmp_path):
                      functions={}, cache_hit=True)
     donor = type(b)(path=fresh / b.path.parent.name / b.path.name, key=b.key, cdll=b.cdll,
                     functions={}, cache_hit=True)
-    _swap(victim, donor)
+    from conftest import swap_library  # here: a subprocess imports this module alone
+
+    swap_library(victim, donor)
     again = build_library("wbrel_swap", fns(2.0), root=fresh)
     assert not again.cache_hit
     np.testing.assert_allclose(np.asarray(again.functions["wbrel_swap"]([1.0, 0.5])).ravel(),

@@ -3,10 +3,9 @@ and every loaded library checked against CasADi before first use."""
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
+from conftest import swap_library
 
 from workbench.problem.models import double_integrator
 
@@ -63,19 +62,6 @@ def _small_navigation(center):
         obstacles=(Circle(center, 0.5),), u_limit=5.0)))
 
 
-def _swap(victim, donor) -> None:
-    """Put donor's library bytes in victim's place and update victim's manifest hash."""
-    import hashlib
-    import json
-
-    data = donor.path.read_bytes()
-    tmp = victim.path.with_suffix(".swap")
-    tmp.write_bytes(data)
-    os.replace(tmp, victim.path)  # never rewrite a mapped library in place
-    manifest = victim.path.parent / "manifest.json"
-    meta = json.loads(manifest.read_text())
-    meta["sha256"] = hashlib.sha256(data).hexdigest()
-    manifest.write_text(json.dumps(meta))
 
 
 def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkeypatch):
@@ -100,7 +86,7 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
         built[name] = type(lib)(path=cache / lib.path.parent.name / lib.path.name,
                                 key=lib.key, cdll=lib.cdll, functions={}, cache_hit=True)
     assert built["a"].path != built["b"].path and built["a"].path.name == built["b"].path.name
-    _swap(built["a"], built["b"])
+    swap_library(built["a"], built["b"])
     monkeypatch.setenv("WORKBENCH_CACHE_DIR", str(cache))
     monkeypatch.setattr(kernels, "_LIBS", {})
     with pytest.warns(RuntimeWarning, match=r"wb_mppi: .*differs.*rebuilding"):
