@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from numbers import Integral, Real
 
-import numpy as np
-
-from workbench.validation import fail, one_of
+from workbench.validation import fail, flag, integer, one_of, real
 
 # SPEC 11.3 tests as workbench.bound.checks names them (T2E: independent batch, "true-F" form)
 TESTS: tuple[str, ...] = ("T1", "T1s", "T2", "T2E", "T3", "T3b", "T3c", "T3d")
@@ -16,18 +13,6 @@ CONSTANTS: tuple[str, ...] = ("local", "global")
 RESULT_VERSION = 2  # bump when the meaning of stored task results changes
 
 
-def _int(name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
-        raise fail(name, value, f"must be an integer >= {minimum}")
-    return int(value)
-
-
-def _real(name: str, value, *, minimum: float = 0.0, strict: bool = False) -> float:
-    ok = isinstance(value, Real) and not isinstance(value, bool) and np.isfinite(value) and (
-        value > minimum if strict else value >= minimum)
-    if not ok:
-        raise fail(name, value, f"must be a finite number {'>' if strict else '>='} {minimum}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -63,14 +48,14 @@ class StudyConfig:
         v = self.variances
         if isinstance(v, str) or not hasattr(v, "__iter__") or len(v) == 0:
             raise fail("variances", v, "must be a non-empty sequence of numbers >= 0")
-        vs = tuple(_real(f"variances[{i}]", x) for i, x in enumerate(v))
+        vs = tuple(real(f"variances[{i}]", x, 0.0) for i, x in enumerate(v))
         if len(set(vs)) != len(vs):
             raise fail("variances", v, "must not repeat a value")
         object.__setattr__(self, "variances", tuple(sorted(vs)))
         for name, lo in (("episodes", 1), ("steps", 2), ("seed", 0), ("n_samples", 4),
                          ("horizon", 2), ("calibration_steps", 10), ("grid_rings", 1),
                          ("grid_angles", 4)):
-            object.__setattr__(self, name, _int(name, getattr(self, name), lo))
+            object.__setattr__(self, name, integer(name, getattr(self, name), lo))
         t = self.tests
         if isinstance(t, str) or not hasattr(t, "__iter__") or len(t) == 0:
             raise fail("tests", t, f"must be a non-empty subset of {TESTS}")
@@ -78,12 +63,11 @@ class StudyConfig:
             if x not in TESTS:
                 raise fail("tests", x, f"unknown test; allowed values are {TESTS}")
         object.__setattr__(self, "tests", tuple(x for x in TESTS if x in t))
-        object.__setattr__(self, "kappa", _real("kappa", self.kappa))
-        object.__setattr__(self, "grid_spacing", _real("grid_spacing", self.grid_spacing,
-                                                       strict=True))
-        object.__setattr__(self, "z", _real("z", self.z, strict=True))
-        if not isinstance(self.independent, bool):
-            raise fail("independent", self.independent, "must be True or False")
+        object.__setattr__(self, "kappa", real("kappa", self.kappa, 0.0))
+        object.__setattr__(self, "grid_spacing",
+                           real("grid_spacing", self.grid_spacing, 0.0, strict=True))
+        object.__setattr__(self, "z", real("z", self.z, 0.0, strict=True))
+        object.__setattr__(self, "independent", flag("independent", self.independent))
         one_of("n_q", self.n_q, ("T", "T-1"))
         one_of("space", self.space, ("physical", "augmented"))
 

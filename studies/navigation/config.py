@@ -3,41 +3,26 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from numbers import Integral, Real
-
-import numpy as np
 
 from studies.navigation.scene import MapSpec
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.navigation import CONTROLLERS, TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
-from workbench.validation import fail, integer, one_of, real
+from workbench.validation import fail, flag, integer, one_of, real
 
 ROBUST = ("sa_rmppi", "rmppi")  # controllers that use an alpha rule
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
 DEFAULT_RULE = AlphaRule(kappa=0.1)  # [A] chosen by an activation sweep; see sweep_rules
 
 
-def _int(name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
-        raise fail(name, value, f"must be an integer >= {minimum}")
-    return int(value)
-
-
-def _real(name: str, value, minimum: float = 0.0, strict: bool = True) -> float:
-    ok = isinstance(value, Real) and not isinstance(value, bool) and np.isfinite(value) and (
-        value > minimum if strict else value >= minimum)
-    if not ok:
-        raise fail(name, value, f"must be a finite number {'>' if strict else '>='} {minimum}")
-    return float(value)
 
 
 def _variances(name: str, values, allow_empty: bool = False) -> tuple[float, ...]:
     if isinstance(values, str) or not hasattr(values, "__iter__") or (
             len(values) == 0 and not allow_empty):
         raise fail(name, values, "must be a non-empty sequence of variances >= 0")
-    out = tuple(_real(f"{name}[{i}]", v, strict=False) for i, v in enumerate(values))
+    out = tuple(real(f"{name}[{i}]", v, 0.0, strict=False) for i, v in enumerate(values))
     if len(set(out)) != len(out):
         raise fail(name, values, "must not repeat a variance")
     if len({variance_key(v) for v in out}) != len(out):
@@ -112,16 +97,16 @@ class StudyConfig:
         for name, lo in (("realisations", 1), ("steps", 1), ("seed", 0),
                          ("sweep_realisations", 1), ("velocity_stride", 1),
                          ("illustration_steps", 2)):
-            object.__setattr__(self, name, _int(name, getattr(self, name), lo))
+            object.__setattr__(self, name, integer(name, getattr(self, name), lo))
         if not isinstance(self.rule, AlphaRule):
             raise fail("rule", self.rule, "must be an AlphaRule")
         one_of("sweep_controller", self.sweep_controller, ROBUST)
         object.__setattr__(self, "sweep_variances",
                            _variances("sweep_variances", self.sweep_variances, True))
         object.__setattr__(self, "sweep_rules", _rules("sweep_rules", self.sweep_rules))
-        object.__setattr__(self, "goal_radius", _real("goal_radius", self.goal_radius))
-        if not isinstance(self.illustration, bool):
-            raise fail("illustration", self.illustration, "must be True or False")
+        object.__setattr__(self, "goal_radius",
+                           real("goal_radius", self.goal_radius, 0.0, strict=True))
+        object.__setattr__(self, "illustration", flag("illustration", self.illustration))
         if not isinstance(self.scene, MapSpec):
             raise fail("scene", self.scene, "must be a MapSpec")
         self.scene.check()  # start / goal inside an obstacle -> names scene.start / scene.goal

@@ -16,10 +16,10 @@ from studies.navigation.config import RESULT_VERSION, ROBUST, StudyConfig, varia
 from studies.navigation.illustration import illustrate
 from studies.navigation.metrics import episode_row, timing_row, velocity_rows
 from studies.navigation.scene import MapSpec
-from workbench.sampling.calibration import calibration_trace
+from workbench.sampling.calibration import calibrate, calibration_trace
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
-from workbench.sampling.threshold import AlphaRule, Threshold, make_threshold
+from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
@@ -112,18 +112,15 @@ def prepare(config: StudyConfig, out=None) -> Thresholds:
     traces: dict = {}
     out_: Thresholds = {}
     for c, name, rule in needed:
-        if not rule.needs_calibration:
-            out_[(c, name, rule)] = make_threshold(rule)
-            continue
         nav, kind = setup(c), feedback_kind(name)
         key = (c, kind, rule.calibration_steps)
-        if key not in traces:
+        if rule.needs_calibration and key not in traces:  # the feedback law is built only here
             traces[key] = calibration_trace(
                 nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi,
                 nav.feedback(kind, c.feedback), c.robust, steps=rule.calibration_steps,
                 seed=config.calibration_seed)
-        X, F = traces[key]
-        out_[(c, name, rule)] = make_threshold(rule, X, F, nav.goal, nav.plant.position)
+        out_[(c, name, rule)] = calibrate(rule, nav.problem, nav.goal, nav.plant, nav.x0,
+                                          nav.mppi, None, c.robust, trace=traces.get(key))
     return out_
 
 

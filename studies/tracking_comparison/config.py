@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
-from numbers import Integral, Real
 
-import numpy as np
-
-from workbench.validation import fail, one_of
+from workbench.validation import fail, integer, one_of, real
 
 METHODS: tuple[str, ...] = ("ecbf", "al", "bas")
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
@@ -18,24 +15,12 @@ RELEVANT = {"ecbf": ("pole", "q_scale", "ecbf_noise", "noise_std"),
             "al": ("q_scale", "noise_std"), "bas": ("q_beta", "q_scale", "noise_std")}
 
 
-def _int(name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
-        raise fail(name, value, f"must be an integer >= {minimum}")
-    return int(value)
-
-
-def _real(name: str, value, *, minimum: float = 0.0, strict: bool = True) -> float:
-    ok = isinstance(value, Real) and not isinstance(value, bool) and np.isfinite(value) and (
-        value > minimum if strict else value >= minimum)
-    if not ok:
-        raise fail(name, value, f"must be a finite number {'>' if strict else '>='} {minimum}")
-    return float(value)
 
 
 def _values(name: str, values, *, strict: bool = True) -> tuple[float, ...]:
     if isinstance(values, str) or not hasattr(values, "__iter__") or len(values) == 0:
         raise fail(name, values, "must be a non-empty sequence of numbers")
-    return tuple(_real(f"{name}[{i}]", v, strict=strict) for i, v in enumerate(values))
+    return tuple(real(f"{name}[{i}]", v, 0.0, strict=strict) for i, v in enumerate(values))
 
 
 @dataclass(frozen=True)
@@ -55,11 +40,11 @@ class Variant:
     noise_std: float = 10.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "q_beta", _real("q_beta", self.q_beta, strict=False))
-        object.__setattr__(self, "pole", _real("pole", self.pole))
-        object.__setattr__(self, "q_scale", _real("q_scale", self.q_scale))
+        object.__setattr__(self, "q_beta", real("q_beta", self.q_beta, 0.0, strict=False))
+        object.__setattr__(self, "pole", real("pole", self.pole, 0.0, strict=True))
+        object.__setattr__(self, "q_scale", real("q_scale", self.q_scale, 0.0, strict=True))
         one_of("ecbf_noise", self.ecbf_noise, NOISE_PLACEMENTS)
-        object.__setattr__(self, "noise_std", _real("noise_std", self.noise_std, strict=False))
+        object.__setattr__(self, "noise_std", real("noise_std", self.noise_std, 0.0, strict=False))
 
     def relevant(self, method: str) -> dict[str, float | str]:
         """The values that change a method's results."""
@@ -109,10 +94,11 @@ class StudyConfig:
         if len(set(methods)) != len(methods):
             raise fail("methods", methods, "must not repeat a method")
         object.__setattr__(self, "methods", tuple(m for m in METHODS if m in methods))
-        object.__setattr__(self, "n_rollouts", _int("n_rollouts", self.n_rollouts, 1))
-        object.__setattr__(self, "n_seeds", _int("n_seeds", self.n_seeds, 1))
-        object.__setattr__(self, "seed", _int("seed", self.seed, 0))
-        object.__setattr__(self, "target_radius", _real("target_radius", self.target_radius))
+        object.__setattr__(self, "n_rollouts", integer("n_rollouts", self.n_rollouts, 1))
+        object.__setattr__(self, "n_seeds", integer("n_seeds", self.n_seeds, 1))
+        object.__setattr__(self, "seed", integer("seed", self.seed, 0))
+        object.__setattr__(self, "target_radius",
+                           real("target_radius", self.target_radius, 0.0, strict=True))
         object.__setattr__(self, "radii", tuple(sorted(_values("radii", self.radii))))
         if not isinstance(self.base, Variant):
             raise fail("base", self.base, "must be a Variant")
@@ -127,8 +113,8 @@ class StudyConfig:
                        f"{NOISE_PLACEMENTS}")
         object.__setattr__(self, "sweep_ecbf_noise", tuple(placements))
         object.__setattr__(self, "sweep_rollouts",
-                           _int("sweep_rollouts", self.sweep_rollouts, 1))
-        object.__setattr__(self, "sweep_seeds", _int("sweep_seeds", self.sweep_seeds, 1))
+                           integer("sweep_rollouts", self.sweep_rollouts, 1))
+        object.__setattr__(self, "sweep_seeds", integer("sweep_seeds", self.sweep_seeds, 1))
 
     def sweep_points(self) -> list[tuple[str, float | str, Variant]]:
         """(parameter, value, variant) for every swept value, the others at base."""

@@ -48,12 +48,15 @@ def calibration_trace(problem: SamplingProblem, goal, plant: Model, x0, mppi: MP
 
 def calibrate(rule: AlphaRule, problem: SamplingProblem, goal, plant: Model, x0,
               mppi: MPPIConfig, feedback: FeedbackLaw, robust: RMPPIConfig = RMPPIConfig(), *,
-              seed: int = 0) -> Threshold:
+              seed: int = 0, trace: tuple[np.ndarray, np.ndarray] | None = None) -> Threshold:
     """The threshold of ``rule`` for this problem, goal and start: a fixed rule directly, every
-    other rule from :func:`calibration_trace` (``rule.calibration_steps`` steps, ``seed``);
-    progress is measured as the distance to the goal in the plant's position coordinates."""
+    other rule from :func:`calibration_trace` (``rule.calibration_steps`` steps, ``seed``), or
+    from ``trace``, that function's result for the same controller (rules that differ only
+    in how they read the episode can share it); progress is measured as the distance to the
+    goal in the plant's position coordinates."""
     if not rule.needs_calibration:
         return make_threshold(rule)
-    X, F = calibration_trace(problem, goal, plant, x0, mppi, feedback, robust,
-                             steps=rule.calibration_steps, seed=seed)
+    X, F = trace if trace is not None else calibration_trace(
+        problem, goal, plant, x0, mppi, feedback, robust, steps=rule.calibration_steps,
+        seed=seed)
     return make_threshold(rule, X, F, goal, plant.position)

@@ -78,9 +78,9 @@ def declare(spec: StudySpec, config: Any, prepared: Any = None) -> tuple[Study, 
     """The framework's :class:`~workbench.study.Study` for ``config`` and the study's plan.
     ``prepared`` is bound into the task function when the study prepares something."""
     d = spec.fn("tasks")(config)
-    run_task = partial(d.run_task, config=config)
-    if spec.prepare is not None:
-        run_task = partial(d.run_task, config=config, prepared=prepared)
+    bound = {"config": config} if spec.prepare is None else {"config": config,
+                                                            "prepared": prepared}
+    run_task = partial(d.run_task, **bound)
     study = Study(spec.store_name, d.tasks, run_task, seed=config.seed,
                   config=config_io.to_dict(config), fingerprint=d.fingerprint, version=d.version)
     return study, d.plan
@@ -92,10 +92,19 @@ def dry_manifest(spec: StudySpec, config: Any) -> dict:
     return study_manifest(declare(spec, config)[0])
 
 
-def _finished(spec: StudySpec, config: Any, out: Path, prepared: Any, study: Study,
-              plan: Any, run_line: str) -> Finished:
-    return Finished(config, out, RunStore(out), plan,
-                    dict(zip(study.tasks, study.task_ids(), strict=True)), prepared, run_line)
+def _prepared(spec: StudySpec, config: Any, out: Path) -> tuple[Study, Finished]:
+    """Prepare (once, here) and declare: the Study and what its summary and report read."""
+    prepared = spec.fn("prepare")(config, out) if spec.prepare is not None else None
+    study, plan = declare(spec, config, prepared)
+    return study, Finished(config, out, RunStore(out), plan,
+                           dict(zip(study.tasks, study.task_ids(), strict=True)), prepared)
+
+
+def _summarise(spec: StudySpec, study: Study, finished: Finished) -> Summary:
+    summary = spec.fn("summarise")(finished)
+    atomic_write_json(finished.out / "summary.json",
+                      {"study": study.name, **to_jsonable(summary.data)})
+    return summary
 
 
 def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers: int = 2,
@@ -113,12 +122,10 @@ def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers:
     atomic_write_text(out / "config.toml", config_io.dump(
         config, header=f"resolved config of this run; rerun: workbench run {spec.name} "
                        f"--config {out / 'config.toml'} --out {out}"))
-    prepared = spec.fn("prepare")(config, out) if spec.prepare is not None else None
-    study, plan = declare(spec, config, prepared)
+    study, finished = _prepared(spec, config, out)
     result = run_study(study, out, workers=workers, scheduler=scheduler, progress=progress)
     result.raise_for_errors()
-    summary = spec.fn("summarise")(_finished(spec, config, out, prepared, study, plan, ""))
-    atomic_write_json(out / "summary.json", {"study": study.name, **to_jsonable(summary.data)})
+    summary = _summarise(spec, study, finished)
     wall = time.perf_counter() - t0
     where = f"scheduler {scheduler}" if scheduler else f"{workers} workers"
     cpu, load = os.cpu_count(), (load0, os.getloadavg()[0])
@@ -130,8 +137,7 @@ def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers:
                 f"{where}; {cpu} cores, 1-min load average {load[0]:.1f} at the start and "
                 f"{load[1]:.1f} at the end: compute times are wall-clock and grow with the "
                 "load).")
-    finished = _finished(spec, config, out, prepared, study, plan, run_line)
-    report = spec.fn("report")(finished, summary)
+    report = spec.fn("report")(dataclasses.replace(finished, run_line=run_line), summary)
     for line in summary.lines:
         print(line)
     return Outcome(summary, result, Path(report))
@@ -141,21 +147,18 @@ def rebuild_report(spec: StudySpec, out: Path | str) -> Path:
     """Rebuild summary.json and report.md of a finished run from its stored results (nothing
     is computed; run.json, the record of the run, is left as it is)."""
     out = Path(out)
-    store = RunStore(out)
     try:
-        config = config_io.load(spec.config_type, store.manifest()["config"])
+        config = config_io.load(spec.config_type, RunStore(out).manifest()["config"])
     except (OSError, KeyError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{out}: no readable manifest.json; run `workbench run {spec.name} "
                           f"--out {out}` first") from exc
-    prepared = spec.fn("prepare")(config, out) if spec.prepare is not None else None
-    study, plan = declare(spec, config, prepared)
-    missing = len(study.tasks) - len(store.finished(study.task_ids()))
+    study, finished = _prepared(spec, config, out)
+    missing = len(study.tasks) - len(finished.store.finished(finished.ids.values()))
     if missing:
         raise ConfigError(f"{out}: {missing} of {len(study.tasks)} tasks are not finished; "
                           f"`workbench run {spec.name} --config {out / 'config.toml'} --out "
                           f"{out}` completes them")
-    summary = spec.fn("summarise")(_finished(spec, config, out, prepared, study, plan, ""))
-    atomic_write_json(out / "summary.json", {"study": study.name, **to_jsonable(summary.data)})
+    summary = _summarise(spec, study, finished)
     try:
         record = json.loads((out / RUN_FILE).read_text())
         run_line = (f"Wall time {record['wall_time_s']:.1f} s ({record['tasks']['computed']} of "
@@ -163,5 +166,4 @@ def rebuild_report(spec: StudySpec, out: Path | str) -> Path:
                     f"{record['backend']}).")
     except (OSError, KeyError, TypeError, json.JSONDecodeError):
         run_line = "Report rebuilt from stored results (no run record found)."
-    return Path(spec.fn("report")(_finished(spec, config, out, prepared, study, plan, run_line),
-                            summary))
+    return Path(spec.fn("report")(dataclasses.replace(finished, run_line=run_line), summary))
