@@ -131,3 +131,15 @@ def test_readme_study_package_registers_and_runs(tmp_path, monkeypatch):
     assert "scale = 2.0" in (out / "config.toml").read_text()
     with pytest.raises(ValueError, match="n = 0 is invalid"):
         scope["spec"].config_type(n=0)
+
+
+def test_wb_ilqg_is_the_solver_even_after_the_subpackage_is_imported():
+    import importlib
+
+    import workbench as wb
+
+    importlib.import_module("workbench.ilqg.solver")  # sets workbench.ilqg on first import
+    from workbench.ilqg.solver import ilqg
+
+    assert wb.ilqg is ilqg and "ilqg" in wb.__all__
+    assert importlib.import_module("workbench.ilqg").__name__ == "workbench.ilqg"

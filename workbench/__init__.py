@@ -16,6 +16,8 @@ set-ups), :mod:`workbench.bound` (Lemma-1 checks) and :mod:`workbench.study` (th
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 from importlib import metadata
 from typing import TYPE_CHECKING
 
@@ -25,8 +27,11 @@ except metadata.PackageNotFoundError:  # run from a source tree that was never i
     __version__ = "0+unknown"
 
 _EXPORTS = {
-    "workbench.problem.models": ("Model", "double_integrator", "single_integrator"),
-    "workbench.problem.obstacles": ("Circle", "circle_margins", "circles_from_arrays"),
+    "workbench.problem.models": ("Model", "circle_scene", "double_integrator",
+                                 "single_integrator"),
+    "workbench.problem.obstacles": ("Circle", "circle_margins", "circles_from_arrays",
+                                    "scene_symbol", "scene_vector", "slot_margins"),
+    "workbench.codegen.cache": ("build_counts",),
     "workbench.problem.costs": ("Cost", "quadratic_tracking"),
     "workbench.problem.problem": ("Problem",),
     "workbench.problem.barrier": ("BarrierOptions", "embed_barrier"),
@@ -42,7 +47,7 @@ _EXPORTS = {
                                      "make_threshold"),
     "workbench.sampling.calibration": ("calibrate", "calibration_trace"),
     "workbench.sampling.kernels.build": ("get_threads", "set_threads"),
-    "workbench.sim": ("Disturbance", "Episode", "closed_loop"),
+    "workbench.sim": ("Disturbance", "Episode", "closed_loop", "scene_sequence"),
     "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "TrackingScene"),
     "workbench.scenarios.navigation": ("NavigationSetup", "navigation_setup"),
 }
@@ -63,7 +68,27 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))
 
 
+class _Workbench(types.ModuleType):
+    """``wb.ilqg`` is the solver function although ``workbench.ilqg`` is also a subpackage:
+    importing the subpackage makes the import system set it as this module's attribute, which
+    would hide the function. The subpackage stays reachable through ``import workbench.ilqg``."""
+
+    @property
+    def ilqg(self):
+        from workbench.ilqg.solver import ilqg
+
+        return ilqg
+
+    @ilqg.setter
+    def ilqg(self, value) -> None:  # the import system's record of the subpackage: ignored
+        pass
+
+
+sys.modules[__name__].__class__ = _Workbench
+
+
 if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerly
+    from workbench.codegen.cache import build_counts
     from workbench.filters.ecbf import ECBFFilter, ECBFOptions
     from workbench.ilqg.al import ALOptions, ALResult, al_ilqg, al_problem
     from workbench.ilqg.bas import TrackingWeights, bas_ilqg, tracking_params, tracking_problem
@@ -71,8 +96,20 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.ilqg.solver import ILQGOptions, ILQGResult, ilqg
     from workbench.problem.barrier import BarrierOptions, embed_barrier
     from workbench.problem.costs import Cost, quadratic_tracking
-    from workbench.problem.models import Model, double_integrator, single_integrator
-    from workbench.problem.obstacles import Circle, circle_margins, circles_from_arrays
+    from workbench.problem.models import (
+        Model,
+        circle_scene,
+        double_integrator,
+        single_integrator,
+    )
+    from workbench.problem.obstacles import (
+        Circle,
+        circle_margins,
+        circles_from_arrays,
+        scene_symbol,
+        scene_vector,
+        slot_margins,
+    )
     from workbench.problem.problem import Problem
     from workbench.sampling.calibration import calibrate, calibration_trace
     from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
@@ -82,4 +119,4 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.sampling.threshold import AlphaRule, make_threshold
     from workbench.scenarios.navigation import NavigationSetup, navigation_setup
     from workbench.scenarios.scenes import CircleScene, NavigationScene, TrackingScene
-    from workbench.sim import Disturbance, Episode, closed_loop
+    from workbench.sim import Disturbance, Episode, closed_loop, scene_sequence

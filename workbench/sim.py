@@ -1,8 +1,10 @@
-"""Closed-loop simulation on the true plant with the disturbance models of SPEC 2.3."""
+"""Closed-loop simulation on the true plant with the disturbance models of SPEC 2.3, in a
+scene that may move: obstacles are checked against the scene of each step."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
@@ -195,7 +197,11 @@ class Controller(Protocol):
 
 @dataclass(frozen=True)
 class Episode:
-    """Per-step records of one closed-loop run. X (n+1, nx), U (n, nu)."""
+    """Per-step records of one closed-loop run. X (n+1, nx), U (n, nu).
+
+    ``scene_time_s`` (n,): time spent handing each step's scene to the controller (zeros when
+    the scene is static); ``scenes`` (n+1, n_scene): the scene of every state in X when the
+    scene moves (empty otherwise)."""
 
     X: np.ndarray
     U: np.ndarray
@@ -204,42 +210,97 @@ class Episode:
     min_margin: float
     step_time_s: np.ndarray
     infos: tuple = field(default=(), repr=False)
+    scene_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    scenes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+
+
+SceneInput = Callable[[int], object] | object
+
+
+def scene_sequence(scenes: Sequence) -> Callable[[int], object]:
+    """A moving scene for :func:`closed_loop` from a list of scenes, one per step (step k uses
+    ``scenes[k]``; the last is held)."""
+    items = list(scenes)
+    if not items:
+        raise fail("scenes", scenes, "need at least one scene")
+
+    def at(k: int):
+        return items[min(k, len(items) - 1)]
+
+    return at
 
 
 def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.random.Generator,
                 rng_plant: np.random.Generator, disturbance: Disturbance = Disturbance(),
-                keep_infos: bool = True) -> Episode:
+                keep_infos: bool = True, scene: SceneInput = None) -> Episode:
     """Run ``controller`` on the plant x+ = F(x, u) + w for ``steps`` steps; stop at a crash
-    (min_i h_i <= 0 on the true plant). w acts on ``disturbance.indices(plant)`` (none when
-    that is empty: a plant of one's own without a disturbance)."""
+    (min_i h_i <= 0 on the true plant, in the scene of that time). w acts on
+    ``disturbance.indices(plant)`` (none when that is empty: a plant of one's own without a
+    disturbance).
+
+    ``scene``: None (the plant's own obstacles), one scene (circles or a flat scene vector, see
+    :meth:`~workbench.problem.Model.scene_vector`), or a callable ``k -> scene`` giving the
+    scene at step k = 0..steps (:func:`scene_sequence` makes one from a list). Before step k
+    the controller gets scene k through its ``set_scene`` (when it has one); the state after
+    step k is checked against scene k + 1: obstacles move while the plant does.
+    """
     integer("steps", steps, 1)
     x = np.asarray(x0, dtype=float)
     if x.shape != (plant.nx,) or not np.all(np.isfinite(x)):
         raise fail("x0", x0, f"must be {plant.nx} finite numbers")
+    if scene is not None and not plant.n_scene:
+        raise fail("scene", "given", f"the plant {plant.name} has no run-time scene (its "
+                   "obstacles are baked in); build it with runtime obstacles")
+    moving = callable(scene)
+    static = None if scene is None or moving else plant.scene_vector(scene)
+
+    def scene_at(k: int) -> np.ndarray:
+        if not moving:
+            return plant.scene_value if static is None else static
+        try:
+            return plant.scene_vector(scene(k))
+        except ValueError as exc:
+            raise fail(f"scene({k})", "returned", str(exc)) from exc
+
     f = FastFunction(ca.Function("plant", [plant.x, plant.u], [plant.x_next]))
     disturbed = disturbance.indices(plant)
     margins = plant.margins if plant.nh else None
+    set_scene = getattr(controller, "set_scene", None)
+    s = scene_at(0)
+    if static is not None and set_scene is not None:
+        set_scene(s)
     state = controller.initial_state(x)
-    X, U, times, infos = [x.copy()], [], [], []
+    X, U, times, infos, stimes, scenes = [x.copy()], [], [], [], [], [s]
     crashed, crash_step = False, None
-    min_h = float(np.min(margins(x))) if margins else np.inf
+    min_h = float(np.min(margins(x, s))) if margins else np.inf
+    if margins is not None and min_h <= 0:
+        raise fail("x0", x0, f"starts inside an obstacle of the scene (min h = {min_h:.4g})")
     for k in range(steps):
         t0 = time.perf_counter()
+        if moving and set_scene is not None:
+            set_scene(s)
+        t1 = time.perf_counter()
         state, u, info = controller.step(state, x, rng_controller)
-        times.append(time.perf_counter() - t0)
+        t2 = time.perf_counter()
+        times.append(t2 - t1)
+        stimes.append(t1 - t0)
         u = np.clip(u, plant.u_min, plant.u_max)
         x_model = f(x, u)[0]
         x = (x_model + disturbance.sample(plant.nx, plant.dt, rng_plant, disturbed)
              if disturbed else x_model.copy())
+        s = scene_at(k + 1)
         X.append(x.copy())
         U.append(u)
+        scenes.append(s)
         if keep_infos:
             infos.append(info)
         if margins is not None:
-            h = float(np.min(margins(x)))
+            h = float(np.min(margins(x, s)))
             min_h = min(min_h, h)
             if h <= 0:
                 crashed, crash_step = True, k + 1
                 break
     return Episode(X=np.array(X), U=np.array(U), crashed=crashed, crash_step=crash_step,
-                   min_margin=min_h, step_time_s=np.array(times), infos=tuple(infos))
+                   min_margin=min_h, step_time_s=np.array(times), infos=tuple(infos),
+                   scene_time_s=np.array(stimes),
+                   scenes=np.array(scenes) if moving else np.zeros((0, 0)))

@@ -84,7 +84,7 @@ def solve_nominal(method: str, variant: Variant, setup: Setup) -> Nominal:
     free = tracking_problem(setup.model(obstacle=False), weights)
     res = ilqg(free, x0, U0, tracking_params(free, ref, target), setup.ilqg)
     lie = ecbf_rows(model, setup.ecbf_for(variant)).lie
-    h, lfh = (float(np.asarray(v).ravel()[0]) for v in lie(x0)[:2])
+    h, lfh = (float(np.asarray(v).ravel()[0]) for v in lie(x0, model.scene_value)[:2])
     info = {"cost": res.cost, "converged": res.converged, "iterations": res.iterations,
             "solve_time_s": res.solve_time_s,
             # SPEC 7.1 initial-condition requirement: h(x0) >= 0 and dh(x0) + p1 h(x0) >= 0

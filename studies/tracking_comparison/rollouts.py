@@ -73,13 +73,17 @@ def batched(fn: ca.Function, n: int) -> Callable[[np.ndarray], np.ndarray]:
 
 
 def margins_function(model: Model) -> ca.Function:
-    return ca.Function("h", [model.x], [ca.densify(model.h)])
+    """x -> h(x) in the model's own scene."""
+    h = ca.substitute(model.h, model.scene, model.scene_value)
+    return ca.Function("h", [model.x], [ca.densify(h)])
 
 
 def lift_function(embedded: Model) -> ca.Function:
-    """Physical state -> [x; beta] with beta = B(h(x)) (crash rule and cap included)."""
+    """Physical state -> [x; beta] with beta = B(h(x)) (crash rule and cap included), in the
+    model's own scene."""
     xp = embedded.x[: embedded.n_physical]
-    return ca.Function("lift", [xp], [ca.densify(embedded.lift_expr)])
+    lift = ca.substitute(embedded.lift_expr, embedded.scene, embedded.scene_value)
+    return ca.Function("lift", [xp], [ca.densify(lift)])
 
 
 def feedback_rollouts(dyn: LinearDynamics, x0, Xbar, Ubar, K, noise, u_min, u_max,

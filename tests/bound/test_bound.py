@@ -332,10 +332,10 @@ def test_diagnostic_kernel_matches_the_twin_and_the_plain_kernel(scene):
     assert np.all((extra > 0.5) == b.crashed_nom)
     # the reading of workbench.bound.lipschitz: on every sample beta_k = B(h(p_k)) exactly
     # (gamma = 0), so the state costs are functions of the physical state
-    lift = sp.model.lift_function.map(N * (U.shape[0] + 1))
+    lift = sp.model.lift_function.map("lift", "serial", N * (U.shape[0] + 1), [1], [])
     for Xb in (b.X, b.X_nom):
         Y = np.transpose(Xb, (0, 2, 1)).reshape(-1, sp.nx)
-        assert np.array_equal(np.asarray(lift(Y[:, :4].T)).T, Y)
+        assert np.array_equal(np.asarray(lift(Y[:, :4].T, sp.model.scene_value)).T, Y)
     # the NumPy backend's diagnostic batch has the same shapes and pure costs (its own noise)
     nb = Sampler(sp, backend="numpy").sais(x0, xs0, U, K, 7, c, seed, diagnostics=True)
     assert nb.X.shape == (U.shape[0] + 1, sp.nx, 7) and nb.Sx_real.shape == (7,)

@@ -68,7 +68,8 @@ def test_lie_derivatives_match_finite_differences(make, rng):
     f_sx, g_sx = control_affine(model)
     f = ca.Function("f", [model.x], [f_sx])
     g = ca.Function("g", [model.x], [g_sx])
-    h = ca.Function("h", [model.x], [model.h])
+    s = model.scene_value
+    h = ca.Function("h", [model.x], [ca.substitute(model.h, model.scene, s)])
     rows = ecbf_rows(model)
     eps = 1e-6
 
@@ -76,10 +77,10 @@ def test_lie_derivatives_match_finite_differences(make, rng):
         return (np.asarray(fun(x + eps * d)).ravel() - np.asarray(fun(x - eps * d)).ravel()) / (
             2 * eps)
 
-    lfh_fun = ca.Function("lfh", [model.x], [rows.lie(model.x)[1]])
+    lfh_fun = ca.Function("lfh", [model.x], [rows.lie(model.x, s)[1]])
     for _ in range(5):
         x = rng.standard_normal(model.nx) * 2 + 3.0
-        _, lfh, lf2h, lgh, lglfh = (np.asarray(v) for v in rows.lie(x))
+        _, lfh, lf2h, lgh, lglfh = (np.asarray(v) for v in rows.lie(x, s))
         fx, gx = np.asarray(f(x)).ravel(), np.asarray(g(x))
         np.testing.assert_allclose(lfh.ravel(), along(h, x, fx), atol=1e-6)
         np.testing.assert_allclose(lf2h.ravel(), along(lfh_fun, x, fx), atol=1e-5)
@@ -235,7 +236,7 @@ def test_degree_one_row_includes_lf_h_closed_form(rng):
         a, b = rows(p)
         np.testing.assert_allclose(a[0], 2 * d, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(b[0], -3.0 * h - 2 * d @ (omega @ p), rtol=1e-12, atol=1e-12)
-        lfh = float(np.asarray(rows.lie(p)[1]).ravel()[0])
+        lfh = float(np.asarray(rows.lie(p, model.scene_value)[1]).ravel()[0])
         assert abs(lfh) > 0 or abs(d @ (omega @ p)) == 0
 
 

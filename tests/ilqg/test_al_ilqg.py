@@ -69,7 +69,7 @@ def test_one_problem_with_multiplier_parameters(tracking):
              (outside, 0.0, 1e3, False),  # c = -2.16 < 0, lam = 0: inactive
              (outside, 5.0, 1.0, True))  # mu c + lam = 2.84 > 0: active (shifted branch)
     for x, lam, mu, active in cases:
-        p = np.r_[np.zeros(n_base), lam, mu]
+        p = np.r_[np.zeros(n_base), lam, mu, alp.model.scene_value]
         lxx = np.asarray(quad(x, np.zeros(2), p)[3])
         grad_c = -2 * np.array([x[0], x[1] - 0.1, 0.0, 0.0])
         expected = Q + (mu * np.outer(grad_c, grad_c) if active else 0.0)

@@ -25,12 +25,12 @@ def test_dyn_hess_matches_finite_differences(bas_tracking, rng):
     """d/d(x,u) of lam'[A B] by central differences equals the generated Hessians."""
     problem, _ = bas_tracking
     f = problem.functions
-    nx = problem.nx
+    nx, s = problem.nx, problem.model.scene_value
     for x, u, lam in _safe_points(problem, rng, 10):
-        fxx, fuu, fux = (np.asarray(m) for m in f["dyn_hess"](x, u, lam))
+        fxx, fuu, fux = (np.asarray(m) for m in f["dyn_hess"](x, u, lam, s))
 
         def grad(z):
-            A, B = (np.asarray(m) for m in f["dyn_jac"](z[:nx], z[nx:]))
+            A, B = (np.asarray(m) for m in f["dyn_jac"](z[:nx], z[nx:], s))
             return np.r_[lam @ A, lam @ B]
 
         H = central_jacobian(grad, np.r_[x, u], eps=1e-5)

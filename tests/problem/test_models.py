@@ -52,11 +52,12 @@ def _problem(model: Model) -> Problem:
 def test_dynamics_jacobians_match_finite_differences(name, rng):
     problem = _problem(MODELS[name]())
     f, jac = problem.functions["dyn"], problem.functions["dyn_jac"]
+    s = problem.model.scene_value
     for _ in range(5):
         x, u = _safe_point(problem.model, rng), rng.uniform(-3, 3, problem.nu)
-        A, B = (np.asarray(m) for m in jac(x, u))
-        A_fd = central_jacobian(lambda z: np.asarray(f(z, u)), x)
-        B_fd = central_jacobian(lambda z: np.asarray(f(x, z)), u)
+        A, B = (np.asarray(m) for m in jac(x, u, s))
+        A_fd = central_jacobian(lambda z: np.asarray(f(z, u, s)), x)
+        B_fd = central_jacobian(lambda z: np.asarray(f(x, z, s)), u)
         np.testing.assert_allclose(A, A_fd, rtol=1e-6, atol=1e-7)
         np.testing.assert_allclose(B, B_fd, rtol=1e-6, atol=1e-7)
 
@@ -92,7 +93,7 @@ def test_embedded_jacobian_matches_spec_formula(rng):
     problem = _problem(model)
     x = _safe_point(model, rng, -1, 1)
     u = rng.uniform(-2, 2, 2)
-    A, B = (np.asarray(m) for m in problem.functions["dyn_jac"](x, u))
+    A, B = (np.asarray(m) for m in problem.functions["dyn_jac"](x, u, model.scene_value))
     dt = 0.02
     Fx = np.block([[np.eye(2), dt * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
     Fu = np.vstack([np.zeros((2, 2)), dt * np.eye(2)])
@@ -185,7 +186,7 @@ def test_hessian_override_replaces_exact_state_hessian():
     """Gauss-Newton replacements (SPEC 6.2) enter lxx; gradients stay exact."""
     import dataclasses
 
-    model = double_integrator(obstacles=OBST)
+    model = double_integrator(obstacles=OBST, runtime_obstacles=False)  # a cost in h needs them
     cost = quadratic_tracking(model, Q=[1, 1, 1, 1], R=[1, 1], S=[1, 1, 1, 1])
     h0 = model.h[0]
     stage = cost.stage - 0.5 * h0**2  # exact Hessian is indefinite in p

@@ -87,7 +87,8 @@ def test_each_candidate_is_chosen_in_turn(nav, sa_state, j):
     sel = ctrl.select_nominal(state, xb, np.random.default_rng(0))
     assert sel.index == j and not sel.fallback and sel.stride == strides(9)[j]
     # the nominal update: x*_0 = the j-th candidate, u* slid by its stride
-    a1 = np.asarray(nav.problem.functions()["dyn"](state.x_nom, state.U[0])).ravel()
+    a1 = np.asarray(nav.problem.functions()["dyn"](state.x_nom, state.U[0],
+                                                    nav.problem.model.scene_value)).ravel()
     W = candidate_weights(9)[j]
     expect = nav.problem.model.lift((W @ np.stack([state.x_nom, a1, xb]))[:4])
     np.testing.assert_allclose(sel.x_nom, xb if j == 8 else expect, rtol=1e-12, atol=1e-12)

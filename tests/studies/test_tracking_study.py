@@ -133,7 +133,7 @@ def test_numpy_rollouts_equal_the_casadi_model(setup_and_nominals, rng):
             x = m.lift(x0)
             for k in range(setup.scene.horizon):
                 u = np.clip(nom.U[k] + nom.K[k] @ (x - nom.X[k]) + noise[i, k], -15, 15)
-                x = np.asarray(F(x, u)).ravel()
+                x = np.asarray(F(x, u, m.scene_value)).ravel()
                 np.testing.assert_allclose(x[:4], X[i, k + 1], rtol=0, atol=1e-12)
                 if method == "bas":
                     np.testing.assert_allclose(x[4], m.lift(X[i, k + 1])[4], rtol=1e-12)
@@ -153,7 +153,7 @@ def test_ecbf_rollouts_equal_a_stepwise_filter_loop(setup_and_nominals, rng):
         for k in range(setup.scene.horizon):
             res = filt(x, nom.U[k] + nom.K[k] @ (x - nom.X[k]) + noise[i, k])
             infeasible += res.infeasible
-            x = np.asarray(F(x, res.u)).ravel()
+            x = np.asarray(F(x, res.u, model.scene_value)).ravel()
             np.testing.assert_allclose(x, r.X[i, k + 1], rtol=0, atol=1e-6)
         assert infeasible == r.infeasible_steps[i]
     assert r.qp_steps.sum() > 0

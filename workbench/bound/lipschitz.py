@@ -197,7 +197,8 @@ class CostGradients:
             if self.space == "physical":
                 X[0, : Yc.shape[1]] = Yc.T
             else:  # the grid's states on the model's manifold: beta = B(h(p))
-                X[0] = np.asarray(lift.map(Yc.shape[0])(Yc.T))
+                lift_n = lift.map("lift", "serial", Yc.shape[0], [1], [])
+                X[0] = np.asarray(lift_n(Yc.T, self.sp.model.scene_value))
             parts.append(self._run(X, X, np.ones((1, 1)), np.ones((1, 1)), p))
         return Lipschitz(L_q=max(q.L_q for q in parts), L_phi=max(q.L_phi for q in parts),
                          secant_q=0.0, secant_phi=0.0,

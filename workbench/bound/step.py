@@ -168,13 +168,14 @@ class BoundEstimator:
                        per_sample=None)
         local = self.gradients.local(batch.X, batch.X_nom, self.p)
         xb = np.asarray(x, float).ravel()
+        scene = self.ctrl.consts.scene
         if xb.size == n and sp.nx != n:
-            xb = sp.model.lift(xb)
+            xb = sp.model.lift(xb, scene)
         if xb.shape != (sp.nx,) or not np.all(np.isfinite(xb)):
             raise fail("x", x, f"the measured state must be {n} or {sp.nx} finite numbers")
         if info.x_nom is None:
             raise fail("info.x_nom", None, "the step's info must carry the nominal state")
-        xn = self._dyn(xb, np.asarray(u, float))[0]
+        xn = self._dyn(xb, np.asarray(u, float), scene)[0]
         gap = batch.Sx_nom - batch.Sx_real
         safe = ~(np.asarray(batch.crashed_real) | np.asarray(batch.crashed_nom))
         gap_safe = float(np.min(gap[safe])) if safe.any() else np.inf

@@ -180,6 +180,16 @@ def _verify(lib_path: Path, functions: list[ca.Function]) -> dict[str, ca.Functi
     return loaded
 
 
+_COUNTS = {"generated": 0, "compiled": 0}
+
+
+def build_counts() -> dict[str, int]:
+    """How many libraries this process has generated (``build_library`` calls that got past
+    the compiler check: C source written and hashed, a cached library loaded or a new one
+    compiled) and how many it compiled. A scene change must leave both unchanged."""
+    return dict(_COUNTS)
+
+
 def build_library(
     stem: str,
     functions: list[ca.Function],
@@ -202,6 +212,7 @@ def build_library(
         warnings.warn("workbench: no C compiler found (or WORKBENCH_NO_CODEGEN set); "
                       "using the CasADi virtual machine", RuntimeWarning, stacklevel=2)
         return None
+    _COUNTS["generated"] += 1
     source = generate_source(functions, extra_source)
     ident = "\n".join([source, tc.key(), *extra_flags, ca.__version__, platform.platform(),
                        _cpu_signature() if any("native" in f for f in extra_flags) else ""])
@@ -262,6 +273,7 @@ def _published(lib: Path, manifest: Path) -> bool:
 
 
 def _compile_and_publish(tc, source: str, folder: Path, stem: str, extra_flags) -> None:
+    _COUNTS["compiled"] += 1
     src = folder / f"{stem}.c"
     _atomic_write(src, source)
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".lib{stem}.", suffix=".so")

@@ -12,12 +12,13 @@ import numpy as np
 
 
 class FastFunction:
-    """Dense, in-place evaluation of an SX Function (optionally mapped over ``n`` columns)."""
+    """Dense, in-place evaluation of an SX Function (optionally mapped over ``n`` columns;
+    the inputs listed in ``shared`` are the same for every column and passed once)."""
 
-    def __init__(self, f: ca.Function, n: int = 1):
+    def __init__(self, f: ca.Function, n: int = 1, shared: tuple[int, ...] = ()):
         sym = f.sx_in()
         dense = ca.Function(f.name(), sym, [ca.densify(o) for o in f.call(sym)])
-        self.f = dense.map(n) if n > 1 else dense
+        self.f = dense.map(f.name(), "serial", n, list(shared), []) if n > 1 else dense
         self._in = [np.zeros(self.f.numel_in(i)) for i in range(self.f.n_in())]
         self._out = [np.zeros(self.f.numel_out(i)) for i in range(self.f.n_out())]
         self._buf, self._trigger = self.f.buffer()

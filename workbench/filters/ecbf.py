@@ -122,24 +122,28 @@ class FilterResult:
 class ECBFRows:
     """The ECBF rows a(x) (nh, nu), b(x) (nh,) of a model, and the Lie derivatives behind them.
 
-    ``rows``: x -> (a, b). ``lie``: x -> (h, Lf h, Lf^2 h, Lg h (nh,nu), Lg Lf h (nh,nu)).
-    ``relative_degrees``: one entry (1 or 2) per margin.
+    ``rows``: (x, scene) -> (a, b). ``lie``: (x, scene) -> (h, Lf h, Lf^2 h, Lg h (nh,nu),
+    Lg Lf h (nh,nu)). ``relative_degrees``: one entry (1 or 2) per margin. ``scene_value``: the
+    model's default scene, used when a call gives none.
     """
 
     rows: ca.Function
     lie: ca.Function
     relative_degrees: tuple[int, ...]
+    scene_value: np.ndarray
 
-    def __call__(self, x) -> tuple[np.ndarray, np.ndarray]:
-        a, b = self.rows(np.asarray(x, dtype=float))
+    def __call__(self, x, scene=None) -> tuple[np.ndarray, np.ndarray]:
+        s = self.scene_value if scene is None else np.asarray(scene, dtype=float)
+        a, b = self.rows(np.asarray(x, dtype=float), s)
         return np.asarray(a), np.asarray(b).ravel()
 
-    def batch(self, X) -> tuple[np.ndarray, np.ndarray]:
+    def batch(self, X, scene=None) -> tuple[np.ndarray, np.ndarray]:
         """Rows at many states X (N, nx): a (N, nh, nu), b (N, nh)."""
         X = np.asarray(X, dtype=float)
+        s = self.scene_value if scene is None else np.asarray(scene, dtype=float)
         n, nh = X.shape[0], self.rows.size1_out(1)
         nu = self.rows.size2_out(0)
-        a, b = self.rows.map(n)(X.T)
+        a, b = self.rows.map("rows", "serial", n, [1], [])(X.T, s)
         a = np.asarray(a).reshape(nh, n, nu).transpose(1, 0, 2)
         return a, np.asarray(b).T.reshape(n, nh)
 
@@ -181,7 +185,8 @@ def relative_degrees(model: Model) -> tuple[int, ...]:
     x2 = ca.substitute(model.x_next, x, model.x_next)
     h2 = ca.substitute(model.h, x, x2)
     s1, s2 = ca.jacobian(h1, u), ca.jacobian(h2, u)
-    sens = ca.Function("sens", [x, u], [s1, s2])
+    sens = ca.Function("sens", [x, u], [ca.substitute(s1, model.scene, model.scene_value),
+                                        ca.substitute(s2, model.scene, model.scene_value)])
     rng = np.random.default_rng(20261123)
     X = rng.normal(0.0, 2.0, (DEGREE_POINTS, model.nx))
     u0 = np.clip(np.zeros(model.nu), model.u_min, model.u_max)
@@ -233,11 +238,13 @@ def ecbf_rows(model: Model, options: ECBFOptions = ECBFOptions()) -> ECBFRows:
             a_rows.append(lglfh[i, :] + options.k1 * lgh[i, :])
             b_rows.append(-lf2h[i] - options.k1 * lfh[i] - options.k0 * h[i])
     d = ca.densify
-    rows = ca.Function("ecbf_rows", [x], [d(ca.vertcat(*a_rows)), d(ca.vertcat(*b_rows))],
-                       ["x"], ["a", "b"], {"cse": True})
-    lie = ca.Function("ecbf_lie", [x], [d(h), d(lfh), d(lf2h), d(lgh), d(lglfh)],
-                      ["x"], ["h", "Lfh", "Lf2h", "Lgh", "LgLfh"], {"cse": True})
-    return ECBFRows(rows=rows, lie=lie, relative_degrees=detected)
+    sc = model.scene
+    rows = ca.Function("ecbf_rows", [x, sc], [d(ca.vertcat(*a_rows)), d(ca.vertcat(*b_rows))],
+                       ["x", "scene"], ["a", "b"], {"cse": True})
+    lie = ca.Function("ecbf_lie", [x, sc], [d(h), d(lfh), d(lf2h), d(lgh), d(lglfh)],
+                      ["x", "scene"], ["h", "Lfh", "Lf2h", "Lgh", "LgLfh"], {"cse": True})
+    return ECBFRows(rows=rows, lie=lie, relative_degrees=detected,
+                    scene_value=model.scene_value.copy())
 
 
 class ECBFFilter:
@@ -254,7 +261,7 @@ class ECBFFilter:
     """
 
     def __init__(self, model: Model, options: ECBFOptions = ECBFOptions()):
-        self.options = options
+        self.options, self.model = options, model
         self.ecbf = ecbf_rows(model, options)
         self.nu, self.nh = model.nu, model.nh
         self.u_min, self.u_max = model.u_min.copy(), model.u_max.copy()
@@ -262,8 +269,10 @@ class ECBFFilter:
         self._x = np.zeros(model.nx)
         self._a_t = np.zeros((self.nu, self.nh))  # CasADi writes a column-major: a^T row-major
         self._b = np.zeros(self.nh)
+        self._scene = model.scene_value.copy()
         self._buf, self._eval = self.ecbf.rows.buffer()
         self._buf.set_arg(0, memoryview(self._x))
+        self._buf.set_arg(1, memoryview(self._scene))
         self._buf.set_res(0, memoryview(self._a_t))
         self._buf.set_res(1, memoryview(self._b))
         self._setup()
@@ -298,8 +307,13 @@ class ECBFFilter:
                            verbose=False, eps_abs=o.eps_abs, eps_rel=o.eps_rel,
                            polishing=o.polish, warm_starting=o.warm_start, max_iter=o.max_iter)
 
+    def set_scene(self, scene) -> None:
+        """The obstacles of the following calls (see
+        :meth:`~workbench.problem.Model.scene_vector`)."""
+        self._scene[:] = self.model.scene_vector(scene)
+
     def __call__(self, x, u_ref) -> FilterResult:
-        """Filter u_ref at state x."""
+        """Filter u_ref at state x (in the scene last set, default the model's own)."""
         return self.solve_rows(*self.rows(x), u_ref)
 
     def _state(self, x) -> np.ndarray:
@@ -399,7 +413,7 @@ class ECBFFilter:
             raise fail("X", X, f"states must be finite (row {bad} is not)")
         if U_ref.shape != (X.shape[0], self.nu) or not np.all(np.isfinite(U_ref)):
             raise fail("U_ref", U_ref, f"expected ({X.shape[0]}, {self.nu}) finite entries")
-        a, b = self.ecbf.batch(X)
+        a, b = self.ecbf.batch(X, self._scene)
         U = np.clip(U_ref, self.u_min, self.u_max)
         norms = np.maximum(np.sqrt((a * a).sum(axis=2)), 1e-12)
         violation = (b - np.einsum("nij,nj->ni", a, U)) / norms

@@ -68,9 +68,10 @@ class ALOptions:
 class ALProblem:
     """The inner problem (built once) and what the outer loop needs around it.
 
-    problem: Problem on the margin-free model, parameters [base p; lam (nh); mu (nh)].
-    constraints: x -> c(x) = -h(x) (nh). base_stage / base_terminal: the original cost, to report
-    the cost without penalty terms.
+    problem: Problem on the margin-free model, parameters [base p; lam (nh); mu (nh); scene]
+    (the scene enters the penalty through h, so it rides in the parameters, fixed over time).
+    constraints: (x, scene) -> c(x) = -h(x) (nh). base_stage / base_terminal: the original cost,
+    to report the cost without penalty terms.
     """
 
     problem: Problem
@@ -84,13 +85,18 @@ class ALProblem:
     def nh(self) -> int:
         return self.model.nh
 
-    def params(self, P_base: np.ndarray, lam: np.ndarray, mu: np.ndarray) -> np.ndarray:
-        """Inner parameter array (T+1, n_p) from the base parameters and the AL blocks."""
-        return np.hstack([P_base, lam, mu])
+    def params(self, P_base: np.ndarray, lam: np.ndarray, mu: np.ndarray,
+               scene=None) -> np.ndarray:
+        """Inner parameter array (T+1, n_p) from the base parameters, the AL blocks and the
+        scene (default: the model's own)."""
+        s = self.model.scene_vector(scene)
+        return np.hstack([P_base, lam, mu, np.tile(s, (P_base.shape[0], 1))])
 
-    def constraint_values(self, X: np.ndarray) -> np.ndarray:
-        """c(x_k) = -h(x_k) for every row of X (T+1, nx) -> (T+1, nh)."""
-        return np.asarray(self.constraints.map(X.shape[0])(X.T)).T.reshape(X.shape[0], self.nh)
+    def constraint_values(self, X: np.ndarray, scene=None) -> np.ndarray:
+        """c(x_k) = -h(x_k) for every row of X (T+1, nx) -> (T+1, nh), in ``scene``."""
+        n = X.shape[0]
+        c = self.constraints.map("c", "serial", n, [1], [])
+        return np.asarray(c(X.T, self.model.scene_vector(scene))).T.reshape(n, self.nh)
 
     def base_cost(self, X: np.ndarray, U: np.ndarray, P_base: np.ndarray) -> float:
         """The original cost (no penalty terms) of a trajectory."""
@@ -117,17 +123,19 @@ def al_problem(model: Model, cost: Cost) -> ALProblem:
         cost.stage, x)[0]
     hess_term = cost.terminal_hessian_x if cost.terminal_hessian_x is not None else ca.hessian(
         cost.terminal, x)[0]
-    p = ca.vertcat(cost.p, lam, mu)
+    scene = model.scene
+    p = ca.vertcat(cost.p, lam, mu, scene)
     aug = Cost(
         stage=cost.stage + penalty, terminal=cost.terminal + penalty, p=p,
-        param_layout=(*cost.param_layout, ("lam", nh), ("mu", nh)),
+        param_layout=(*cost.param_layout, ("lam", nh), ("mu", nh), ("scene", model.n_scene)),
         description=f"{cost.description} + PHR augmented Lagrangian",
         stage_hessian_x=hess_stage + gn, terminal_hessian_x=hess_term + gn)
     inner_model = dataclasses.replace(model, name=f"{model.name}_al", h=ca.SX(0, 1),
-                                      obstacles=())
+                                      obstacles=(), scene=ca.SX(0, 1),
+                                      scene_value=np.zeros(0), scene_capacity=0)
     return ALProblem(
         problem=Problem.build(inner_model, aug), model=model,
-        constraints=ca.Function("c", [x], [ca.densify(c)], ["x"], ["c"]),
+        constraints=ca.Function("c", [x, scene], [ca.densify(c)], ["x", "scene"], ["c"]),
         base_stage=ca.Function("l", [x, u, cost.p], [cost.stage]),
         base_terminal=ca.Function("lT", [x, cost.p], [cost.terminal]),
         n_base_params=cost.n_p)
@@ -170,8 +178,9 @@ class ALResult:
 
 
 def al_ilqg(alp: ALProblem, x0, U0, P_base, options: ALOptions | None = None,
-            passes=None) -> ALResult:
-    """Minimise the base cost s.t. h(x_k) >= 0, k = 1..T, by PHR AL around iLQG."""
+            passes=None, scene=None) -> ALResult:
+    """Minimise the base cost s.t. h(x_k) >= 0, k = 1..T, by PHR AL around iLQG; ``scene``:
+    the obstacles (default: the model's own)."""
     opts = options or ALOptions()
     t0 = time.perf_counter()
     problem = alp.problem
@@ -180,7 +189,8 @@ def al_ilqg(alp: ALProblem, x0, U0, P_base, options: ALOptions | None = None,
     if T < 1:
         raise fail("U0", U.shape, "the horizon must have at least one step")
     x0 = np.asarray(x0, dtype=float).ravel()
-    h0 = -alp.constraint_values(x0[None])[0] if x0.size == alp.model.nx else None
+    scene = alp.model.scene_vector(scene)
+    h0 = -alp.constraint_values(x0[None], scene)[0] if x0.size == alp.model.nx else None
     if h0 is None or np.min(h0) <= 0:
         raise fail("x0", x0, f"must be a state of {alp.model.nx} entries strictly inside the "
                    "safe set (h > 0)")
@@ -196,10 +206,10 @@ def al_ilqg(alp: ALProblem, x0, U0, P_base, options: ALOptions | None = None,
     history: list[OuterIteration] = []
     converged, stop, n_inner, res, C = False, "max_outer", 0, None, None
     for it in range(1, opts.max_outer + 1):
-        P = alp.params(P_base, lam, mu)
+        P = alp.params(P_base, lam, mu, scene)
         res = ilqg(problem, x0, U, P, opts.inner, passes)
         U, n_inner = res.U, n_inner + res.iterations
-        C = alp.constraint_values(res.X)
+        C = alp.constraint_values(res.X, scene)
         viol = np.maximum(0.0, C)
         viol[0] = 0.0
         max_viol = float(viol.max())

@@ -54,13 +54,27 @@ def solve_options_layout(library: Library) -> tuple[int, tuple[tuple[str, int, i
 
 
 def row_major_functions(problem: Problem) -> list[ca.Function]:
-    """``wb_<name>`` twins of the problem Functions whose matrix outputs are row-major in memory."""
+    """``wb_<name>`` twins of the problem Functions whose matrix outputs are row-major in memory.
+
+    Every twin takes the scene as its fourth input (the inputs before it padded with empty
+    ones), so core.c's ``wb_call`` hands the current scene to each of them in one place."""
     out = []
     for f in [problem.functions[n] for n in FUNCTION_NAMES] + [step_function(problem)]:
         name = f.name()
         sym = f.sx_in()
+        names = list(f.name_in())
         res = [r.T if r.size1() > 1 and r.size2() > 1 else r for r in f.call(sym)]
-        out.append(ca.Function(f"wb_{name}", sym, res, f.name_in(), f.name_out(), {"cse": True}))
+        if "scene" in names:
+            i = names.index("scene")
+            scene = sym.pop(i)
+            names.pop(i)
+        else:
+            scene = ca.SX.sym("scene", problem.n_scene)
+        while len(sym) < 3:
+            sym.append(ca.SX(0, 1))
+            names.append(f"unused{len(sym)}")
+        out.append(ca.Function(f"wb_{name}", [*sym, scene], res, [*names, "scene"],
+                               f.name_out(), {"cse": True}))
     return out
 
 
@@ -120,6 +134,8 @@ def _declare(c: ctypes.CDLL) -> None:
                                           ctypes.POINTER(ctypes.c_char_p)]
     c.wb_box_qp.restype = i
     c.wb_box_qp.argtypes = [i, _dp, _dp, _dp, _dp, _dp, _dp, _dp, _dp, _dp]
+    c.wb_set_scene.restype = None
+    c.wb_set_scene.argtypes = [_dp]
 
 
 def _ptr(a: np.ndarray) -> int:
@@ -151,13 +167,23 @@ class CompiledPasses:
             "k": (T, nu), "K": (T, nu, nx), "dV": (2,), "umin": (nu,), "umax": (nu,),
             "Xn": (T + 1, nx), "Un": (T, nu), "out": (3,), "alphas": (32,),
             "k2": (T, nu), "K2": (T, nu, nx), "J": (1,), "sout": (4,),
-            "Xd": (T + 1, nx),
+            "Xd": (T + 1, nx), "scene": (max(problem.n_scene, 1),),
         }
         self._b = {n: np.zeros(s) for n, s in shapes.items()}
         self._a = {n: _ptr(v) for n, v in self._b.items()}
         self._d = {n: self._b[n] for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")}
         self._d["X"] = self._b["Xd"]  # the trajectory of the derivatives (second order)
         self._pd = [self._a[n] for n in ("A", "B", "lx", "lu", "lxx", "luu", "lux")]
+        self.set_scene(problem.model.scene_value)
+
+    def set_scene(self, scene: np.ndarray) -> None:
+        """The scene (flat, ``problem.n_scene``) the following passes use."""
+        self._b["scene"][: self.problem.n_scene] = scene
+
+    def _scene(self) -> None:
+        # the library's scene pointer is per thread and shared by every CompiledPasses of the
+        # same problem: point it at this object's scene before each call
+        self._c.wb_set_scene(self._a["scene"])
 
     def _put(self, name: str, value) -> int:
         buf = self._b[name]
@@ -166,6 +192,7 @@ class CompiledPasses:
         return self._a[name]
 
     def derivatives(self, X, U, P):
+        self._scene()
         self._c.wb_derivatives(self.T, self._put("X", X), self._put("U", U), self._put("P", P),
                                *self._pd)
         np.copyto(self._b["Xd"], self._b["X"])
@@ -175,6 +202,7 @@ class CompiledPasses:
         if d is not self._d:
             for n in self._d:
                 np.copyto(self._d[n], d[n])
+        self._scene()
         status = self._c.wb_backward(
             self.T, *self._pd, self._put("U", U), self._put("umin", umin),
             self._put("umax", umax), float(mu), int(reg), int(boxed), self._a["k"],
@@ -188,6 +216,7 @@ class CompiledPasses:
 
     def forward(self, x0, X, U, k, K, P, alpha, umin, umax, use_policy=True):
         ptrs = self._policy(x0, X, U, k, K, P)
+        self._scene()
         J = self._c.wb_forward(self.T, *ptrs, float(alpha), self._put("umin", umin),
                                self._put("umax", umax), int(use_policy), self._a["Xn"],
                                self._a["Un"])
@@ -201,6 +230,7 @@ class CompiledPasses:
         n = len(alphas)
         b["alphas"][:n] = alphas
         hist = np.empty((options.max_iter, 7))
+        self._scene()
         self._c.wb_solve(self.T, a["x0"], a["X"], a["U"], a["J"], a["P"],
                          self._put("umin", umin), self._put("umax", umax),
                          ctypes.byref(options), a["alphas"], n, a["k"], a["K"], _ptr(hist),
@@ -214,6 +244,7 @@ class CompiledPasses:
         ptrs = self._policy(x0, X, U, k, K, P)
         n = len(alphas)
         self._b["alphas"][:n] = alphas
+        self._scene()
         i = self._c.wb_line_search(self.T, *ptrs, float(J), self._put("dV", dV),
                                    self._a["alphas"], n, float(z_min), self._put("umin", umin),
                                    self._put("umax", umax), self._a["Xn"], self._a["Un"],

@@ -24,6 +24,12 @@
 
 typedef int (*wb_fn)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 
+/* The scene (run-time obstacle data) every generated function takes as its fourth input. Set
+ * by wb_set_scene before the passes run; per thread, so that two threads solving the same
+ * problem in different scenes do not see each other's. */
+static _Thread_local const double* wb_scene = 0;
+
+void wb_set_scene(const double* scene) { wb_scene = scene; }
 
 static int wb_call(wb_fn f, const double* i0, const double* i1, const double* i2,
                    double* o0, double* o1, double* o2, double* o3, double* o4, double* o5) {
@@ -31,7 +37,7 @@ static int wb_call(wb_fn f, const double* i0, const double* i1, const double* i2
   casadi_real* res[WB_SZ_RES];
   casadi_int iw[WB_SZ_IW];
   casadi_real w[WB_SZ_W];
-  arg[0] = i0; arg[1] = i1; arg[2] = i2;
+  arg[0] = i0; arg[1] = i1; arg[2] = i2; arg[3] = wb_scene;
   res[0] = o0; res[1] = o1; res[2] = o2; res[3] = o3; res[4] = o4; res[5] = o5;
   return f(arg, res, iw, w, 0);
 }

@@ -35,9 +35,11 @@ IpoptResult = NLPResult
 
 
 def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = False,
-                tol: float = 1e-10, max_iter: int = 3000) -> IpoptResult:
-    """Minimise the problem's cost over U (T,nu) from the guess U0 with IPOPT (exact Hessian)."""
-    x0 = problem.check_initial_state(x0)
+                tol: float = 1e-10, max_iter: int = 3000, scene=None) -> IpoptResult:
+    """Minimise the problem's cost over U (T,nu) from the guess U0 with IPOPT (exact Hessian),
+    in ``scene`` (default: the model's own)."""
+    s = problem.scene_vector(scene)
+    x0 = problem.check_initial_state(x0, s)
     U0 = problem.check_controls(U0)
     T, nu = U0.shape
     P = problem.check_params(P, T)
@@ -48,9 +50,9 @@ def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = Fa
     g = []
     for t in range(T):
         J += f["stage"](x, u[:, t], P[t])
-        x = f["dyn"](x, u[:, t])
+        x = f["dyn"](x, u[:, t], s)
         if hard_constraints and problem.nh:
-            g.append(f["margins"](x))
+            g.append(f["margins"](x, s))
     J += f["term"](x, P[T])
     nlp = {"x": ca.vec(u), "f": J, "g": ca.vertcat(*g) if g else ca.SX(0, 1)}
     opts = {"print_time": False, "ipopt": {"print_level": 0, "tol": tol, "max_iter": max_iter,
@@ -65,7 +67,7 @@ def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = Fa
     stats = solver.stats()
     U = np.asarray(sol["x"]).reshape(T, nu)
     return IpoptResult(
-        X=problem.rollout(x0, U), U=U, cost=float(sol["f"]), status=stats["return_status"],
+        X=problem.rollout(x0, U, s), U=U, cost=float(sol["f"]), status=stats["return_status"],
         success=bool(stats["success"]), solve_time_s=elapsed, iterations=int(stats["iter_count"]),
     )
 
@@ -94,24 +96,25 @@ class MultipleShootingNLP:
         us = [ca.SX.sym(f"u{k}", nu) for k in range(T)]
         x0 = ca.SX.sym("x0", nx)
         Ps = [ca.SX.sym(f"p{k}", n_p) for k in range(T + 1)]
+        sc = ca.SX.sym("scene", problem.n_scene)
         w, g, eq, J = [], [], [], ca.SX(0)
         nh = problem.nh if hard_constraints else 0
         for k in range(T):
             w += [xs[k], us[k]]
             J += f["stage"](xs[k], us[k], Ps[k])
-            g.append(xs[k + 1] - f["dyn"](xs[k], us[k]))
+            g.append(xs[k + 1] - f["dyn"](xs[k], us[k], sc))
             eq += [True] * nx
             if nh and k >= 1:
-                g.append(f["margins"](xs[k]))
+                g.append(f["margins"](xs[k], sc))
                 eq += [False] * nh
         w.append(xs[T])
         J += f["term"](xs[T], Ps[T])
         if nh:
-            g.append(f["margins"](xs[T]))
+            g.append(f["margins"](xs[T], sc))
             eq += [False] * nh
         self._eq = np.array(eq)
         nlp = {"x": ca.vertcat(*w), "f": J, "g": ca.vertcat(*g),
-               "p": ca.vertcat(x0, *Ps)}
+               "p": ca.vertcat(x0, *Ps, sc)}
         if solver == "ipopt":
             opts = {"print_time": False, "ipopt": {"print_level": 0, "tol": tol,
                                                    "max_iter": max_iter, "sb": "yes"}}
@@ -126,19 +129,21 @@ class MultipleShootingNLP:
         self._lbg = np.zeros(len(eq))
         self._ubg = np.where(self._eq, 0.0, np.inf)
 
-    def solve(self, x0, U0, P=None) -> NLPResult:
-        """Solve from the initial guess U0 (states: its rollout); times the solver call."""
+    def solve(self, x0, U0, P=None, scene=None) -> NLPResult:
+        """Solve from the initial guess U0 (states: its rollout) in ``scene`` (default: the
+        model's own); times the solver call."""
         p = self.problem
-        x0 = p.check_initial_state(x0)
+        s = p.scene_vector(scene)
+        x0 = p.check_initial_state(x0, s)
         U0 = p.check_controls(U0, self.T)
         P = p.check_params(P, self.T)
-        X0 = p.rollout(x0, U0)
+        X0 = p.rollout(x0, U0, s)
         nx, nu, T = p.nx, p.nu, self.T
         w0 = np.concatenate([np.r_[X0[k], U0[k]] for k in range(T)] + [X0[T]])
         lbx, ubx = self._lbx.copy(), self._ubx.copy()
         lbx[:nx] = ubx[:nx] = x0
         t0 = time.perf_counter()
-        sol = self._solver(x0=w0, p=np.r_[x0, P.ravel()], lbx=lbx, ubx=ubx, lbg=self._lbg,
+        sol = self._solver(x0=w0, p=np.r_[x0, P.ravel(), s], lbx=lbx, ubx=ubx, lbg=self._lbg,
                            ubg=self._ubg)
         elapsed = time.perf_counter() - t0
         stats = self._solver.stats()

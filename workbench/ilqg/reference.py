@@ -23,21 +23,21 @@ CRASH_MARGIN = 1e-15
 
 
 def step_function(problem: Problem) -> ca.Function:
-    """One forward-pass step (x, u, p) -> (x_next, l + crash penalty), fused for speed.
+    """One forward-pass step (x, u, p, scene) -> (x_next, l + crash penalty), fused for speed.
 
     The penalty (SPEC 4.6, line search) is 1e10 when any margin of x_next is below 1e-15 or NaN.
     """
     f = problem.functions
-    x, u, p = (ca.SX.sym(n, s) for n, s in (("x", problem.nx), ("u", problem.nu),
-                                              ("p", problem.n_p)))
-    x_next = f["dyn"](x, u)
+    x, u, p, s = (ca.SX.sym(n, m) for n, m in (("x", problem.nx), ("u", problem.nu),
+                                                 ("p", problem.n_p), ("scene", problem.n_scene)))
+    x_next = f["dyn"](x, u, s)
     cost = f["stage"](x, u, p)
     if problem.nh:
-        h = f["margins"](x_next)
+        h = f["margins"](x_next, s)
         bad = sum((ca.logic_not(h[i] >= CRASH_MARGIN) for i in range(problem.nh)), ca.SX(0))
         cost = cost + ca.if_else(bad > 0, CRASH_PENALTY, 0.0)
-    return ca.Function("step", [x, u, p], [x_next, cost], ["x", "u", "p"], ["x_next", "cost"],
-                       {"cse": True})
+    return ca.Function("step", [x, u, p, s], [x_next, cost], ["x", "u", "p", "scene"],
+                       ["x_next", "cost"], {"cse": True})
 
 
 def box_qp(H, g, lo, hi, x0, max_iter: int = 100):
@@ -113,17 +113,22 @@ class NumpyPasses:
     def __init__(self, problem: Problem, T: int):
         f = problem.functions
         self.problem, self.T = problem, T
-        self._jac = f["dyn_jac"].map(T)
+        self._jac = f["dyn_jac"].map("dyn_jac", "serial", T, [2], [])  # the scene is shared
         self._quad = f["stage_quad"].map(T)
         self._tquad = f["term_quad"]
         self._hess = f["dyn_hess"]
         self._step, self._term = step_function(problem), f["term"]
+        self.set_scene(problem.model.scene_value)
+
+    def set_scene(self, scene: np.ndarray) -> None:
+        """The scene (flat, ``problem.n_scene``) the following passes use."""
+        self._S = np.array(scene, dtype=float)
 
     def derivatives(self, X, U, P):
         """A (T,nx,nx), B (T,nx,nu), lx (T+1,nx), lu, lxx (T+1,nx,nx), luu, lux (T,nu,nx) and
         the trajectory X (T+1,nx) they were taken along (for the second-order backward pass)."""
         T, nx, nu = self.T, self.problem.nx, self.problem.nu
-        A, B = (np.asarray(m) for m in self._jac(X[:-1].T, U.T))
+        A, B = (np.asarray(m) for m in self._jac(X[:-1].T, U.T, self._S))
         A = A.reshape(nx, T, nx).transpose(1, 0, 2)
         B = B.reshape(nx, T, nu).transpose(1, 0, 2)
         _, lx, lu, lxx, luu, lux = (np.asarray(m) for m in self._quad(X[:-1].T, U.T, P[:-1].T))
@@ -156,7 +161,7 @@ class NumpyPasses:
             Qux = d["lux"][t] + B.T @ Vxx @ A
             Quu = d["luu"][t] + B.T @ Vxx @ B
             if second_order:
-                fxx, fuu, fux = (np.asarray(m) for m in self._hess(d["X"][t], U[t], Vx))
+                fxx, fuu, fux = (np.asarray(m) for m in self._hess(d["X"][t], U[t], Vx, self._S))
                 Qxx, Quu, Qux = Qxx + fxx, Quu + fuu, Qux + fux
             if reg == 0:
                 Quu_r, Qux_r = Quu + mu * np.eye(nu), Qux
@@ -194,7 +199,7 @@ class NumpyPasses:
         for t in range(T):
             v = U[t] + (alpha * k[t] + K[t] @ (Xn[t] - X[t]) if use_policy else 0.0)
             Un[t] = np.clip(v, umin, umax)
-            xn, c = self._step(Xn[t], Un[t], P[t])
+            xn, c = self._step(Xn[t], Un[t], P[t], self._S)
             Xn[t + 1] = np.asarray(xn).ravel()
             J += float(c)
         return ForwardResult(X=Xn, U=Un, cost=J + float(self._term(Xn[T], P[T])))

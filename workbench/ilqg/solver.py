@@ -108,16 +108,19 @@ def make_passes(problem: Problem, T: int, backend: Backend = "auto"):
 
 
 def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
-         passes=None) -> ILQGResult:
+         passes=None, scene=None) -> ILQGResult:
     """Solve min_U sum_k l(x_k,u_k,p_k) + l_T(x_T,p_T) s.t. x_{k+1} = F(x_k,u_k), u in the box.
 
     x0 may be a physical state (it is lifted for barrier-embedded models). U0 (T,nu) is the
     initial guess; if its rollout crashes or is not finite, zeros are used (SPEC 6.1) and
-    ``initial_guess_replaced`` is set.
+    ``initial_guess_replaced`` is set. ``scene``: the obstacles (see
+    :meth:`~workbench.problem.Model.scene_vector`; default the model's own), held fixed over
+    the horizon.
     """
     opts = options or ILQGOptions()
     t_start = time.perf_counter()
-    x0 = problem.check_initial_state(x0)
+    scene_v = problem.scene_vector(scene)
+    x0 = problem.check_initial_state(x0, scene_v)
     U = problem.check_controls(U0)
     T = U.shape[0]
     if T < 1:
@@ -127,6 +130,7 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
     boxed = opts.box_qp and bool(np.any(np.isfinite(umin)) or np.any(np.isfinite(umax)))
     reg = 0 if opts.regularization == "control" else 1
     passes = passes or make_passes(problem, T, opts.backend)
+    passes.set_scene(scene_v)
     zeros_k, zeros_K = np.zeros((T, problem.nu)), np.zeros((T, problem.nu, problem.nx))
 
     def open_loop(Uc):

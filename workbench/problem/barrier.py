@@ -113,15 +113,18 @@ def _barrier_values(h: ca.SX, opts: BarrierOptions, groups) -> ca.SX:
 
 
 def embed_barrier(model: Model, options: BarrierOptions | None = None) -> Model:
-    """The safety-embedded model x_bar = [x; beta] (SPEC 4.4), exact CasADi expressions."""
+    """The safety-embedded model x_bar = [x; beta] (SPEC 4.4), exact CasADi expressions.
+
+    beta is recomputed from the margins in the model's scene symbol, so the embedded dynamics
+    take the current scene as an input like the margins do."""
     opts = options or BarrierOptions()
     if model.n_physical != model.nx:
         raise fail("model", model.name, "is already barrier-embedded")
     groups = opts.groups(model.nh)
     beta = ca.SX.sym("beta", len(groups))
-    h_fn = ca.Function("h", [model.x], [model.h])
+    h_fn = ca.Function("h", [model.x, model.scene], [model.h])
     now = _barrier_values(model.h, opts, groups)
-    nxt = _barrier_values(h_fn(model.x_next), opts, groups)
+    nxt = _barrier_values(h_fn(model.x_next, model.scene), opts, groups)
     beta_next = nxt - opts.gamma * (beta - now) if opts.gamma != 0.0 else nxt
     x_bar = ca.vertcat(model.x, beta)
     names = tuple(f"beta{j}" for j in range(len(groups))) if len(groups) > 1 else ("beta",)
@@ -141,4 +144,7 @@ def embed_barrier(model: Model, options: BarrierOptions | None = None) -> Model:
         n_physical=model.nx,
         barrier=BarrierSpec(options=opts, groups=groups),
         lift_expr=ca.vertcat(model.x, now),
+        scene=model.scene,
+        scene_value=model.scene_value,
+        scene_capacity=model.scene_capacity,
     )

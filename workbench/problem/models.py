@@ -3,6 +3,13 @@
 A :class:`Model` is a description, not a solver object: symbols, the one-step map, control box,
 safety margins (h >= 0 is safe) and names. Users bring their own system with
 :meth:`Model.from_expressions`; the built-in planar double and single integrators use it too.
+
+Obstacles are run-time inputs: the margins are expressions in x and a ``scene`` symbol (for the
+built-in models, ``scene_capacity`` circle slots of (x, y, radius)), so one compiled kernel or
+solver serves every map with at most that many circles and a scene may change between steps.
+``scene_value`` is the scene the model was built with (its default). ``runtime_obstacles=False``
+bakes the circles into the expressions as constants instead (the old behaviour; compared in
+``make bench``).
 """
 
 from __future__ import annotations
@@ -15,8 +22,16 @@ import casadi as ca
 import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
-from workbench.problem.obstacles import Circle, HForm, circle_margins
-from workbench.validation import as_array, bounds, fail, integer, one_of, real
+from workbench.problem.obstacles import (
+    Circle,
+    HForm,
+    circle_margins,
+    scene_circles,
+    scene_symbol,
+    scene_vector,
+    slot_margins,
+)
+from workbench.validation import as_array, bounds, fail, flag, integer, one_of, real
 
 Integrator = Literal["euler", "zoh"]
 INTEGRATORS: tuple[str, ...] = ("euler", "zoh")
@@ -26,7 +41,9 @@ INTEGRATORS: tuple[str, ...] = ("euler", "zoh")
 class Model:
     """A discrete-time model with a control box and safety margins.
 
-    Shapes: ``x`` (nx,1) and ``u`` (nu,1) SX symbols; ``x_next`` (nx,1) in x, u; ``h`` (nh,1) in x.
+    Shapes: ``x`` (nx,1) and ``u`` (nu,1) SX symbols; ``x_next`` (nx,1) in x, u (and the scene,
+    for barrier-embedded models); ``h`` (nh,1) in x and the scene; ``scene`` (ns,1) SX symbol
+    (ns = 0: no run-time scene), ``scene_value`` (ns,) its default value.
     ``n_physical`` counts the leading states that are physical (the rest are barrier states).
     ``lift`` maps a physical state to the full state (identity for plain models).
     """
@@ -46,6 +63,9 @@ class Model:
     n_physical: int = -1
     barrier: object | None = None  # workbench.problem.barrier.BarrierSpec for embedded models
     lift_expr: ca.SX | None = field(default=None, repr=False)  # full state in physical symbols
+    scene: ca.SX = field(default_factory=lambda: ca.SX(0, 1), repr=False)
+    scene_value: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    scene_capacity: int = 0  # circle slots of the scene (0: no circle slots)
 
     @property
     def nx(self) -> int:
@@ -58,6 +78,28 @@ class Model:
     @property
     def nh(self) -> int:
         return int(self.h.numel())
+
+    @property
+    def n_scene(self) -> int:
+        """Size of the scene input (0: the model has none)."""
+        return int(self.scene.numel())
+
+    def scene_vector(self, scene=None) -> np.ndarray:
+        """The scene input for ``scene``: None (the model's own), circles (a sequence of
+        :class:`Circle` or (x, y, radius) triples, or an (n, 3) array, n <= scene_capacity; the
+        other slots inert), or a flat array of size ``n_scene``."""
+        if scene is None:
+            return self.scene_value
+        if self.scene_capacity:
+            return scene_vector(scene, self.scene_capacity)
+        v = as_array("scene", scene, (self.n_scene,))
+        return v.copy()
+
+    def scene_circles(self, scene=None) -> tuple[Circle, ...]:
+        """The circles of a scene (default: the model's own), for plots and reports."""
+        if not self.scene_capacity:
+            return self.obstacles
+        return scene_circles(self.scene_vector(scene))
 
     @classmethod
     def from_expressions(
@@ -75,8 +117,16 @@ class Model:
         control_names: tuple[str, ...] | None = None,
         position: tuple[int, int] | None = None,
         obstacles: tuple[Circle, ...] = (),
+        scene: ca.SX | None = None,
+        scene_value=None,
+        scene_capacity: int = 0,
     ) -> Model:
-        """Validate and wrap user CasADi expressions into a Model (the user-model entry point)."""
+        """Validate and wrap user CasADi expressions into a Model (the user-model entry point).
+
+        ``h`` may depend on x and a ``scene`` symbol (run-time obstacle data, given as
+        ``scene_value`` by default and changed per call by the controllers); build a circle
+        scene with :func:`~workbench.problem.obstacles.scene_symbol` and
+        :func:`~workbench.problem.obstacles.slot_margins` (``scene_capacity`` = its slots)."""
         for fname, sym in (("x", x), ("u", u)):
             if not isinstance(sym, ca.SX) or not sym.is_valid_input() or sym.size2() != 1:
                 raise fail(fname, str(sym), "must be a column vector of CasADi SX symbols")
@@ -87,13 +137,22 @@ class Model:
         h = ca.SX(0, 1) if h is None else ca.SX(h)
         if h.numel() and h.size2() != 1:
             h = ca.vec(h)
+        scene = ca.SX(0, 1) if scene is None else scene
+        if scene.numel() and (not scene.is_valid_input() or scene.size2() != 1):
+            raise fail("scene", str(scene), "must be a column vector of CasADi SX symbols")
+        sv = (np.zeros(scene.numel()) if scene_value is None
+              else as_array("scene_value", scene_value, (scene.numel(),)))
+        integer("scene_capacity", scene_capacity, 0)
+        if scene_capacity and 3 * scene_capacity != scene.numel():
+            raise fail("scene_capacity", scene_capacity,
+                       f"a circle scene has 3 entries per slot; the scene has {scene.numel()}")
         known = {s.name() for s in ca.symvar(ca.vertcat(x, u))}
-        known_x = {s.name() for s in ca.symvar(x)}
+        known_x = {s.name() for s in ca.symvar(ca.vertcat(x, scene))}
         for fname, expr, allowed in (("x_next", x_next, known), ("h", h, known_x)):
             extra = [s.name() for s in ca.symvar(expr) if s.name() not in allowed]
             if extra:
                 raise fail(fname, extra, "may depend only on the model's own symbols "
-                           + ("x and u" if fname == "x_next" else "x"))
+                           + ("x and u" if fname == "x_next" else "x and the scene"))
         real("dt", dt, 0.0, strict=True)
         lo = as_array("u_min", u_min, (nu,), finite=False)
         hi = as_array("u_max", u_max, (nu,), finite=False)
@@ -110,16 +169,21 @@ class Model:
         return cls(
             name=name, x=x, u=u, x_next=x_next, h=h, dt=float(dt), u_min=lo, u_max=hi,
             state_names=tuple(sn), control_names=tuple(cn), position=position,
-            obstacles=tuple(obstacles), n_physical=nx, lift_expr=x,
+            obstacles=tuple(obstacles), n_physical=nx, lift_expr=x, scene=scene,
+            scene_value=sv, scene_capacity=int(scene_capacity),
         )
 
     @functools.cached_property
     def lift_function(self) -> ca.Function:
-        return ca.Function("lift", [self.x[: self.n_physical]], [self.lift_expr])
+        """(x_physical, scene) -> full state."""
+        return ca.Function("lift", [self.x[: self.n_physical], self.scene], [self.lift_expr],
+                           ["x", "scene"], ["x_full"])
 
     @functools.cached_property
     def margins_function(self) -> ca.Function:
-        return ca.Function("h", [self.x[: self.n_physical]], [self.h])
+        """(x_physical, scene) -> h."""
+        return ca.Function("h", [self.x[: self.n_physical], self.scene], [self.h],
+                           ["x", "scene"], ["h"])
 
     @functools.cached_property
     def _fast_lift(self) -> FastFunction:
@@ -129,19 +193,21 @@ class Model:
     def _fast_margins(self) -> FastFunction:
         return FastFunction(self.margins_function)
 
-    def lift(self, x_phys) -> np.ndarray:
-        """Full state (physical state plus barrier states, if any) from a physical state."""
+    def lift(self, x_phys, scene=None) -> np.ndarray:
+        """Full state (physical state plus barrier states, if any) from a physical state, in
+        ``scene`` (default: the model's own; see :meth:`scene_vector`)."""
         xp = as_array("x", x_phys, (self.n_physical,))
         if self.lift_expr is None or self.n_physical == self.nx:
             return xp.copy()
-        return self._fast_lift(xp)[0]
+        return self._fast_lift(xp, self.scene_vector(scene))[0]
 
-    def margins(self, x) -> np.ndarray:
-        """Safety margins h(x) at a full (or physical) state; NumPy in, NumPy out."""
+    def margins(self, x, scene=None) -> np.ndarray:
+        """Safety margins h(x) at a full (or physical) state in ``scene`` (default: the
+        model's own); NumPy in, NumPy out."""
         xa = np.asarray(x, dtype=float).ravel()
         if xa.size not in (self.n_physical, self.nx):
             raise fail("x", xa, f"expected {self.n_physical} or {self.nx} entries")
-        return self._fast_margins(xa[: self.n_physical])[0]
+        return self._fast_margins(xa[: self.n_physical], self.scene_vector(scene))[0]
 
 
 def double_integrator(
@@ -152,8 +218,13 @@ def double_integrator(
     u_limit: float | tuple[float, float] = 15.0,
     h_form: HForm = "squared",
     inflation: float = 0.0,
+    scene_capacity: int | None = None,
+    runtime_obstacles: bool = True,
 ) -> Model:
-    """Planar double integrator x = [px, py, vx, vy], u = [ax, ay] (SPEC 2.1-2.2)."""
+    """Planar double integrator x = [px, py, vx, vy], u = [ax, ay] (SPEC 2.1-2.2).
+
+    The obstacles are the default scene of ``scene_capacity`` circle slots (default: one per
+    obstacle); ``runtime_obstacles=False`` bakes them in as constants."""
     one_of("integrator", integrator, INTEGRATORS)
     x = ca.SX.sym("x", 4)
     u = ca.SX.sym("u", 2)
@@ -163,9 +234,9 @@ def double_integrator(
     lo, hi = _box(u_limit, 2)
     return Model.from_expressions(
         "double_integrator", x, u, x_next, dt=dt, u_min=lo, u_max=hi,
-        h=circle_margins(p, obstacles, h_form, inflation),
         state_names=("px", "py", "vx", "vy"), control_names=("ax", "ay"),
-        position=(0, 1), obstacles=obstacles,
+        position=(0, 1),
+        **circle_scene(p, obstacles, h_form, inflation, scene_capacity, runtime_obstacles),
     )
 
 
@@ -176,17 +247,38 @@ def single_integrator(
     u_limit: float | tuple[float, float] = 15.0,
     h_form: HForm = "squared",
     inflation: float = 0.0,
+    scene_capacity: int | None = None,
+    runtime_obstacles: bool = True,
 ) -> Model:
-    """Planar single integrator x = [px, py], u = [vx, vy] (SPEC 2.4)."""
+    """Planar single integrator x = [px, py], u = [vx, vy] (SPEC 2.4); obstacles as in
+    :func:`double_integrator`."""
     x = ca.SX.sym("x", 2)
     u = ca.SX.sym("u", 2)
     lo, hi = _box(u_limit, 2)
     return Model.from_expressions(
         "single_integrator", x, u, x + dt * u, dt=dt, u_min=lo, u_max=hi,
-        h=circle_margins(x, obstacles, h_form, inflation),
         state_names=("px", "py"), control_names=("vx", "vy"), position=(0, 1),
-        obstacles=obstacles,
+        **circle_scene(x, obstacles, h_form, inflation, scene_capacity, runtime_obstacles),
     )
+
+
+def circle_scene(p, obstacles, h_form: HForm = "squared", inflation: float = 0.0,
+                 scene_capacity: int | None = None, runtime_obstacles: bool = True) -> dict:
+    """Keyword arguments of :meth:`Model.from_expressions` for circular obstacles around the
+    position ``p`` (2 SX entries): ``h``, ``obstacles`` and, with run-time obstacles, the
+    ``scene`` symbol of ``scene_capacity`` slots (default: one per obstacle) and its value."""
+    obstacles = tuple(obstacles)
+    flag("runtime_obstacles", runtime_obstacles)
+    if not runtime_obstacles:
+        if scene_capacity is not None:
+            raise fail("scene_capacity", scene_capacity,
+                       "baked obstacles (runtime_obstacles=False) have no scene slots")
+        return {"h": circle_margins(p, obstacles, h_form, inflation), "obstacles": obstacles}
+    cap = len(obstacles) if scene_capacity is None else integer(
+        "scene_capacity", scene_capacity, len(obstacles))
+    s = scene_symbol(cap)
+    return {"h": slot_margins(p, s, h_form, inflation), "obstacles": obstacles, "scene": s,
+            "scene_value": scene_vector(obstacles, cap), "scene_capacity": cap}
 
 
 def _box(u_limit, nu: int) -> tuple[np.ndarray, np.ndarray]:

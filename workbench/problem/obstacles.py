@@ -54,3 +54,70 @@ def circles_from_arrays(centers, radii) -> tuple[Circle, ...]:
         raise fail("radii", r, "every radius must be > 0")
     return tuple(Circle(center=(float(a), float(b)), radius=float(rr))
                  for (a, b), rr in zip(c, r, strict=False))
+
+
+# Run-time scenes: circles as kernel inputs (3 numbers per slot: centre x, centre y, radius).
+# An unused slot is inert: centre (INERT_CENTER, INERT_CENTER), radius 0. Its margin is then
+# about 2e16 (squared form) or 1.4e8 (signed distance), so its inverse barrier term is below
+# 1e-8 and it never registers a crash anywhere a model can reach.
+INERT_CENTER = 1e8
+SLOT = 3
+
+
+def scene_symbol(capacity: int) -> ca.SX:
+    """The scene input of a model with ``capacity`` circle slots: (3 capacity,) SX symbol."""
+    return ca.SX.sym("scene", SLOT * int(capacity))
+
+
+def slot_margins(p, scene: ca.SX, h_form: HForm = "squared", inflation: float = 0.0) -> ca.SX:
+    """Margins h_i of a position ``p`` against the circle slots of a scene symbol (one per
+    slot), the same expressions as :func:`circle_margins` with the circles as inputs."""
+    one_of("h_form", h_form, H_FORMS)
+    real("inflation", inflation, 0.0)
+    out = []
+    for i in range(scene.numel() // SLOT):
+        cx, cy, r = scene[SLOT * i], scene[SLOT * i + 1], scene[SLOT * i + 2]
+        if inflation:
+            r = r + inflation
+        d2 = (p[0] - cx) ** 2 + (p[1] - cy) ** 2
+        out.append(d2 - r**2 if h_form == "squared" else ca.sqrt(d2) - r)
+    return ca.vertcat(*out) if out else ca.SX(0, 1)
+
+
+def _as_circles(scene) -> tuple[Circle, ...]:
+    if isinstance(scene, np.ndarray) and scene.ndim == 2:
+        return circles_from_arrays(scene[:, :2], scene[:, 2])
+    out = []
+    for i, c in enumerate(scene):
+        if isinstance(c, Circle):
+            out.append(c)
+        elif np.shape(c) == (3,):
+            out.append(Circle(center=(c[0], c[1]), radius=c[2]))
+        else:
+            raise fail(f"scene[{i}]", c, "expected a Circle or an (x, y, radius) triple")
+    return tuple(out)
+
+
+def scene_vector(scene, capacity: int) -> np.ndarray:
+    """The flat scene input (3 capacity,) of a set of circles: a sequence of
+    :class:`Circle` or ``(x, y, radius)`` triples, or an (n, 3) array, with n <= capacity;
+    the remaining slots are inert. A flat array of the right size is validated and copied."""
+    if isinstance(scene, np.ndarray) and scene.ndim == 1:
+        v = as_array("scene", scene, (SLOT * capacity,))
+        if np.any(v[2::SLOT] < 0):
+            raise fail("scene", v, "radii (every third entry) must be >= 0 (0: unused slot)")
+        return v.copy()
+    circles = _as_circles(scene)
+    if len(circles) > capacity:
+        raise fail("scene", f"{len(circles)} circles",
+                   f"this model was built with room for at most {capacity} (scene_capacity)")
+    v = np.tile([INERT_CENTER, INERT_CENTER, 0.0], capacity)
+    for i, c in enumerate(circles):
+        v[SLOT * i: SLOT * i + SLOT] = (*c.center, c.radius)
+    return v
+
+
+def scene_circles(vector) -> tuple[Circle, ...]:
+    """The circles of a flat scene vector (inert slots, radius 0, left out)."""
+    v = np.asarray(vector, dtype=float).reshape(-1, SLOT)
+    return tuple(Circle(center=(a, b), radius=r) for a, b, r in v if r > 0)

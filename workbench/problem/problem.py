@@ -7,15 +7,18 @@ first and second derivatives:
 ===========  =====================  =====================================
 name         inputs                 outputs
 ===========  =====================  =====================================
-dyn          x, u                   x_next
-dyn_jac      x, u                   A (nx,nx), B (nx,nu)
-dyn_hess     x, u, lam              fxx, fuu, fux (nu,nx): Hessians of lam'F(x,u)
+dyn          x, u, scene            x_next
+dyn_jac      x, u, scene            A (nx,nx), B (nx,nu)
+dyn_hess     x, u, lam, scene       fxx, fuu, fux (nu,nx): Hessians of lam'F(x,u)
 stage        x, u, p                l
 stage_quad   x, u, p                l, lx, lu, lxx, luu, lux (nu,nx)
 term         x, p                   l
 term_quad    x, p                   l, lx, lxx
-margins      x                      h (nh)
+margins      x, scene               h (nh)
 ===========  =====================  =====================================
+
+``scene`` is the model's run-time obstacle data (size ``model.n_scene``, possibly 0): the
+barrier-embedded dynamics and the margins depend on it, the costs do not.
 
 iLQG is Gauss-Newton in the dynamics and exact in the costs; full DDP (``ILQGOptions(
 second_order=True)``) adds the dynamics' second derivatives contracted with the value gradient,
@@ -49,12 +52,12 @@ class Problem:
 
     @classmethod
     def build(cls, model: Model, cost: Cost) -> Problem:
-        x, u, p = model.x, model.u, cost.p
-        known = {s.name() for s in ca.symvar(ca.vertcat(x, u, p))}
+        x, u, p, s = model.x, model.u, cost.p, model.scene
+        known = {v.name() for v in ca.symvar(ca.vertcat(x, u, p))}
         for name, expr in (("cost.stage", cost.stage), ("cost.terminal", cost.terminal)):
             if ca.SX(expr).shape != (1, 1):
                 raise fail(name, ca.SX(expr).shape, "must be a scalar expression")
-            extra = [s.name() for s in ca.symvar(ca.SX(expr)) if s.name() not in known]
+            extra = [v.name() for v in ca.symvar(ca.SX(expr)) if v.name() not in known]
             if extra:
                 raise fail(name, extra, "may depend only on the model's x, u and the cost's p")
         if ca.depends_on(cost.terminal, u):
@@ -80,14 +83,15 @@ class Problem:
         if cost.terminal_hessian_x is not None:
             lTxx = ca.SX(cost.terminal_hessian_x)
         fns = {
-            "dyn": ca.Function("dyn", [x, u], [d(model.x_next)], ["x", "u"], ["x_next"], opts),
+            "dyn": ca.Function("dyn", [x, u, s], [d(model.x_next)], ["x", "u", "scene"],
+                               ["x_next"], opts),
             "dyn_jac": ca.Function(
-                "dyn_jac", [x, u],
+                "dyn_jac", [x, u, s],
                 [d(ca.jacobian(model.x_next, x)), d(ca.jacobian(model.x_next, u))],
-                ["x", "u"], ["A", "B"], opts),
+                ["x", "u", "scene"], ["A", "B"], opts),
             "dyn_hess": ca.Function(
-                "dyn_hess", [x, u, lam], [d(fxx), d(fuu), d(fux)], ["x", "u", "lam"],
-                ["fxx", "fuu", "fux"], opts),
+                "dyn_hess", [x, u, lam, s], [d(fxx), d(fuu), d(fux)],
+                ["x", "u", "lam", "scene"], ["fxx", "fuu", "fux"], opts),
             "stage": ca.Function("stage", [x, u, p], [d(ls)], ["x", "u", "p"], ["l"], opts),
             "stage_quad": ca.Function(
                 "stage_quad", [x, u, p], [d(ls), d(lx), d(lu), d(lxx), d(luu), d(lux)],
@@ -96,7 +100,7 @@ class Problem:
             "term_quad": ca.Function(
                 "term_quad", [x, p], [d(lT), d(lTx), d(lTxx)], ["x", "p"],
                 ["l", "lx", "lxx"], opts),
-            "margins": ca.Function("margins", [x], [d(model.h)], ["x"], ["h"], opts),
+            "margins": ca.Function("margins", [x, s], [d(model.h)], ["x", "scene"], ["h"], opts),
         }
         digest = hashlib.sha256()
         for name in FUNCTION_NAMES:
@@ -122,21 +126,30 @@ class Problem:
     def nh(self) -> int:
         return self.model.nh
 
-    def check_initial_state(self, x0) -> np.ndarray:
-        """Validate x0 (finite, right size, outside every obstacle) and lift it if physical."""
+    @property
+    def n_scene(self) -> int:
+        return self.model.n_scene
+
+    def scene_vector(self, scene=None) -> np.ndarray:
+        """The scene input (see :meth:`Model.scene_vector`); None: the model's own."""
+        return self.model.scene_vector(scene)
+
+    def check_initial_state(self, x0, scene=None) -> np.ndarray:
+        """Validate x0 (finite, right size, outside every obstacle of ``scene``) and lift it
+        if physical."""
         x0 = np.asarray(x0, dtype=float).ravel()
         if x0.size == self.model.n_physical and x0.size != self.nx:
             if not np.all(np.isfinite(x0)):
                 raise fail("x0", x0, "all entries must be finite")
-            self._check_safe(x0)
-            return self.model.lift(x0)
+            self._check_safe(x0, scene)
+            return self.model.lift(x0, scene)
         x0 = as_array("x0", x0, (self.nx,))
-        self._check_safe(x0)
+        self._check_safe(x0, scene)
         return x0
 
-    def _check_safe(self, x0: np.ndarray) -> None:
+    def _check_safe(self, x0: np.ndarray, scene=None) -> None:
         if self.nh:
-            h = self.model.margins(x0)
+            h = self.model.margins(x0, scene)
             if np.min(h) <= 0:
                 i = int(np.argmin(h))
                 raise fail("x0", x0, f"starts inside obstacle {i} (h[{i}] = {h[i]:.4g} <= 0); "
@@ -152,11 +165,13 @@ class Problem:
             return np.zeros((T + 1, 0))
         return as_array("P", P, (T + 1, self.n_p))
 
-    def rollout(self, x0, U) -> np.ndarray:
-        """Open-loop state trajectory X (T+1, nx) under controls U (no clipping)."""
+    def rollout(self, x0, U, scene=None) -> np.ndarray:
+        """Open-loop state trajectory X (T+1, nx) under controls U (no clipping) in ``scene``."""
         U = np.asarray(U, dtype=float)
-        sim = self.functions["dyn"].mapaccum(U.shape[0])
-        Xs = np.asarray(sim(np.asarray(x0, dtype=float), U.T))
+        T = U.shape[0]
+        sim = self.functions["dyn"].mapaccum(T)
+        S = np.repeat(self.scene_vector(scene)[:, None], T, axis=1)
+        Xs = np.asarray(sim(np.asarray(x0, dtype=float), U.T, S))
         return np.vstack([np.asarray(x0, dtype=float)[None], Xs.T])
 
     def total_cost(self, X, U, P) -> float:

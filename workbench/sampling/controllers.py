@@ -108,12 +108,12 @@ def _shift(U: np.ndarray, s: int, tail: str) -> np.ndarray:
     return out
 
 
-def _full_state(sp: SamplingProblem, x) -> np.ndarray:
+def _full_state(sp: SamplingProblem, x, scene=None) -> np.ndarray:
     x = np.asarray(x, dtype=float).ravel()
     if not np.all(np.isfinite(x)):
         raise fail("x", x, "the measured state must be finite")
     if x.size == sp.model.n_physical and sp.nx != x.size:
-        return sp.model.lift(x)
+        return sp.model.lift(x, scene)
     return as_array("x", x, (sp.nx,))
 
 
@@ -132,24 +132,45 @@ class MPPIInfo:
 
 
 class MPPI:
-    """MPPI on a sampling problem (BaS-MPPI when the problem's model is barrier-embedded)."""
+    """MPPI on a sampling problem (BaS-MPPI when the problem's model is barrier-embedded).
+
+    The obstacles are the model's own scene until :meth:`set_scene` gives another (a new map
+    or a moved obstacle: no recompilation, the kernels take the scene as an input)."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig()):
         if len(config.sigma) != sp.nu:
             raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
         self.sp, self.cfg = sp, config
         self.sampler = Sampler(sp, config.backend)
+        g = np.asarray(goal, dtype=float).ravel()
+        # a physical goal is lifted in the current scene (beta_g = B(h(p_g))), again per scene
+        self._goal = g if sp.n_p == sp.nx and g.size == sp.model.n_physical != sp.nx else None
         goal = _full_state(sp, goal) if sp.n_p == sp.nx else as_array("goal", goal, (sp.n_p,))
         self.consts = SamplerConstants(
             sigma=np.array(config.sigma), lam=config.lam, nu_mix=config.nu_mix,
-            u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost, p=goal)
+            u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost, p=goal,
+            scene=sp.model.scene_value.copy())
+
+    @property
+    def scene(self) -> np.ndarray:
+        """The current scene vector."""
+        return self.consts.scene
+
+    def set_scene(self, scene) -> None:
+        """Plan in ``scene`` from the next step on: circles (a sequence of
+        :class:`~workbench.problem.Circle` or (x, y, radius) triples, at most the model's
+        ``scene_capacity``) or a flat scene vector (see
+        :meth:`~workbench.problem.Model.scene_vector`). Costs microseconds."""
+        s = self.sp.model.scene_vector(scene)
+        p = self.consts.p if self._goal is None else self.sp.model.lift(self._goal, s)
+        self.consts = replace(self.consts, scene=s, p=p)
 
     def initial_state(self, x0=None) -> MPPIState:
         return MPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)))
 
     def step(self, state: MPPIState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
-        xb = _full_state(self.sp, x)
+        xb = _full_state(self.sp, x, self.consts.scene)
         U = state.U
         _check_plan(U, self.cfg.horizon, self.sp.nu)
         for _ in range(self.cfg.iterations):
@@ -290,9 +311,24 @@ class RobustMPPI:
             threshold = ConstantThreshold(value=robust.alpha)
         self.threshold = threshold
         self._dyn = FastFunction(sp.functions()["dyn"])
-        self._lift_all = FastFunction(sp.model.lift_function, robust.n_candidates)
+        self._lift_all = FastFunction(sp.model.lift_function, robust.n_candidates, shared=(1,))
         self._W = candidate_weights(robust.n_candidates)
         self._strides = strides(robust.n_candidates)
+        self.set_scene(None)
+
+    @property
+    def scene(self) -> np.ndarray:
+        """The current scene vector."""
+        return self.consts.scene
+
+    def set_scene(self, scene) -> None:
+        """Plan, select and compute the feedback gains in ``scene`` from the next step on (see
+        :meth:`MPPI.set_scene`); no recompilation."""
+        self.mppi.set_scene(scene)
+        self.consts = replace(self.consts, scene=self.mppi.consts.scene, p=self.mppi.consts.p)
+        set_fb = getattr(self.feedback, "set_scene", None)
+        if set_fb is not None:
+            set_fb(self.consts.scene)
 
     def initial_state(self, x0=None) -> RMPPIState:
         return RMPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)), x_nom=None, index=0)
@@ -307,11 +343,11 @@ class RobustMPPI:
                              alpha_nominal=float(self.threshold(xb[None, :n])[0]))
         r, cfg, sp = self.rcfg, self.cfg, self.sp
         a0 = state.x_nom
-        a1 = self._dyn(a0, state.U[0])[0]
+        a1 = self._dyn(a0, state.U[0], self.consts.scene)[0]
         n = sp.model.n_physical
         mixed = self._W @ np.stack([a0, a1, xb])
         # beta of an interpolated state is recomputed from its position (SPEC 4.4)
-        starts = self._lift_all(mixed[:, :n])[0].reshape(nc, sp.nx)
+        starts = self._lift_all(mixed[:, :n], self.consts.scene)[0].reshape(nc, sp.nx)
         starts[-1] = xb  # the real candidate is the measured state itself
         M = r.candidate_samples
         # controls u*_{min(t+s, T-1)}, no noise before the stride (MPPI-G)
@@ -335,7 +371,7 @@ class RobustMPPI:
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
-        xb = _full_state(self.sp, x)
+        xb = _full_state(self.sp, x, self.consts.scene)
         _check_plan(state.U, self.cfg.horizon, self.sp.nu)
         sel = self.select_nominal(state, xb, rng)
         x_nom, U = sel.x_nom, sel.U
@@ -389,4 +425,5 @@ def physical_model(m: Model) -> Model:
     return Model.from_expressions(
         m.name.replace("+bas", ""), m.x[:n], m.u, m.x_next[:n], dt=m.dt, u_min=m.u_min,
         u_max=m.u_max, h=m.h if m.nh else None, state_names=m.state_names[:n],
-        control_names=m.control_names, position=m.position, obstacles=m.obstacles)
+        control_names=m.control_names, position=m.position, obstacles=m.obstacles,
+        scene=m.scene, scene_value=m.scene_value, scene_capacity=m.scene_capacity)

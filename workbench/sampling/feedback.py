@@ -81,6 +81,9 @@ class FeedbackLaw(Protocol):
     def gains(self, x_nom: np.ndarray, U: np.ndarray, previous: Gains | None,
               stride: int) -> Gains: ...
 
+    def set_scene(self, scene) -> None:
+        """Compute the following gains in this scene (flat scene vector)."""
+
 
 class NoFeedback:
     """K = 0."""
@@ -92,6 +95,9 @@ class NoFeedback:
 
     def gains(self, x_nom, U, previous, stride) -> Gains:
         return Gains(K=np.zeros((U.shape[0], self.nu, self.nx)))
+
+    def set_scene(self, scene) -> None:
+        """K = 0 in every scene."""
 
 
 def shifted(K: np.ndarray, stride: int) -> np.ndarray:
@@ -136,7 +142,14 @@ class ILQGFeedback:
         # the open-loop rollout's cost is not used: any parameters will do
         self._P0 = np.zeros((horizon + 1, self.problem.n_p))
         if model.nh:
-            self._margins = FastFunction(model.margins_function, horizon + 1)
+            self._margins = FastFunction(model.margins_function, horizon + 1, shared=(1,))
+        self.set_scene(None)
+
+    def set_scene(self, scene) -> None:
+        """The obstacles the gains are computed in (see
+        :meth:`~workbench.problem.Model.scene_vector`; None: the model's own)."""
+        self._scene = self.problem.model.scene_vector(scene)
+        self.passes.set_scene(self._scene)
 
     def nominal(self, x_nom: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The clipped open-loop nominal trajectory (X (T+1, nx), U (T, nu))."""
@@ -154,7 +167,8 @@ class ILQGFeedback:
         U = as_array("U", U, (self.T, self.problem.nu))
         X, Uc = self.nominal(x_nom, U)
         m = self.problem.model
-        unsafe = bool(m.nh) and bool(np.min(self._margins(X[:, : m.n_physical])[0]) <= 0.0)
+        unsafe = bool(m.nh) and bool(
+            np.min(self._margins(X[:, : m.n_physical], self._scene)[0]) <= 0.0)
         d = self.passes.derivatives(X, Uc, self._params(X, Uc))
         reason = None
         if not all(np.all(np.isfinite(a)) for a in d.values()):

@@ -20,10 +20,20 @@ class NumpyNavigation:
     def __init__(self, model: Model, zoh: bool, weights: dict[str, np.ndarray]):
         self.dt = model.dt
         self.zoh = zoh
-        self.centers = np.array([c.center for c in model.obstacles])
-        self.radii2 = np.array([c.radius for c in model.obstacles]) ** 2
         self.spec = model.barrier
         self.w = weights
+        self.capacity = model.scene_capacity
+        self.set_scene(model.scene_value if model.scene_capacity else None,
+                       model.obstacles)
+
+    def set_scene(self, scene, obstacles=()) -> None:
+        """The circles: a flat scene vector of (x, y, r) slots (inert slots included, as in
+        the kernels), or None and the baked ``obstacles``."""
+        if scene is None:
+            c = np.array([(*o.center, o.radius) for o in obstacles]).reshape(-1, 3)
+        else:
+            c = np.asarray(scene, dtype=float).reshape(-1, 3)
+        self.centers, self.radii2 = c[:, :2], c[:, 2] ** 2
 
     def margins(self, X) -> np.ndarray:
         d = X[:, None, :2] - self.centers[None]
@@ -75,7 +85,9 @@ class NumpyNavigation:
 def numpy_navigation_twin(model: Model, weights: dict[str, np.ndarray], functions
                           ) -> NumpyNavigation | None:
     """The NumPy twin if it reproduces the CasADi model at random points, else None."""
-    if model.n_physical != 4 or not model.obstacles or model.nh != len(model.obstacles):
+    if model.n_physical != 4 or not model.obstacles:
+        return None
+    if model.nh != (model.scene_capacity or len(model.obstacles)):
         return None
     rng = np.random.default_rng(0)
     n = 16
@@ -87,7 +99,8 @@ def numpy_navigation_twin(model: Model, weights: dict[str, np.ndarray], function
     if model.nx > 4:
         X = np.hstack([X, twin0._beta(twin0.margins(X))])
     V = rng.normal(0, 3, (n, model.nu))
-    ref = np.asarray(functions["dyn"].map(n)(X.T, V.T)).T
+    dyn = functions["dyn"].map("dyn", "serial", n, [2], [])
+    ref = np.asarray(dyn(X.T, V.T, model.scene_value)).T
     g = X[0]
     for zoh in (False, True):
         twin = NumpyNavigation(model, zoh, weights)

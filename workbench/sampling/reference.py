@@ -16,30 +16,35 @@ from workbench.sampling.numpy_model import numpy_navigation_twin
 from workbench.sampling.problem import SamplingProblem
 
 
-def _model(sp: SamplingProblem, N: int, model_backend: str = "auto"):
-    """Model evaluation for the twin: plain NumPy for the built-in navigation problem (unless
-    ``model_backend == "casadi"``), otherwise the CasADi virtual machine mapped over samples."""
+def _model(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
+    """Model evaluation for the twin in ``scene`` (empty: the model's own): plain NumPy for
+    the built-in navigation problem (unless ``model_backend == "casadi"``), otherwise the CasADi
+    virtual machine mapped over samples."""
     if model_backend != "casadi" and sp.weights is not None:
         twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
         if twin is not None:
+            if sp.model.scene_capacity:  # else the twin holds the baked circles
+                twin.set_scene(sp.model.scene_vector(scene if np.size(scene) else None))
             return _NumpyModel(twin)
-    return _CasadiModel(sp, N)
+    return _CasadiModel(sp, N, scene)
 
 
 class _CasadiModel:
-    def __init__(self, sp: SamplingProblem, N: int):
+    def __init__(self, sp: SamplingProblem, N: int, scene):
         f = sp.functions()
-        self.dyn = f["dyn"].map(N)
-        self.margins = f["margins"].map(N) if sp.model.nh else None
+        self.dyn = f["dyn"].map("dyn", "serial", N, [2], [])  # the scene is shared
+        self.margins = (f["margins"].map("margins", "serial", N, [1], []) if sp.model.nh
+                        else None)
         self.q, self.phi = f["q"].map(N), f["phi"].map(N)
+        self.scene = sp.model.scene_vector(scene if np.size(scene) else None)
 
     def step(self, X, V):
-        return np.asarray(self.dyn(X.T, V.T)).T
+        return np.asarray(self.dyn(X.T, V.T, self.scene)).T
 
     def crashed(self, X, eps_h):
         if self.margins is None:
             return np.zeros(X.shape[0], bool)
-        return np.any(np.asarray(self.margins(X.T)).T <= eps_h, axis=1)
+        return np.any(np.asarray(self.margins(X.T, self.scene)).T <= eps_h, axis=1)
 
     def cost(self, fn, X, p):
         return np.asarray(fn(X.T, p)).ravel()
@@ -71,7 +76,7 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
     if delay is not None:
         Z = np.where(np.arange(T)[None, :, None] < np.asarray(delay)[:, None, None], 0.0, Z)
     Ub = np.broadcast_to(U, (N, T, sp.nu))
-    m = _model(sp, N, model_backend)
+    m = _model(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
@@ -100,7 +105,7 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
     trajectories X, X_nom (N,T+1,nx); with ``pure_costs`` also the pure state costs Sx_real,
     Sx_nom (Σq + φ without crash cost, SPEC 11.2 item 1)."""
     N, T = Z.shape[0], Z.shape[1]
-    m = _model(sp, N, model_backend)
+    m = _model(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))

@@ -8,7 +8,7 @@ algorithm; tests feed both the same noise). Sample outputs are lane-major: v (T,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -77,7 +77,8 @@ class Sampler:
     def _noise(self, N: int, T: int, seed: int) -> np.ndarray:
         return np.random.default_rng(seed).standard_normal((N, T, self.sp.nu))
 
-    def _check(self, N: int, U, c: SamplerConstants) -> np.ndarray:
+    def _check(self, N: int, U, c: SamplerConstants) -> tuple[np.ndarray, SamplerConstants]:
+        """The validated plan and constants; an empty ``c.scene`` means the model's own."""
         integer("N", N, 1)
         U = np.asarray(U, dtype=float)
         if U.ndim != 2 or U.shape[1] != self.sp.nu or U.shape[0] < 1:
@@ -88,10 +89,16 @@ class Sampler:
                              ("u_max", c.u_max, self.sp.nu), ("p", c.p, self.sp.n_p)):
             if np.shape(val) != (n,):
                 raise fail(f"SamplerConstants.{name}", np.shape(val), f"expected ({n},)")
-        return U
+        ns = self.sp.model.n_scene
+        if np.size(c.scene) == 0 and ns:
+            c = replace(c, scene=self.sp.model.scene_value)
+        elif np.shape(c.scene) != (ns,):
+            raise fail("SamplerConstants.scene", np.shape(c.scene),
+                       f"expected ({ns},) (the model's scene size) or empty (its own scene)")
+        return U, c
 
     def mppi(self, x0, U, N: int, c: SamplerConstants, seed: int) -> MPPIBatch:
-        U = self._check(N, U, c)
+        U, c = self._check(N, U, c)
         x0 = as_array("x0", x0, (self.sp.nx,))
         T = U.shape[0]
         if self.lib is not None:
@@ -107,7 +114,7 @@ class Sampler:
              diagnostics: bool = False) -> SAISBatch:
         """SAIS batch (Algorithm 1). ``diagnostics=True`` returns a :class:`SAISDiagBatch`
         (same costs, bitwise, for the same seed; plus trajectories and pure state costs)."""
-        U = self._check(N, U, c)
+        U, c = self._check(N, U, c)
         T = U.shape[0]
         K = as_array("K", K, (T, self.sp.nu, self.sp.nx))  # shape and finiteness
         x0, xs0 = as_array("x0", x0, (self.sp.nx,)), as_array("xs0", xs0, (self.sp.nx,))
@@ -170,7 +177,7 @@ class Sampler:
         if starts.ndim != 2 or starts.shape[1] != self.sp.nx:
             raise fail("starts", starts.shape, f"expected (N, {self.sp.nx})")
         N = starts.shape[0]
-        U = self._check(N, U, c)
+        U, c = self._check(N, U, c)
         T = U.shape[0]
         stride = as_array("stride", stride, (N,))
         if np.any((stride != 0) & (stride != 1)):

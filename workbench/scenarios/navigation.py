@@ -80,14 +80,19 @@ class NavigationSetup:
 
 def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
                      barrier: BarrierOptions | None = None, q_beta: float = TUNED_Q_BETA,
-                     mppi: MPPIConfig | None = None) -> NavigationSetup:
+                     mppi: MPPIConfig | None = None, scene_capacity: int | None = None,
+                     runtime_obstacles: bool = True) -> NavigationSetup:
     """Plant, barrier-embedded sampling problem and MPPI settings of the navigation study.
 
     ``scene``: the paper's map (default, :class:`NavigationScene`) or your own circles
     (:class:`~workbench.scenarios.scenes.CircleScene`); any object with ``start``, ``goal``, ``dt``,
-    ``u_limit`` and ``obstacles()`` works."""
+    ``u_limit`` and ``obstacles()`` works. The obstacles are run-time inputs with
+    ``scene_capacity`` slots (default: one per circle; every map with at most that many circles
+    then shares one compiled set of kernels); ``runtime_obstacles=False`` bakes them in."""
     scene = scene or NavigationScene()
-    plant = double_integrator(obstacles=scene.obstacles(), u_limit=scene.u_limit, dt=scene.dt)
+    plant = double_integrator(obstacles=scene.obstacles(), u_limit=scene.u_limit, dt=scene.dt,
+                              scene_capacity=scene_capacity,
+                              runtime_obstacles=runtime_obstacles)
     for name in ("start", "goal"):  # also for scenes that bring their own obstacles
         h = plant.margins(np.array([*getattr(scene, name), 0.0, 0.0]))
         if h.size and h.min() <= 0:

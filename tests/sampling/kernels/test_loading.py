@@ -53,13 +53,14 @@ def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
 # every loaded library is checked against CasADi's evaluation before first use
 
 
-def _small_navigation(center):
+def _small_navigation(center, dt: float = 0.02):
+    """Obstacles are kernel inputs, so two problems with different kernels differ in dt."""
     from workbench.problem.barrier import embed_barrier
     from workbench.problem.obstacles import Circle
     from workbench.sampling.problem import navigation_costs
 
     return navigation_costs(embed_barrier(double_integrator(
-        obstacles=(Circle(center, 0.5),), u_limit=5.0)))
+        obstacles=(Circle(center, 0.5),), u_limit=5.0, dt=dt)))
 
 
 
@@ -74,7 +75,7 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
     from workbench.sampling.kernels.constants import SamplerConstants
     from workbench.sampling.reference import mppi_reference
 
-    sp_a, sp_b = _small_navigation((2.0, 2.0)), _small_navigation((1.0, 3.0))
+    sp_a, sp_b = _small_navigation((2.0, 2.0)), _small_navigation((1.0, 3.0), 0.05)
     built, cache = {}, tmp_path / "cache"
     for name, sp in (("a", sp_a), ("b", sp_b)):
         stem, _, source = kernels.library_sources(sp)
@@ -94,7 +95,8 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
     assert built["a"].path.read_bytes() != built["b"].path.read_bytes()
     m = sp_a.model
     c = SamplerConstants(sigma=np.array([2.0, 2.0]), lam=1.0, nu_mix=0.0, u_min=m.u_min,
-                         u_max=m.u_max, crash_cost=1e6, p=m.lift([3.0, 3.0, 0.0, 0.0]))
+                         u_max=m.u_max, crash_cost=1e6, p=m.lift([3.0, 3.0, 0.0, 0.0]),
+                         scene=m.scene_value)
     x0 = m.lift([0.5, 0.5, 1.0, 1.0])
     U = np.full((6, 2), 0.5)
     out = lib.mppi(np.tile(np.r_[x0, 0, 0], (9, 1)), consts=c.kernel_consts(),
@@ -107,7 +109,7 @@ def test_class5_kernel_check_rejects_another_problems_kernel():
     from workbench.sampling.kernels import build as kernels
     from workbench.sampling.kernels.verify import KernelMismatch, verify_kernel
 
-    lib_b = kernels.sampler_library(_small_navigation((1.0, 3.0)))
+    lib_b = kernels.sampler_library(_small_navigation((1.0, 3.0), 0.05))
     spec_a = kernels.mppi_spec(_small_navigation((2.0, 2.0)))
     verify_kernel(lib_b.mppi)  # its own spec: fine
     with pytest.raises(KernelMismatch, match="wb_mppi"):

@@ -231,7 +231,7 @@ def sais_twin_copy(sp, X0, Xs0, U, K, Z, c, model_backend="auto", drop=frozenset
     Without ``drop`` it equals the twin bit for bit (tested below)."""
     assert set(drop) <= set(MUTANTS)
     N, T = Z.shape[0], Z.shape[1]
-    m = _model(sp, N, model_backend)
+    m = _model(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
@@ -418,8 +418,8 @@ def test_candidate_kernel_equals_twin_per_element(setup):
 
 def test_numpy_twin_is_used_for_the_navigation_problem(setup):
     _, sp, _, _ = setup
-    assert isinstance(_model(sp, 4), _NumpyModel)
-    assert not isinstance(_model(sp, 4, "casadi"), _NumpyModel)
+    assert isinstance(_model(sp, 4, sp.model.scene_value), _NumpyModel)
+    assert not isinstance(_model(sp, 4, sp.model.scene_value, "casadi"), _NumpyModel)
 
 
 def test_kernel_noise_is_standard_normal_and_deterministic(setup):

@@ -2,8 +2,9 @@
 Algorithm 1 and the RMPPI candidate evaluation, emitted by :mod:`workbench.sampling.kernels.emit`.
 
 Run-time constants (``const`` role, shared by all samples):
-  sigma (nu) sampling std, lr (1) = lambda (1 - nu_mix), u_min, u_max (nu), crash (2) =
-  (1) = C_crash, p (n_p) cost parameters, alpha (1) the RMPPI threshold (SAIS only).
+  sigma (nu) sampling std, lr (1) = lambda (1 - nu_mix), u_min, u_max (nu), crash (1) =
+  C_crash, p (n_p) cost parameters, scene (n_scene, when the model has a run-time scene) the
+  obstacles, alpha (1) the RMPPI threshold (SAIS only).
 Per-time inputs: u (nu) the importance-sampling sequence; SAIS also K (nu*nx, row-major K_k).
 Carries and results are named by :func:`layouts` (one :class:`Layout` per kernel and role).
 """
@@ -39,7 +40,6 @@ _OPTS = {"cse": True}
 # vectorise (every heading-driven model has both).
 KERNEL_FLAGS = ("-fopenmp", "-march=native", "-fsched-pressure", "-fschedule-insns",
                 "-fno-math-errno", "-fno-builtin-sin", "-fno-builtin-cos")
-_CONSTS = ("sigma", "lr", "u_min", "u_max", "crash", "p")
 
 
 def _clip(v, lo, hi):
@@ -47,17 +47,24 @@ def _clip(v, lo, hi):
 
 
 def _symbols(sp: SamplingProblem):
+    """The const inputs; ``scene`` only when the model has a run-time scene."""
     nu = sp.nu
-    return {
+    out = {
         "sigma": ca.SX.sym("sigma", nu), "lr": ca.SX.sym("lr"),
         "u_min": ca.SX.sym("u_min", nu), "u_max": ca.SX.sym("u_max", nu),
         "crash": ca.SX.sym("crash", 1), "p": ca.SX.sym("p", sp.n_p),
     }
+    if sp.model.n_scene:
+        out["scene"] = ca.SX.sym("scene", sp.model.n_scene)
+    return out
 
 
-def _model_parts(sp: SamplingProblem):
+def _model_parts(sp: SamplingProblem, c: dict):
+    """dyn (x, v) and margins (x) in the kernel's scene input (or the empty scene)."""
     fns = sp.functions()
-    return fns["dyn"], fns["margins"], fns["q"], fns["phi"]
+    s = c.get("scene", ca.SX(0, 1))
+    return (lambda x, v: fns["dyn"](x, v, s)), (lambda x: fns["margins"](x, s)), \
+        fns["q"], fns["phi"]
 
 
 def _crashed(margins, x, eps_h: float, nh: int):
@@ -93,8 +100,8 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False)
     ``u_next`` holds the shifted sequence) and draws no noise while delay > 0.
     """
     nx, nu, nh = sp.nx, sp.nu, sp.model.nh
-    dyn, margins, q, phi = _model_parts(sp)
     c = _symbols(sp)
+    dyn, margins, q, phi = _model_parts(sp, c)
     carry = ca.SX.sym("carry", nx + 2 + 2 * int(strided))
     z, u_in, u_next = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("u_next", nu)
     x, S, cr = carry[:nx], carry[nx], carry[nx + 1]
@@ -119,7 +126,7 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False)
     final = ca.Function(name + "_final", [carry, c["p"]],
                         [ca.vertcat(S + phi(x, c["p"]), cr)], ["carry", "p"], ["result"], _OPTS)
     roles = {"carry": "carry", "z": "noise", "u": "time", "u_next": "time",
-             **{k: "const" for k in _CONSTS}}
+             **{k: "const" for k in c}}
     return KernelSpec(name=name, step=step, final=final, roles=roles)
 
 
@@ -131,8 +138,8 @@ def candidate_spec(sp: SamplingProblem) -> KernelSpec:
 def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:
     """The SAIS dual rollout of Algorithm 1 (SPEC 10.1); clip_in_cost is a run-time input."""
     nx, nu, nh = sp.nx, sp.nu, sp.model.nh
-    dyn, margins, q, phi = _model_parts(sp)
     c = _symbols(sp)
+    dyn, margins, q, phi = _model_parts(sp, c)
     alpha, clip_cost = ca.SX.sym("alpha"), ca.SX.sym("clip_cost")
     carry = ca.SX.sym("carry", 2 * nx + 6)
     z, u, Kv = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("K", nu * nx)
@@ -171,7 +178,7 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais") -> KernelSpec:
                         ["carry", "p", "alpha"], ["result"], _OPTS)
     roles = {"carry": "carry", "z": "noise", "u": "time", "K": "time", "alpha": "const",
              "clip_cost": "const",
-             **{k: "const" for k in _CONSTS}}
+             **{k: "const" for k in c}}
     return KernelSpec(name=name, step=step, final=final, roles=roles)
 
 
@@ -236,6 +243,11 @@ class CompiledKernel:
             a = pad(a) if pad_last else np.ascontiguousarray(a, dtype=float)
             keep.append(a)
             return _addr(a)
+
+        for n in spec.inputs("const"):  # the kernel reads exactly this many values
+            if np.size(consts[n]) != self._sizes[n]:
+                raise ValueError(f"{spec.name}: const input {n!r} has {np.size(consts[n])} "
+                                 f"values, the kernel reads {self._sizes[n]}")
 
         ptrs = {
             "lane": [prep(lane_in[n], True) for n in spec.inputs("lane")],

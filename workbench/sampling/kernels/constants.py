@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -20,6 +20,8 @@ class SamplerConstants:
     p: np.ndarray  # cost parameters (the goal state)
     alpha: float = np.inf  # RMPPI threshold (SAIS only)
     clip_in_cost: bool = True  # SPEC 10.1: clipped noise and feedback in lines 8, 9, 12
+    # the obstacles (flat, model.n_scene; empty when the model has no run-time scene)
+    scene: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def kernel_consts(self) -> dict[str, np.ndarray]:
         return {"sigma": np.asarray(self.sigma, float),
@@ -27,4 +29,5 @@ class SamplerConstants:
                 "u_min": np.asarray(self.u_min, float), "u_max": np.asarray(self.u_max, float),
                 "crash": np.array([self.crash_cost]),
                 "p": np.asarray(self.p, float), "alpha": np.array([self.alpha]),
-                "clip_cost": np.array([float(self.clip_in_cost)])}
+                "clip_cost": np.array([float(self.clip_in_cost)]),
+                "scene": np.asarray(self.scene, float)}

@@ -22,9 +22,11 @@ plain SAIS calls neither compile nor run anything extra.
 from __future__ import annotations
 
 import ctypes
+import hashlib
 from dataclasses import dataclass
 
 import casadi as ca
+import numpy as np
 
 from workbench.sampling.kernels.build import (
     CompiledKernel,
@@ -86,16 +88,17 @@ SPACES = ("physical", "augmented")
 def composed_costs(sp: SamplingProblem, space: str = "physical"):
     """(y, p, q, φ, min h) as expressions of the point symbol y: ``"physical"`` — y is the
     physical state and β = lift(y) (q̃, φ̃); ``"augmented"`` — y is the full state x̄ (β a
-    coordinate), min h from its physical part."""
+    coordinate), min h from its physical part. The obstacles are the model's own scene
+    (``model.scene_value``), compiled in: these are diagnostics of one scene."""
     m = sp.model
     n = m.n_physical
     y = ca.SX.sym("y", n if space == "physical" else sp.nx)
     p = ca.SX.sym("p", sp.n_p)
-    xb = m.lift_function(y) if space == "physical" else y
+    xb = m.lift_function(y, m.scene_value) if space == "physical" else y
     f = sp.functions()
     qt, pt = f["q"](xb, p), f["phi"](xb, p)
     if m.nh:
-        h = m.margins_function(y[:n])
+        h = m.margins_function(y[:n], m.scene_value)
         mh = h[0]
         for i in range(1, m.nh):
             mh = ca.fmin(mh, h[i])
@@ -164,8 +167,10 @@ _LIBS: dict[str, DiagnosticsLibrary | None] = {}
 
 
 def diagnostics_library(sp: SamplingProblem) -> DiagnosticsLibrary | None:
-    """Build (or load from the cache) the diagnostic kernels; None without a compiler."""
-    key = sp.fingerprint()
+    """Build (or load from the cache) the diagnostic kernels; None without a compiler. The
+    gradient kernels are compiled for the model's own scene (one library per scene)."""
+    scene = hashlib.sha256(np.ascontiguousarray(sp.model.scene_value).tobytes()).hexdigest()
+    key = f"{sp.fingerprint()}_{scene[:12]}"
     if key not in _LIBS:
         specs = [sais_diag_spec(sp), gradient_spec(sp), gradient_spec(sp, "augmented")]
         source = kernel_source(specs)
@@ -179,6 +184,6 @@ def diagnostics_library(sp: SamplingProblem) -> DiagnosticsLibrary | None:
                 gradients_augmented=CompiledKernel(specs[2], cdll, g, res), cdll=cdll)
 
         _LIBS[key] = load_verified(
-            f"diag_{sp.model.name.replace('+', '_')}", source, build,
+            f"diag_{sp.model.name.replace('+', '_')}_{scene[:8]}", source, build,
             lambda lib: (lib.sais_diag, lib.gradients, lib.gradients_augmented))
     return _LIBS[key]
