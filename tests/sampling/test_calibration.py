@@ -39,6 +39,38 @@ def test_calibrate_equals_the_setup_threshold_and_depends_on_its_seed(nav):
     assert not np.array_equal(F, F0)  # the controller's draws follow the seed
 
 
+def test_a_progress_expression_equal_to_the_distance_gives_the_default_threshold(nav):
+    """The progress measure is the distance in the position coordinates by default; the same
+    distance given as a CasADi expression is the oracle. A model without positions needs one."""
+    import casadi as ca
+
+    fb = nav.feedback("bas_ilqg")
+    trace = calibration_trace(nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi, fb, steps=30)
+    default = calibrate(RULE, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi, fb,
+                        trace=trace)
+    x = nav.plant.x
+    dist = ca.sqrt((x[0] - nav.goal[0]) ** 2 + (x[1] - nav.goal[1]) ** 2)
+    given = calibrate(RULE, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi, fb, trace=trace,
+                      progress=dist)
+    np.testing.assert_allclose(given.log_d, default.log_d, rtol=1e-12)
+    np.testing.assert_allclose(given.F, default.F, rtol=1e-12)
+    X = trace[0]
+    np.testing.assert_allclose(given(X), default(X), rtol=1e-12)
+    # a different measure (the squared distance) gives a different curve, same values on X
+    sq = calibrate(RULE, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi, fb, trace=trace,
+                   progress=dist**2)
+    assert not np.allclose(sq.log_d, default.log_d)
+    with pytest.raises(ValueError, match=r"progress.*scalar"):
+        calibrate(RULE, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi, fb, trace=trace,
+                  progress=ca.vertcat(dist, dist))
+    with pytest.raises(ValueError, match=r"progress.*plant's state"):
+        calibrate(RULE, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi, fb, trace=trace,
+                  progress=dist + ca.SX.sym("other"))
+    no_position = replace(nav.plant, position=None)
+    with pytest.raises(ValueError, match=r"progress.*position coordinates"):
+        calibrate(RULE, nav.problem, nav.goal, no_position, nav.x0, nav.mppi, fb, trace=trace)
+
+
 def test_a_fixed_rule_needs_no_episode_and_bad_steps_name_the_field(nav):
     th = calibrate(AlphaRule(kind="fixed", value=3.0), None, None, None, None, None, None)
     assert isinstance(th, ConstantThreshold) and th.value == 3.0

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import casadi as ca
 import numpy as np
 
 from workbench.problem.models import Model
@@ -24,7 +25,7 @@ from workbench.sampling.threshold import (
     make_threshold,
 )
 from workbench.sim import closed_loop
-from workbench.validation import integer
+from workbench.validation import fail, integer
 
 
 def calibration_trace(problem: SamplingProblem, goal, plant: Model, x0, mppi: MPPIConfig,
@@ -48,15 +49,37 @@ def calibration_trace(problem: SamplingProblem, goal, plant: Model, x0, mppi: MP
 
 def calibrate(rule: AlphaRule, problem: SamplingProblem, goal, plant: Model, x0,
               mppi: MPPIConfig, feedback: FeedbackLaw, robust: RMPPIConfig = RMPPIConfig(), *,
-              seed: int = 0, trace: tuple[np.ndarray, np.ndarray] | None = None) -> Threshold:
+              seed: int = 0, trace: tuple[np.ndarray, np.ndarray] | None = None,
+              progress: ca.SX | ca.Function | None = None) -> Threshold:
     """The threshold of ``rule`` for this problem, goal and start: a fixed rule directly, every
     other rule from :func:`calibration_trace` (``rule.calibration_steps`` steps, ``seed``), or
     from ``trace``, that function's result for the same controller (rules that differ only
-    in how they read the episode can share it); progress is measured as the distance to the
-    goal in the plant's position coordinates."""
+    in how they read the episode can share it). The progress rule measures the distance to
+    the goal in the plant's position coordinates, or by ``progress``: a scalar CasADi
+    expression in ``plant.x`` (or a Function of the plant's state), >= 0 and 0 at the goal,
+    for a model without position coordinates or with a better measure (e.g. a heading
+    error)."""
+    measure = _progress_function(progress, plant)
     if not rule.needs_calibration:
         return make_threshold(rule)
     X, F = trace if trace is not None else calibration_trace(
         problem, goal, plant, x0, mppi, feedback, robust, steps=rule.calibration_steps,
         seed=seed)
-    return make_threshold(rule, X, F, goal, plant.position)
+    return make_threshold(rule, X, F, goal, plant.position, measure)
+
+
+def _progress_function(progress, plant: Model) -> ca.Function | None:
+    if progress is None or isinstance(progress, ca.Function):
+        if progress is not None and (progress.n_in() != 1 or progress.numel_in(0) != plant.nx
+                                     or progress.numel_out(0) != 1):
+            raise fail("progress", progress.name(), f"a progress Function maps the plant's "
+                       f"state ({plant.nx}) to one number")
+        return progress
+    expr = ca.SX(progress)
+    if expr.numel() != 1:
+        raise fail("progress", expr.shape, "the progress measure must be a scalar expression")
+    known = {v.name() for v in ca.symvar(plant.x)}
+    extra = [v.name() for v in ca.symvar(expr) if v.name() not in known]
+    if extra:
+        raise fail("progress", extra, "may depend only on the plant's state symbols plant.x")
+    return ca.Function("progress", [plant.x], [expr])

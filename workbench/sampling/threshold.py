@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
+import casadi as ca
 import numpy as np
 
 from workbench.validation import fail, integer, one_of, real, real_or_inf
@@ -85,17 +86,29 @@ class ConstantThreshold:
 
 @dataclass(frozen=True, eq=False)
 class ProgressThreshold:
-    """alpha(x) = (1 + kappa) F(d(x)), F interpolated in log distance, clamped at the ends."""
+    """alpha(x) = (1 + kappa) F(d(x)), F interpolated in log distance, clamped at the ends.
+
+    d(x) is the distance from the goal in the ``position`` coordinates, or ``measure(x)`` when
+    a progress measure (a CasADi Function of the physical state, >= 0, 0 at the goal) is
+    given."""
 
     log_d: np.ndarray  # increasing knots
     F: np.ndarray  # non-decreasing values
     kappa: float
     goal: np.ndarray  # goal position
     position: tuple[int, ...]
+    measure: ca.Function | None = None
+
+    def distance(self, X: np.ndarray) -> np.ndarray:
+        """The progress measure d at states X (n, >= n_physical)."""
+        X = np.atleast_2d(np.asarray(X, float))
+        if self.measure is not None:
+            n = self.measure.size1_in(0)
+            return np.asarray(self.measure.map(X.shape[0])(X[:, :n].T)).ravel()
+        return np.linalg.norm(X[:, list(self.position)] - self.goal, axis=1)
 
     def __call__(self, X: np.ndarray) -> np.ndarray:
-        P = np.atleast_2d(X)[:, list(self.position)]
-        d = np.linalg.norm(P - self.goal, axis=1)
+        d = self.distance(X)
         ld = np.log(np.maximum(d, 1e-12))
         return (1.0 + self.kappa) * np.interp(ld, self.log_d, self.F)
 
@@ -119,9 +132,12 @@ def progress_curve(d: np.ndarray, F: np.ndarray, bins: int = 40) -> tuple[np.nda
 
 
 def make_threshold(rule: AlphaRule, X: np.ndarray | None = None, F: np.ndarray | None = None,
-                   goal=None, position: tuple[int, ...] = (0, 1)) -> Threshold:
+                   goal=None, position: tuple[int, ...] | None = (0, 1),
+                   progress: ca.Function | None = None) -> Threshold:
     """The threshold of a rule from an undisturbed trace: states X (n, n_physical) and the
-    real-state candidate free energies F (n,) (None for ``kind="fixed"``)."""
+    real-state candidate free energies F (n,) (None for ``kind="fixed"``). The progress rule
+    measures distance from the goal in the ``position`` coordinates, or by ``progress`` (a
+    Function of the physical state) when given."""
     if rule.kind == "fixed":
         return ConstantThreshold(value=rule.value)
     if X is None or F is None or goal is None:
@@ -135,8 +151,14 @@ def make_threshold(rule: AlphaRule, X: np.ndarray | None = None, F: np.ndarray |
         return ConstantThreshold(value=rule.factor * float(finite[0]))
     if rule.kind == "quantile":
         return ConstantThreshold(value=float(np.quantile(finite, rule.quantile)))
+    if progress is None and position is None:
+        raise fail("progress", None, "the progress rule needs the plant's position coordinates "
+                   "(Model.position) or a progress measure: give progress= a CasADi expression "
+                   "in the plant's state (>= 0, 0 at the goal)")
+    position = tuple(position or ())
     goal = np.asarray(goal, float)[: len(position)]
-    d = np.linalg.norm(np.asarray(X, float)[:, list(position)] - goal, axis=1)
-    log_d, vals = progress_curve(d, F)
+    probe = ProgressThreshold(log_d=np.zeros(2), F=np.zeros(2), kappa=rule.kappa, goal=goal,
+                              position=position, measure=progress)
+    log_d, vals = progress_curve(probe.distance(X), F)
     return ProgressThreshold(log_d=log_d, F=vals, kappa=rule.kappa, goal=goal,
-                             position=tuple(position))
+                             position=position, measure=progress)
