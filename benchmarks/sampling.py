@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import statistics
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -181,5 +182,38 @@ def sa_rmppi_step_record(steps: int = 80) -> dict:
                                 "baseline": "none measured (issue 13 item 3 owns this step)"})
 
 
+def scene_input_records(repeats: int) -> list[dict]:
+    """SAIS and BaS-MPPI batches (N = 1024, T = 100, the 30-circle map) with the obstacles as
+    a run-time kernel input against the same kernels with the circles baked in as constants.
+    Both give bitwise equal results on the same seed (checked first); value = run-time,
+    baseline = baked, ratio = baked / run-time (1 = no cost; 0.83 = run-time 1.2x slower)."""
+    nav_rt, sp_rt, U, K, c = _setup()
+    nav_bk = navigation_setup(runtime_obstacles=False)
+    sp_bk = nav_bk.problem
+    c_bk = replace(c, scene=np.zeros(0))
+    x0 = sp_rt.model.lift(nav_rt.x0)
+    s_rt, s_bk = Sampler(sp_rt, "compiled"), Sampler(sp_bk, "compiled")
+    N, out = 1024, []
+    for label, call in (
+            ("sais", lambda s, cc, i: s.sais(x0, x0, U, K, N, cc, i)),
+            ("bas_mppi", lambda s, cc, i: s.mppi(x0, U, N, cc, i))):
+        a, b = call(s_rt, c, 7), call(s_bk, c_bk, 7)
+        same = all(np.array_equal(getattr(a, f), getattr(b, f)) for f in vars(a))
+        if not same:
+            raise AssertionError(f"{label}: run-time and baked obstacles give different results")
+        t_rt, t_bk = _interleaved(lambda i, f=call: f(s_rt, c, i),
+                                  lambda i, f=call: f(s_bk, c_bk, i),
+                                  max(repeats, 5) * 4, max(repeats, 5) * 4, block=1)
+        out.append(_record(
+            f"{label}_batch_N{N}_T100_runtime_obstacles", 1e3 * t_rt, "ms",
+            "same_kernel_obstacles_baked_ms", 1e3 * t_bk,
+            {"N": N, "T": U.shape[0], "obstacles": len(nav_rt.scene.obstacles()),
+             "scene_inputs": sp_rt.model.n_scene, "bitwise_equal": same,
+             "threads": s_rt.lib.cdll.wb_get_threads(),
+             "includes": "the sampler batch call (noise, rollout, costs); no weights"}))
+    return out
+
+
 def records(repeats: int) -> list[dict]:
-    return [*sais_batch_records(repeats), *mppi_batch_records(repeats), sa_rmppi_step_record()]
+    return [*sais_batch_records(repeats), *mppi_batch_records(repeats),
+            *scene_input_records(repeats), sa_rmppi_step_record()]
