@@ -185,7 +185,9 @@ def sa_rmppi_step_record(steps: int = 80) -> dict:
 def scene_input_records(repeats: int) -> list[dict]:
     """SAIS and BaS-MPPI batches (N = 1024, T = 100, the 30-circle map) with the obstacles as
     a run-time kernel input against the same kernels with the circles baked in as constants.
-    Both give bitwise equal results on the same seed (checked first); value = run-time,
+    Both give the same results on the same seed to 1e-10 relative, crash flags identical
+    (checked first; not always bitwise: a baked r^2 is Python's pow, 1 ulp off r*r for some
+    radii, which shows next to that circle); value = run-time,
     baseline = baked, ratio = baked / run-time (1 = no cost; 0.83 = run-time 1.2x slower)."""
     nav_rt, sp_rt, U, K, c = _setup()
     nav_bk = navigation_setup(runtime_obstacles=False)
@@ -199,8 +201,10 @@ def scene_input_records(repeats: int) -> list[dict]:
             ("bas_mppi", lambda s, cc, i: s.mppi(x0, U, N, cc, i))):
         a, b = call(s_rt, c, 7), call(s_bk, c_bk, 7)
         same = all(np.array_equal(getattr(a, f), getattr(b, f)) for f in vars(a))
-        if not same:
-            raise AssertionError(f"{label}: run-time and baked obstacles give different results")
+        err = max(_rel_err(getattr(a, f), getattr(b, f)) for f in vars(a))
+        flags = [f for f in vars(a) if f.startswith("crashed")]
+        if err > RTOL or not all(np.array_equal(getattr(a, f), getattr(b, f)) for f in flags):
+            raise AssertionError(f"{label}: run-time and baked obstacles differ: {err:.2e}")
         t_rt, t_bk = _interleaved(lambda i, f=call: f(s_rt, c, i),
                                   lambda i, f=call: f(s_bk, c_bk, i),
                                   max(repeats, 5) * 4, max(repeats, 5) * 4, block=1)
@@ -209,6 +213,7 @@ def scene_input_records(repeats: int) -> list[dict]:
             "same_kernel_obstacles_baked_ms", 1e3 * t_bk,
             {"N": N, "T": U.shape[0], "obstacles": len(nav_rt.scene.obstacles()),
              "scene_inputs": sp_rt.model.n_scene, "bitwise_equal": same,
+             "max_rel_err_vs_baked": err,
              "threads": s_rt.lib.cdll.wb_get_threads(),
              "includes": "the sampler batch call (noise, rollout, costs); no weights"}))
     return out
