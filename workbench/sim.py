@@ -270,7 +270,8 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
     if static is not None and set_scene is not None:
         set_scene(s)
     state = controller.initial_state(x)
-    X, U, times, infos, stimes, scenes = [x.copy()], [], [], [], [], [s]
+    X, U, times, infos, stimes = [x.copy()], [], [], [], []
+    scenes = [s] if moving else None
     crashed, crash_step = False, None
     min_h = float(np.min(margins(x, s))) if margins else np.inf
     if margins is not None and min_h <= 0:
@@ -291,7 +292,8 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
         s = scene_at(k + 1)
         X.append(x.copy())
         U.append(u)
-        scenes.append(s)
+        if moving:
+            scenes.append(s)
         if keep_infos:
             infos.append(info)
         if margins is not None:

@@ -26,7 +26,6 @@ from workbench.problem.obstacles import (
     Circle,
     HForm,
     circle_margins,
-    scene_circles,
     scene_symbol,
     scene_vector,
     slot_margins,
@@ -95,11 +94,17 @@ class Model:
         v = as_array("scene", scene, (self.n_scene,))
         return v.copy()
 
-    def scene_circles(self, scene=None) -> tuple[Circle, ...]:
-        """The circles of a scene (default: the model's own), for plots and reports."""
-        if not self.scene_capacity:
-            return self.obstacles
-        return scene_circles(self.scene_vector(scene))
+    def _scene_input(self, scene) -> np.ndarray:
+        """:meth:`scene_vector` for read-only use (no copy). A float64 vector of the right
+        size, finite, radii >= 0 (what :meth:`scene_vector` returns) takes a fast path: the
+        controllers pass their validated scene on every step."""
+        if scene is None:
+            return self.scene_value
+        if (isinstance(scene, np.ndarray) and scene.dtype == np.float64
+                and scene.shape == (self.n_scene,) and np.isfinite(scene).all()
+                and (not self.scene_capacity or (scene[2::3] >= 0).all())):
+            return scene
+        return self.scene_vector(scene)
 
     @classmethod
     def from_expressions(
@@ -199,7 +204,7 @@ class Model:
         xp = as_array("x", x_phys, (self.n_physical,))
         if self.lift_expr is None or self.n_physical == self.nx:
             return xp.copy()
-        return self._fast_lift(xp, self.scene_vector(scene))[0]
+        return self._fast_lift(xp, self._scene_input(scene))[0]
 
     def margins(self, x, scene=None) -> np.ndarray:
         """Safety margins h(x) at a full (or physical) state in ``scene`` (default: the
@@ -207,7 +212,7 @@ class Model:
         xa = np.asarray(x, dtype=float).ravel()
         if xa.size not in (self.n_physical, self.nx):
             raise fail("x", xa, f"expected {self.n_physical} or {self.nx} entries")
-        return self._fast_margins(xa[: self.n_physical], self.scene_vector(scene))[0]
+        return self._fast_margins(xa[: self.n_physical], self._scene_input(scene))[0]
 
 
 def double_integrator(

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.problem.models import Model
+from workbench.problem.obstacles import scene_vector
 
 
 class NumpyNavigation:
@@ -22,17 +23,13 @@ class NumpyNavigation:
         self.zoh = zoh
         self.spec = model.barrier
         self.w = weights
-        self.capacity = model.scene_capacity
-        self.set_scene(model.scene_value if model.scene_capacity else None,
-                       model.obstacles)
+        baked = scene_vector(model.obstacles, len(model.obstacles))
+        self.set_scene(model.scene_value if model.scene_capacity else baked)
 
-    def set_scene(self, scene, obstacles=()) -> None:
+    def set_scene(self, scene: np.ndarray) -> None:
         """The circles: a flat scene vector of (x, y, r) slots (inert slots included, as in
-        the kernels), or None and the baked ``obstacles``."""
-        if scene is None:
-            c = np.array([(*o.center, o.radius) for o in obstacles]).reshape(-1, 3)
-        else:
-            c = np.asarray(scene, dtype=float).reshape(-1, 3)
+        the kernels)."""
+        c = np.asarray(scene, dtype=float).reshape(-1, 3)
         self.centers, self.radii2 = c[:, :2], c[:, 2] ** 2
 
     def margins(self, X) -> np.ndarray:

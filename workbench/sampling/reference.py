@@ -20,23 +20,24 @@ def _model(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
     """Model evaluation for the twin in ``scene`` (empty: the model's own): plain NumPy for
     the built-in navigation problem (unless ``model_backend == "casadi"``), otherwise the CasADi
     virtual machine mapped over samples."""
+    scene = sp.model.scene_vector(scene if np.size(scene) else None)
     if model_backend != "casadi" and sp.weights is not None:
         twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
         if twin is not None:
             if sp.model.scene_capacity:  # else the twin holds the baked circles
-                twin.set_scene(sp.model.scene_vector(scene if np.size(scene) else None))
+                twin.set_scene(scene)
             return _NumpyModel(twin)
     return _CasadiModel(sp, N, scene)
 
 
 class _CasadiModel:
-    def __init__(self, sp: SamplingProblem, N: int, scene):
+    def __init__(self, sp: SamplingProblem, N: int, scene: np.ndarray):
         f = sp.functions()
         self.dyn = f["dyn"].map("dyn", "serial", N, [2], [])  # the scene is shared
         self.margins = (f["margins"].map("margins", "serial", N, [1], []) if sp.model.nh
                         else None)
         self.q, self.phi = f["q"].map(N), f["phi"].map(N)
-        self.scene = sp.model.scene_vector(scene if np.size(scene) else None)
+        self.scene = scene
 
     def step(self, X, V):
         return np.asarray(self.dyn(X.T, V.T, self.scene)).T

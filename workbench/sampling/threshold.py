@@ -99,18 +99,21 @@ class ProgressThreshold:
     position: tuple[int, ...]
     measure: ca.Function | None = None
 
-    def distance(self, X: np.ndarray) -> np.ndarray:
-        """The progress measure d at states X (n, >= n_physical)."""
-        X = np.atleast_2d(np.asarray(X, float))
-        if self.measure is not None:
-            n = self.measure.size1_in(0)
-            return np.asarray(self.measure.map(X.shape[0])(X[:, :n].T)).ravel()
-        return np.linalg.norm(X[:, list(self.position)] - self.goal, axis=1)
-
     def __call__(self, X: np.ndarray) -> np.ndarray:
-        d = self.distance(X)
+        d = progress_distance(X, self.goal, self.position, self.measure)
         ld = np.log(np.maximum(d, 1e-12))
         return (1.0 + self.kappa) * np.interp(ld, self.log_d, self.F)
+
+
+def progress_distance(X: np.ndarray, goal: np.ndarray, position: tuple[int, ...],
+                      measure: ca.Function | None = None) -> np.ndarray:
+    """The progress measure d at states X (n, >= n_physical): ``measure(x)`` when given, else
+    the distance from ``goal`` in the ``position`` coordinates."""
+    X = np.atleast_2d(np.asarray(X, float))
+    if measure is not None:
+        n = measure.size1_in(0)
+        return np.asarray(measure.map(X.shape[0])(X[:, :n].T)).ravel()
+    return np.linalg.norm(X[:, list(position)] - goal, axis=1)
 
 
 def progress_curve(d: np.ndarray, F: np.ndarray, bins: int = 40) -> tuple[np.ndarray, np.ndarray]:
@@ -157,8 +160,6 @@ def make_threshold(rule: AlphaRule, X: np.ndarray | None = None, F: np.ndarray |
                    "in the plant's state (>= 0, 0 at the goal)")
     position = tuple(position or ())
     goal = np.asarray(goal, float)[: len(position)]
-    probe = ProgressThreshold(log_d=np.zeros(2), F=np.zeros(2), kappa=rule.kappa, goal=goal,
-                              position=position, measure=progress)
-    log_d, vals = progress_curve(probe.distance(X), F)
+    log_d, vals = progress_curve(progress_distance(X, goal, position, progress), F)
     return ProgressThreshold(log_d=log_d, F=vals, kappa=rule.kappa, goal=goal,
                              position=position, measure=progress)
