@@ -18,6 +18,7 @@ from workbench.problem.models import Model, double_integrator
 from workbench.problem.obstacles import circle_margins
 from workbench.sampling import SamplingProblem
 from workbench.sampling.kernels.build import KERNEL_FLAGS, SamplerLibrary, load_sampler_library
+from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.vector_math import MAX_ULP, unavailable
 from workbench.scenarios.scenes import NavigationScene
 
@@ -51,10 +52,10 @@ def problem(model: Model) -> SamplingProblem:
 
 def _inputs(sp: SamplingProblem, x_phys):
     rng = np.random.default_rng(0)
-    consts = {"sigma": np.array([2.0, 2.0]), "lr": np.array([1.0]),
-              "u_min": sp.model.u_min, "u_max": sp.model.u_max, "crash": np.array([1e6]),
-              "p": sp.model.lift(np.array([9.5, 9.5, 0.0, 0.0])),
-              "alpha": np.array([2e4]), "clip_cost": np.array([1.0])}
+    consts = SamplerConstants(
+        sigma=np.array([2.0, 2.0]), lam=1.0, nu_mix=0.0, u_min=sp.model.u_min,
+        u_max=sp.model.u_max, crash_cost=1e6, p=sp.model.lift(np.array([9.5, 9.5, 0.0, 0.0])),
+        alpha=2e4, scene=sp.model.scene_value).kernel_consts()
     carry_nom = np.tile(sp.model.lift(x_phys), (N, 1))
     extra = np.zeros((N, 2))
     U = rng.normal(0, 1.0, (T, 2))
