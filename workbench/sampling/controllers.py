@@ -26,6 +26,7 @@ from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.sampler import Backend, SAISBatch, Sampler
+from workbench.sampling.step_stats import StepStats
 from workbench.sampling.threshold import ConstantThreshold, Threshold
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
 from workbench.validation import as_array, fail, flag, integer, one_of, real, real_or_inf
@@ -129,6 +130,13 @@ class MPPIInfo:
     n_crashed: int
     valid_weights: bool
     time_s: float
+    n_samples: int = 0  # samples of the last batch (the one the update was weighted over)
+
+    @property
+    def stats(self) -> StepStats:
+        """The last batch's samples: crash-free count and ESS (no safety mechanism)."""
+        return StepStats(n_samples=self.n_samples,
+                         n_collision_free=self.n_samples - self.n_crashed, ess=self.ess)
 
 
 class MPPI:
@@ -181,7 +189,8 @@ class MPPI:
                 U = self.cfg.smooth(weighted_controls(batch.v, W.w))
         u = U[0].copy()
         info = MPPIInfo(free_energy=W.free_energy, ess=W.ess, n_crashed=int(batch.crashed.sum()),
-                        valid_weights=W.valid, time_s=time.perf_counter() - t0)
+                        valid_weights=W.valid, time_s=time.perf_counter() - t0,
+                        n_samples=self.cfg.n_samples)
         return MPPIState(U=_shift(U, 1, self.cfg.tail)), u, info
 
 
@@ -262,10 +271,25 @@ class RMPPIInfo:
     timing: dict[str, float] = field(default_factory=dict)
     x_nom: np.ndarray | None = None
     batch: SAISBatch | None = None  # first SAIS batch with diagnostics (RMPPIConfig.diagnostics)
+    n_samples: int = 0  # samples of the last SAIS batch
+    gains_activity: dict[str, float] = field(default_factory=dict)  # Gains.activity
 
     @property
     def feedback_ok(self) -> bool:
         return self.ksafe_fallback is None
+
+    @property
+    def stats(self) -> StepStats:
+        """The real samples (with feedback: the system the plan is for) of the last SAIS
+        batch, and the ESS of the nominal weights (the ones that make the update); activity: the nominal state differs from the measured one, the feedback law
+        fell back, the selection found no admissible candidate, and the feedback law's own
+        mechanism activity (:attr:`Gains.activity`)."""
+        act = {"nominal_differs": float(self.nominal_differs),
+               "feedback_fallback": float(self.ksafe_fallback is not None),
+               "selection_fallback": float(self.fallback_used), **self.gains_activity}
+        return StepStats(n_samples=self.n_samples,
+                         n_collision_free=self.n_samples - self.n_crashed_real,
+                         ess=self.ess_nom, activity=act)
 
 
 def strides(n_candidates: int, s: int = 1) -> np.ndarray:
@@ -409,7 +433,8 @@ class RobustMPPI:
             free_energy_nom=Wn.free_energy, free_energy_real=Wr.free_energy, ess_nom=Wn.ess,
             ess_real=Wr.ess, n_crashed_real=int(b.crashed_real.sum()),
             n_crashed_nom=int(b.crashed_nom.sum()), ksafe_fallback=gains.fallback,
-            nominal_unsafe=gains.nominal_unsafe, timing=timing, x_nom=x_nom, batch=first)
+            nominal_unsafe=gains.nominal_unsafe, timing=timing, x_nom=x_nom, batch=first,
+            n_samples=self.cfg.n_samples, gains_activity=dict(gains.activity))
         return RMPPIState(U=U, x_nom=x_nom, index=sel.index, gains=gains), u, info
 
 

@@ -20,7 +20,8 @@ stride are used and the reason is reported — the gains are never silently set 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -71,6 +72,9 @@ class Gains:
     fallback: str | None = None  # one of FALLBACK_REASONS, or None when computed
     nominal_unsafe: bool = False  # the nominal rollout left the safe set (crash-safe gains)
     mu: float = 0.0  # regularisation used
+    # how often the law's own safety mechanism acted for these gains, in [0, 1] (e.g. the
+    # share of horizon steps with an active constraint); empty for laws without one
+    activity: Mapping[str, float] = field(default_factory=dict)
 
 
 class FeedbackLaw(Protocol):
