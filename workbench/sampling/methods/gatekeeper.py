@@ -1,0 +1,245 @@
+"""Gatekeeper: a backup shield around any controller.
+
+Gurriet, Mote, Singletary, Nilsson, Feron, Ames, "A Scalable Safety Critical Control Framework
+for Nonlinear Systems", IEEE Access 2020 (backup set method); Agrawal, Panagou, "gatekeeper:
+Online Safety Verification and Control for Nonlinear Systems in Dynamic Environments",
+arXiv:2211.14361 (2023).
+
+Each step the inner controller proposes u. The shield predicts x1 = f(x, u) with the
+noise-free model and rolls the backup policy out from x1 for ``horizon`` steps. If x1 and every
+state of that rollout are safe (min over states and margins of h > ``margin``), u is applied;
+otherwise the backup policy's control at the current state x is applied (clipped to the box).
+The whole check (rollout, margins, running minimum) is ONE CasADi Function, a fold over the
+horizon, evaluated in place (:class:`~workbench.codegen.fastcall.FastFunction`); the obstacles
+are its run-time input, so :meth:`Gatekeeper.set_scene` costs microseconds.
+
+The check is exact for the model it is given: when the plant is that model and undisturbed,
+and every backup rollout ends at rest in free space, then once a proposal has passed the check,
+a step that applies the backup follows a rollout verified earlier, so the state stays safe.
+Disturbances, and a backup that has not stopped by the end of the horizon, void that argument
+(the shield then only checks a finite horizon of the nominal model).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from workbench.codegen.fastcall import FastFunction
+from workbench.problem.models import Model
+from workbench.sampling.controllers import physical_model
+from workbench.sampling.step_stats import StepStats
+from workbench.validation import as_array, fail, integer, real
+
+# [A] assumed defaults for the navigation double integrator (|u_i| <= 5 m/s^2, speeds up to
+# ~5 m/s, dt = 0.02 s): the deadbeat braking gain 1/dt stops each axis exactly, in
+# ceil(|v_i| / (5 * 0.02)) <= 50 steps from 5 m/s; a 60-step horizon (1.2 s) covers that stop
+# plus 10 steps at rest.
+DEFAULT_HORIZON = 60
+
+
+@dataclass(frozen=True)
+class GatekeeperConfig:
+    """Shield settings: ``horizon`` backup steps checked after x1 (default 60, an assumed
+    value: see :func:`braking_backup`), ``margin`` >= 0 that every h_i must exceed (in the
+    units of the model's margins; 0: plain safety h > 0)."""
+
+    horizon: int = DEFAULT_HORIZON
+    margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        integer("GatekeeperConfig.horizon", self.horizon, 1)
+        real("GatekeeperConfig.margin", self.margin, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class BackupPolicy:
+    """A state-feedback backup law: ``function`` maps the physical state (n,) to a control
+    (nu,) already clipped to the model's box. Build one with :func:`braking_backup` or
+    :func:`backup_from_expression`."""
+
+    function: ca.Function
+    name: str = "backup"
+
+    @functools.cached_property
+    def _fast(self) -> FastFunction:
+        return FastFunction(self.function)
+
+    def __call__(self, x) -> np.ndarray:
+        """The backup control at ``x`` (NumPy)."""
+        return self._fast(np.asarray(x, dtype=float))[0]
+
+
+def backup_from_expression(model: Model, expr, name: str = "backup") -> BackupPolicy:
+    """A backup law u = clip(expr(x)) from a CasADi expression in the model's physical state
+    symbols ``model.x[:n_physical]`` (nu entries)."""
+    m = model if model.nx == model.n_physical else physical_model(model)
+    try:
+        e = ca.SX(expr)
+    except (NotImplementedError, TypeError, RuntimeError) as exc:
+        raise fail("expr", expr, "must be a CasADi SX expression") from exc
+    if e.numel() != m.nu:
+        raise fail("expr", e.shape, f"must have {m.nu} entries (one per control of {m.name})")
+    known = ca.symvar(m.x)
+    extra = [s.name() for s in ca.symvar(e) if not any(ca.is_equal(s, k) for k in known)]
+    if extra:
+        raise fail("expr", extra, f"may depend only on the physical state symbols of {m.name}")
+    u = ca.fmin(ca.fmax(ca.vec(e), m.u_min), m.u_max)
+    return BackupPolicy(ca.Function(name, [m.x], [u], ["x"], ["u"]), name)
+
+
+def braking_backup(model: Model, velocity: Sequence[int] = (2, 3),
+                   gain: float | None = None) -> BackupPolicy:
+    """Braking for position-velocity models: u_i = clip(-gain * x[velocity[i]]), control i
+    accelerating state ``velocity[i]``. The default gain is 1/dt: with the Euler double
+    integrator each axis then reaches zero speed exactly (full braking, then one step that
+    cancels the rest), within ceil(|v_i| / (u_max dt)) steps."""
+    m = model if model.nx == model.n_physical else physical_model(model)
+    idx = tuple(velocity) if isinstance(velocity, Sequence) else (velocity,)
+    allowed = (f"need {m.nu} distinct state indices in [0, {m.nx - 1}] (one velocity per "
+               f"control of {m.name})")
+    if len(idx) != m.nu or len(set(idx)) != len(idx):
+        raise fail("velocity", velocity, allowed)
+    for i in idx:
+        try:
+            integer("velocity", i, 0, m.nx - 1)
+        except ValueError as exc:
+            raise fail("velocity", velocity, allowed) from exc
+    g = 1.0 / m.dt if gain is None else real("gain", gain, 0.0, strict=True)
+    expr = ca.vertcat(*[-g * m.x[i] for i in idx])
+    return backup_from_expression(m, expr, name="braking")
+
+
+def backup_check_function(plant: Model, backup: BackupPolicy, horizon: int) -> ca.Function:
+    """(x1, scene) -> (min_margin, x_final): roll the backup out from x1 for ``horizon`` steps
+    (controls clipped to the box) and return the smallest margin over x1 and the ``horizon``
+    rollout states, and the last state. One fold over the horizon."""
+    n, ns = plant.nx, plant.n_scene
+    f = ca.Function("f", [plant.x, plant.u], [plant.x_next])
+    h = ca.Function("h", [plant.x, plant.scene], [plant.h])
+    carry, s = ca.SX.sym("carry", n + 1), ca.SX.sym("scene", ns)
+    x = carry[:n]
+    u = ca.fmin(ca.fmax(backup.function(x), plant.u_min), plant.u_max)
+    xn = f(x, u)
+    step = ca.Function("backup_step", [carry, s],
+                       [ca.vertcat(xn, ca.fmin(carry[n], ca.mmin(h(xn, s))))])
+    folded = step.fold(horizon)
+    x1, sc = ca.SX.sym("x1", n), ca.SX.sym("scene", ns)
+    cT = folded(ca.vertcat(x1, ca.mmin(h(x1, sc))), ca.repmat(sc, 1, horizon))
+    return ca.Function("backup_check", [x1, sc], [cT[n], cT[:n]], ["x1", "scene"],
+                       ["min_margin", "x_final"])
+
+
+@dataclass(frozen=True)
+class GatekeeperState:
+    inner: object  # the inner controller's state
+
+
+@dataclass(frozen=True, kw_only=True)
+class GatekeeperInfo:
+    inner: object  # the inner controller's step info
+    backup_used: bool
+    backup_min_margin: float  # min margin over x1 = f(x, u_proposed) and its backup rollout
+    proposed: np.ndarray  # the inner controller's control, clipped to the box
+    time_s: float  # the whole step, the inner controller's included
+
+    @property
+    def stats(self) -> StepStats:
+        """The inner controller's stats with activity plus ``backup_used`` (0/1)."""
+        s = getattr(self.inner, "stats", None)
+        if s is None:
+            return StepStats(n_samples=0, n_collision_free=0, ess=float("nan"),
+                             activity={"backup_used": float(self.backup_used)})
+        return StepStats(n_samples=s.n_samples, n_collision_free=s.n_collision_free,
+                         ess=s.ess, activity={**s.activity, "backup_used": float(self.backup_used)})
+
+
+class Gatekeeper:
+    """Backup shield around ``inner`` (any controller with ``initial_state`` and
+    ``step(state, x, rng)``) for the plant model ``plant`` (its physical part is used; the
+    measured state is the plant's)."""
+
+    def __init__(self, inner, plant: Model, backup: BackupPolicy,
+                 config: GatekeeperConfig = GatekeeperConfig()):
+        if not callable(getattr(inner, "step", None)) or not callable(
+                getattr(inner, "initial_state", None)):
+            raise fail("inner", type(inner).__name__,
+                       "must be a controller with initial_state(x0) and step(state, x, rng)")
+        if not isinstance(plant, Model):
+            raise fail("plant", type(plant).__name__, "must be a workbench Model")
+        if not isinstance(backup, BackupPolicy):
+            raise fail("backup", type(backup).__name__, "must be a BackupPolicy "
+                       "(braking_backup(...) or backup_from_expression(...))")
+        if not isinstance(config, GatekeeperConfig):
+            raise fail("config", config, "must be a GatekeeperConfig")
+        m = plant if plant.nx == plant.n_physical else physical_model(plant)
+        if not m.nh:
+            raise fail("plant", m.name, "has no safety margins h(x): nothing to keep safe")
+        fn = backup.function
+        if (fn.n_in() != 1 or fn.n_out() != 1 or fn.numel_in(0) != m.nx
+                or fn.numel_out(0) != m.nu):
+            raise fail("backup", backup.name,
+                       f"its function must map the state ({m.nx},) to a control ({m.nu},)")
+        self.inner, self.plant, self.backup, self.cfg = inner, m, backup, config
+        self.sampler = getattr(inner, "sampler", None)
+        self.check_function = backup_check_function(m, backup, config.horizon)
+        self._check = FastFunction(self.check_function)
+        self._f = FastFunction(ca.Function("f", [m.x, m.u], [m.x_next]))
+        self._scene = m.scene_vector(None)
+
+    @property
+    def scene(self) -> np.ndarray:
+        """The current scene vector of the check."""
+        return self._scene
+
+    def set_scene(self, scene) -> None:
+        """Check against ``scene`` from the next step on (see
+        :meth:`~workbench.problem.Model.scene_vector`) and pass it to the inner controller."""
+        self._scene = self.plant.scene_vector(scene)
+        set_inner = getattr(self.inner, "set_scene", None)
+        if set_inner is not None:
+            set_inner(scene)
+
+    def backup_check(self, x1) -> tuple[float, np.ndarray]:
+        """(min margin over x1 and the backup rollout from it, the rollout's last state)."""
+        m, xT = self._check(as_array("x1", x1, (self.plant.nx,)), self._scene)
+        return float(m[0]), xT
+
+    def initial_state(self, x0=None) -> GatekeeperState:
+        return GatekeeperState(inner=self.inner.initial_state(x0))
+
+    def step(self, state: GatekeeperState, x, rng: np.random.Generator):
+        t0 = time.perf_counter()
+        if not isinstance(state, GatekeeperState):
+            raise fail("state", type(state).__name__, "must be a GatekeeperState "
+                       "(from Gatekeeper.initial_state)")
+        xa = np.asarray(x, dtype=float).ravel()
+        n, lo, hi = self.plant.nx, self.plant.u_min, self.plant.u_max
+        if xa.size < n or not np.all(np.isfinite(xa)):
+            raise fail("x", xa, f"the measured state must be finite with (at least) {n} "
+                       "entries, the plant's state first")
+        xp = xa[:n]
+        inner_state, u, info = self.inner.step(state.inner, x, rng)
+        u = np.asarray(u, dtype=float).ravel()
+        if u.shape != (self.plant.nu,):
+            raise fail("inner control", u, f"expected {self.plant.nu} entries")
+        proposed = np.clip(u, lo, hi)
+        if np.all(np.isfinite(proposed)):
+            m, _ = self.backup_check(self._f(xp, proposed)[0])
+        else:
+            m = -np.inf
+        use_backup = not m > self.cfg.margin
+        applied = np.clip(self.backup(xp), lo, hi) if use_backup else proposed
+        ginfo = GatekeeperInfo(inner=info, backup_used=bool(use_backup), backup_min_margin=m,
+                               proposed=proposed, time_s=time.perf_counter() - t0)
+        return GatekeeperState(inner=inner_state), applied, ginfo
+
+
+__all__ = ["BackupPolicy", "Gatekeeper", "GatekeeperConfig", "GatekeeperInfo",
+           "GatekeeperState", "backup_check_function", "backup_from_expression",
+           "braking_backup"]
