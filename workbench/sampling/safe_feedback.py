@@ -1,0 +1,495 @@
+"""Feedback laws for Robust MPPI from the two other safety mechanisms: gains K_k (T, nu, nx).
+
+Next to K_safe (barrier states, :class:`~workbench.sampling.feedback.ILQGFeedback` on the
+barrier-embedded model), these laws put the augmented Lagrangian and the ECBF filter inside the
+SAIS sampler, so the three mechanisms can be compared with everything else equal. Both act on a
+plain (physical) model with safety margins and zero-pad their gains to the sampler's state size;
+both linearise about the nominal trajectory the sampler uses (the clipped open-loop rollout of
+u* from x*_0) and track it with the cost of the plain iLQG feedback (½|x-x*|²_Q + ½|u-u*|²_R,
+terminal ½|x-x*|²_Q).
+
+* :class:`ALFeedback` — one derivative evaluation and one backward pass of the AL-iLQG inner
+  problem (:func:`workbench.ilqg.al.al_problem`, the PHR augmented Lagrangian) with the current
+  multipliers. Multipliers are carried from step to step in the returned :class:`ALGains`
+  (shifted by the stride) and updated once per call on the nominal rollout,
+  lambda <- min(lambda_max, max(0, lambda + mu c(x_k))): one outer AL iteration per control
+  step, a real-time-iteration reading of AL-iLQG (Diehl, Bock & Schlöder 2005) in which the
+  sampler, not an inner iLQG solve, moves the primal trajectory. Where no penalty term is
+  active (mu c + lambda <= 0 everywhere) the gains are exactly the plain tracking gains. The
+  inner problem's state Hessian is Gauss-Newton (mu grad(c) grad(c)^T on the active terms), so
+  the multipliers enter the gains only through the active set: their size moves only the
+  feedforward term, which the sampler does not use. Warm-started multipliers keep a term
+  active (mu c + lambda > 0) after the nominal has left the constraint boundary.
+* :class:`ECBFFeedback` — the gains of the ECBF-QP filter (:mod:`workbench.filters.ecbf`)
+  wrapped around the tracking law u_ref = u*_k + K_k (x - x*_k), linearised at x*_k with the
+  filter's active set held fixed: d pi_k / dx at x*_k by implicit differentiation of the QP's
+  KKT system (Fiacco 1976; Amos & Kolter 2017, arXiv:1703.00443).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import casadi as ca
+import daqp
+import numpy as np
+
+from workbench.codegen.fastcall import FastFunction
+from workbench.filters.ecbf import ECBFFilter, ECBFOptions
+from workbench.ilqg import make_passes
+from workbench.ilqg.al import al_problem
+from workbench.problem.costs import quadratic_tracking
+from workbench.problem.models import Model
+from workbench.sampling.feedback import FeedbackWeights, Gains, ILQGFeedback, shifted
+from workbench.validation import as_array, fail, integer, real
+
+
+def _check_plain(model: Model, horizon: int, nx_full: int, weights: FeedbackWeights,
+                 law: str) -> None:
+    integer("horizon", horizon, 1)
+    integer("nx_full", nx_full, model.nx)
+    if model.n_physical != model.nx:
+        raise fail("model", model.name, f"{law} acts on the plain (physical) model; pass "
+                   "workbench.sampling.controllers.physical_model(embedded_model)")
+    if model.nh == 0:
+        raise fail("model.h", model.name, f"{law} needs at least one safety margin")
+    if len(weights.Q) != model.nx:
+        raise fail("FeedbackWeights.Q", weights.Q, f"need {model.nx} entries (the state of "
+                   f"{model.name}); FeedbackWeights.for_model sizes them")
+    if len(weights.R) != model.nu:
+        raise fail("FeedbackWeights.R", weights.R, f"need {model.nu} entries")
+
+
+def _pad(K: np.ndarray, nx_full: int) -> np.ndarray:
+    if K.shape[2] == nx_full:
+        return K
+    out = np.zeros((K.shape[0], K.shape[1], nx_full))
+    out[:, :, : K.shape[2]] = K
+    return out
+
+
+def _fallback(previous: Gains | None, stride: int, shape: tuple[int, int, int]) -> np.ndarray:
+    """The gains of a failed computation: the previous ones shifted, or (none) K = 0."""
+    if previous is None or previous.K.shape != shape:
+        return np.zeros(shape)
+    return shifted(previous.K, stride)
+
+
+# ----------------------------------------------------------------------------------------------
+# augmented Lagrangian
+
+
+@dataclass(frozen=True)
+class ALFeedbackOptions:
+    """PHR settings of :class:`ALFeedback`.
+
+    mu: the penalty, fixed over time and horizon ([A] 1e3: with the default tracking weights
+    Q = (500, 500, 100, 100) the Gauss-Newton term mu grad(c) grad(c)^T of an active circle
+    constraint (|grad c| ~ 2 r) is then of the order of Q; with ALOptions' mu_init = 1 it would
+    barely move the gains). lambda_init: the multipliers of the first call and of the steps
+    that enter at the end of the horizon. lambda_max: cap of the update (a nominal that stays
+    in violation would otherwise grow the multipliers without bound).
+    """
+
+    mu: float = 1e3
+    lambda_init: float = 0.0
+    lambda_max: float = 1e8
+
+    def __post_init__(self) -> None:
+        real("ALFeedbackOptions.mu", self.mu, 0.0, strict=True)
+        real("ALFeedbackOptions.lambda_init", self.lambda_init, 0.0)
+        real("ALFeedbackOptions.lambda_max", self.lambda_max, 0.0, strict=True)
+        if self.lambda_max < self.lambda_init:
+            raise fail("ALFeedbackOptions.lambda_max", self.lambda_max,
+                       f"must be >= lambda_init = {self.lambda_init}")
+
+
+@dataclass(frozen=True)
+class ALGains(Gains):
+    """Gains of :class:`ALFeedback` with the multipliers for the next call.
+
+    multipliers (T+1, nh): lambda after this call's update (row k belongs to x_k of this call's
+    horizon; row 0 stays 0: x_0 is fixed). multipliers_used: the ones the gains were computed
+    with."""
+
+    multipliers: np.ndarray | None = None
+    multipliers_used: np.ndarray | None = None
+
+
+class ALFeedback:
+    """Gains of the AL-iLQG inner problem about the nominal rollout (see the module docstring).
+
+    ``model``: a plain model with margins h(x) (constraints c = -h <= 0); ``nx_full``: the
+    sampler's state size (gains zero-padded to it). The scene rides in the AL parameters.
+    Fallbacks as in :class:`~workbench.sampling.feedback.ILQGFeedback`: when the derivatives or
+    the gains are not finite, or the backward pass fails at every regularisation level, the
+    previous gains shifted by the stride are used and the reason is reported (K = 0 only when
+    there are no previous gains, also reported). The multiplier update does not depend on the
+    gains and happens in every call with a finite nominal rollout.
+
+    Activity: ``al_active`` — the share of the horizon's constrained steps x_1..x_T where some
+    penalty term is active (mu c + lambda > 0) in the gains' parameters.
+    """
+
+    def __init__(self, model: Model, horizon: int, nx_full: int,
+                 weights: FeedbackWeights = FeedbackWeights(),
+                 options: ALFeedbackOptions = ALFeedbackOptions(), name: str = "al_ilqg"):
+        _check_plain(model, horizon, nx_full, weights, "ALFeedback")
+        if not isinstance(options, ALFeedbackOptions):
+            raise fail("options", options, "must be an ALFeedbackOptions")
+        cost = quadratic_tracking(model, Q=weights.Q, R=weights.R, S=weights.Q)
+        self.tracking_cost = cost
+        self.al = al_problem(model, cost)
+        self.problem = self.al.problem
+        self.passes = make_passes(self.problem, horizon)
+        self.passes.set_scene(np.zeros(0))  # the inner model has none: the scene is in P
+        self.model, self.name, self.w, self.opt = model, name, weights, options
+        self.T, self.nx_full, self.nh = horizon, nx_full, model.nh
+        nx, nu = model.nx, model.nu
+        self._zk, self._zK = np.zeros((horizon, nu)), np.zeros((horizon, nu, nx))
+        self._X0 = np.zeros((horizon + 1, nx))
+        self._c = FastFunction(self.al.constraints, horizon + 1, shared=(1,))
+        self.set_scene(None)
+
+    def set_scene(self, scene) -> None:
+        """The obstacles the gains and the multiplier update use (see
+        :meth:`~workbench.problem.Model.scene_vector`; None: the model's own)."""
+        self._scene = self.model.scene_vector(scene)
+        z = np.zeros((self.T + 1, self.nh))
+        # the open-loop rollout's cost is not used: any parameters with mu > 0 will do
+        self._P0 = self.al.params(np.zeros((self.T + 1, self.al.n_base_params)), z,
+                                  z + self.opt.mu, self._scene)
+
+    def nominal(self, x_nom: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The clipped open-loop nominal trajectory (X (T+1, nx), U (T, nu))."""
+        m = self.model
+        fw = self.passes.forward(x_nom[: m.nx], self._X0, U, self._zk, self._zK, self._P0, 0.0,
+                                 m.u_min, m.u_max, use_policy=False)
+        return fw.X, fw.U
+
+    def constraint_values(self, X: np.ndarray) -> np.ndarray:
+        """c(x_k) = -h(x_k) (T+1, nh) along X (T+1, nx) in the current scene."""
+        return self._c(X, self._scene)[0].reshape(self.T + 1, self.nh)
+
+    def initial_multipliers(self) -> np.ndarray:
+        lam = np.full((self.T + 1, self.nh), self.opt.lambda_init)
+        lam[0] = 0.0
+        return lam
+
+    def warm_start(self, previous: Gains | None, stride: int) -> np.ndarray:
+        """The multipliers of this call: the previous call's (after its update) shifted by
+        ``stride``, new tail rows at lambda_init; lambda_init without a previous AL call."""
+        lam = self.initial_multipliers()
+        prev = getattr(previous, "multipliers", None)
+        if prev is None or prev.shape != lam.shape:
+            return lam
+        s = max(int(stride), 0)
+        lam[1 : self.T + 1 - s] = prev[1 + s :]
+        return lam
+
+    def params(self, X: np.ndarray, U: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        """AL parameters: track (X, U) with multipliers ``lam``, penalty mu, this scene."""
+        P_base = self.tracking_cost.params(self.T, x_ref=X, u_ref=np.vstack([U, U[-1:]]))
+        mu = np.full((self.T + 1, self.nh), self.opt.mu)
+        return self.al.params(P_base, lam, mu, self._scene)
+
+    def gains(self, x_nom, U, previous: Gains | None, stride: int) -> ALGains:
+        U = as_array("U", U, (self.T, self.model.nu))
+        X, Uc = self.nominal(x_nom, U)
+        lam = self.warm_start(previous, stride)
+        C = self.constraint_values(X) if np.all(np.isfinite(X)) else np.full(lam.shape, np.nan)
+        finite_c = bool(np.all(np.isfinite(C)))
+        unsafe = finite_c and bool(np.max(C) >= 0.0)
+        active = (self.opt.mu * C[1:] + lam[1:] > 0.0).any(axis=1) if finite_c else None
+        activity = {"al_active": float(active.mean()) if active is not None else 0.0}
+        lam_next = lam.copy()
+        if finite_c:
+            lam_next[1:] = np.minimum(self.opt.lambda_max,
+                                      np.maximum(0.0, lam[1:] + self.opt.mu * C[1:]))
+        m = self.model
+        record = dict(nominal_unsafe=unsafe, activity=activity, multipliers=lam_next,
+                      multipliers_used=lam)
+        reason = None
+        d = self.passes.derivatives(X, Uc, self.params(X, Uc, lam))
+        if not all(np.all(np.isfinite(a)) for a in d.values()):
+            reason = "nonfinite_derivatives"
+        else:
+            mu = self.w.mu
+            while mu <= self.w.mu_max:
+                bw = self.passes.backward(d, Uc, m.u_min, m.u_max, mu, 0, False)
+                if bw.status == 0:
+                    if not np.all(np.isfinite(bw.K)):
+                        reason = "nonfinite_gains"
+                        break
+                    return ALGains(K=_pad(bw.K, self.nx_full), fallback=None, mu=mu, **record)
+                mu = max(mu * 10.0, 1e-8)
+            else:
+                reason = "backward_failed"
+        K = _fallback(previous, stride, (self.T, m.nu, self.nx_full))
+        return ALGains(K=K, fallback=reason, mu=np.nan, **record)
+
+
+# ----------------------------------------------------------------------------------------------
+# ECBF filter
+
+
+def _kkt_matrix(H: np.ndarray, E: np.ndarray) -> np.ndarray:
+    """[H -E^T; E 0]."""
+    n, q = H.shape[0], E.shape[0]
+    M = np.zeros((n + q, n + q))
+    M[:n, :n], M[:n, n:], M[n:, :n] = H, -E.T, E
+    return M
+
+
+def _solve_kkt(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """M z = rhs; least squares when the held rows are dependent (M singular). Any z with
+    M z = rhs has the same control part (H is positive definite), so a direct solve whose
+    residual is small is as good as the least-squares one."""
+    try:
+        z = np.linalg.solve(M, rhs)
+        tol = 1e-10 * max(1.0, float(np.abs(rhs).max()), float(np.abs(M).max()))
+        if np.all(np.isfinite(z)) and np.abs(M @ z - rhs).max() <= tol * max(
+                1.0, float(np.abs(z).max())):
+            return z
+    except np.linalg.LinAlgError:
+        pass
+    return np.linalg.lstsq(M, rhs, rcond=None)[0]
+
+
+@dataclass(frozen=True)
+class FilterSensitivity:
+    """d pi / dx of the ECBF-QP at one state with its active set held fixed.
+
+    gain (nu, nx); u: the QP's solution, recomputed on the active set; hard: ECBF rows held as
+    equalities; soft: rows violated at u (soft mode, infeasible QP: positive slacks);
+    box_upper / box_lower: control indices held at a bound."""
+
+    gain: np.ndarray
+    u: np.ndarray
+    hard: tuple[int, ...]
+    soft: tuple[int, ...]
+    box_upper: tuple[int, ...]
+    box_lower: tuple[int, ...]
+
+
+class ECBFFeedback:
+    """Gains of the ECBF-QP filter wrapped around the plain iLQG tracking law.
+
+    At step k the filtered control is pi_k(x) = argmin_u |u - (u*_k + K_k (x - x*_k))|² s.t.
+    the ECBF rows a_i(x)^T u >= b_i(x) (:func:`~workbench.filters.ecbf.ecbf_rows`, normalised
+    to |a_i| = 1 as in :class:`~workbench.filters.ecbf.ECBFFilter`; soft mode adds the same
+    slack cost) and the control box; K_k are the tracking gains of
+    :class:`~workbench.sampling.feedback.ILQGFeedback` on the same model. The returned gain is
+    d pi_k/dx at x*_k with the QP's active set there (u_ref = u*_k) held fixed. With active
+    rows A (ECBF rows and box bounds with a positive multiplier) and no violated rows it is
+
+        d pi/dx = (I - P)(K + sum_i lambda_i da_i/dx) + A^+ (db/dx - (da/dx) pi(x*)),
+
+    P = A^+ A, lambda the multipliers of pi - u_ref = A^T lambda: the tracking gain projected
+    onto the active rows' null space, the rows' own motion, and the turn of that null space as
+    a_i(x) rotates (zero for constant rows, not for circles). It is computed from the QP's KKT
+    system with the active set fixed (least squares where dependent active rows make it
+    singular: the control part of the solution is still unique); rows violated in an
+    infeasible soft QP enter through their slack cost. Row Jacobians: CasADi's, of the filter's
+    own row Function.
+
+    The QP at x*_k is solved exactly by daqp (dual active set) on the rows that can bind
+    somewhere in the box (the others cannot be active), the QP of ECBFFilter (which OSQP
+    solves to its tolerance); should daqp fail, ECBFFilter itself is used. As in the filter,
+    steps where clip(u*_k) satisfies every row to within ``eps_abs`` are unconstrained and keep
+    K_k; so do box bounds that are merely touched (zero multiplier): the sampler clips every
+    control, which reproduces the box to first order. In hard mode an infeasible step falls
+    back to clip(u_ref), as the filter does, and keeps K_k.
+
+    Only the gains enter the sampler: the feedforward offset pi_k(x*_k) - u*_k (nonzero where a
+    row is active) cannot be represented by SAIS' u* + K (x - x*) and is not applied.
+
+    Fallbacks as in :class:`~workbench.sampling.feedback.ILQGFeedback` (reasons from
+    ``FALLBACK_REASONS``): when the tracking gains fall back, or the row Jacobians or the
+    filtered gains are not finite, the previous gains are shifted by the stride.
+
+    Activity: ``ecbf_active`` — the share of horizon steps where some ECBF row is active (the
+    filter changes the reference there); ``ecbf_infeasible`` — the share where the QP is
+    infeasible (positive slacks, or the hard-mode fallback).
+    """
+
+    def __init__(self, model: Model, horizon: int, nx_full: int,
+                 weights: FeedbackWeights = FeedbackWeights(),
+                 ecbf: ECBFOptions = ECBFOptions(),  # noqa: B008 (frozen)
+                 name: str = "ecbf"):
+        _check_plain(model, horizon, nx_full, weights, "ECBFFeedback")
+        if not isinstance(ecbf, ECBFOptions):
+            raise fail("ecbf", ecbf, "must be an ECBFOptions")
+        self.model, self.name, self.opt = model, name, ecbf
+        self.T, self.nx_full = horizon, nx_full
+        self.nx, self.nu, self.nh = model.nx, model.nu, model.nh  # (Model computes them)
+        self.tracking = ILQGFeedback(model, horizon, model.nx, weights, name="ilqg")
+        self.filter = ECBFFilter(model, ecbf)
+        x = ca.SX.sym("x", self.nx)
+        s = ca.SX.sym("scene", model.n_scene)
+        a, b = self.filter.ecbf.rows(x, s)
+        norm = ca.fmax(ca.sqrt(ca.sum2(a * a)), 1e-12)  # as ECBFFilter normalises them
+        an, bn = a / norm, b / norm
+        rows = ca.Function("ecbf_rows_normalised", [x, s], [an, bn], {"cse": True})
+        self._rows = FastFunction(rows, horizon, shared=(1,))
+        self._jac = FastFunction(ca.Function(
+            "ecbf_row_jacobians", [x, s],
+            [an, bn, ca.jacobian(ca.vec(an), x), ca.jacobian(bn, x)], {"cse": True}))
+        self.set_scene(None)
+
+    def set_scene(self, scene) -> None:
+        """The obstacles of the tracking gains, the filter and its rows (see
+        :meth:`~workbench.problem.Model.scene_vector`; None: the model's own)."""
+        self._scene = self.model.scene_vector(scene)
+        self.tracking.set_scene(self._scene)
+        self.filter.set_scene(self._scene)
+
+    def nominal(self, x_nom: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The clipped open-loop nominal trajectory (X (T+1, nx), U (T, nu))."""
+        return self.tracking.nominal(x_nom, U)
+
+    def rows(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Normalised rows at x in the current scene: a (nh, nu), b (nh,), da/dx (nh, nu, nx),
+        db/dx (nh, nx)."""
+        nh, nu, nx = self.nh, self.nu, self.nx
+        a, b, da, db = self._jac(x, self._scene)
+        return (a.reshape(nu, nh).T, b, da.reshape(nx, nu, nh).transpose(2, 1, 0),
+                db.reshape(nx, nh).T)
+
+    def solve(self, a: np.ndarray, b: np.ndarray, u_ref: np.ndarray):
+        """The filter's QP on normalised rows a (nh, nu), b (nh,) and its active set: (u, hard
+        rows, soft (violated) rows, controls at the upper / lower bound), or None where the
+        filter falls back to clip(u_ref) (hard mode, infeasible)."""
+        m, o = self.model, self.opt
+        lo, hi, nu = m.u_min, m.u_max, self.nu
+        # min over the box of a_i u: a row with b_i below it holds for every boxed control
+        low = np.where(a > 0, a * lo, np.where(a < 0, a * hi, 0.0)).sum(axis=1)
+        keep = np.flatnonzero(~(b < low - 1e-9))
+        ak, bk, n = a[keep], b[keep], keep.size
+        inf = np.full(n, np.inf)
+        if o.mode == "hard":
+            H, f, A, ns = 2.0 * np.eye(nu), -2.0 * u_ref, ak, 0
+            upper, lower = np.concatenate([hi, inf]), np.concatenate([lo, bk])
+        else:  # z = [u; delta]: rows a_i u + delta_i >= b_i, delta >= 0
+            H = np.diag(np.concatenate([np.full(nu, 2.0), np.full(n, 2.0 * o.slack_quadratic)]))
+            f = np.concatenate([-2.0 * u_ref, np.full(n, o.slack_linear)])
+            A, ns = np.hstack([ak, np.eye(n)]), n
+            upper = np.concatenate([hi, inf, inf])
+            lower = np.concatenate([lo, np.zeros(n), bk])
+        z, _, flag, info = daqp.solve(H, f, A, upper, lower,
+                                      np.zeros(upper.size, dtype=np.int32))
+        z, lam = np.asarray(z, dtype=float), np.asarray(info["lam"], dtype=float)
+        if flag in (1, 2) and np.all(np.isfinite(z)) and np.all(np.isfinite(lam)):
+            u = np.minimum(np.maximum(z[:nu], lo), hi)
+            # daqp's working set: lam > 0 at an upper bound, lam < 0 at a lower one
+            on = lam[nu + ns :] < 0  # rows in the working set; soft mode: is delta_i = 0 too?
+            zero_slack = lam[nu : nu + ns] < 0 if ns else np.ones(n, bool)
+            return (u, list(keep[on & zero_slack]), keep[on & ~zero_slack],
+                    list(np.flatnonzero(lam[:nu] > 0)), list(np.flatnonzero(lam[:nu] < 0)))
+        if o.mode == "hard" and flag == -1:
+            return None  # infeasible: the filter returns clip(u_ref)
+        res = self.filter.solve_rows(a, b, u_ref)  # daqp failed: the filter itself (OSQP)
+        if res.fallback_used:
+            return None
+        tol = 10.0 * max(o.eps_abs, o.eps_rel)
+        resid = b - a @ res.u
+        soft = np.flatnonzero(resid > tol) if o.mode == "soft" else np.zeros(0, int)
+        return (res.u, list(np.flatnonzero(np.abs(resid) <= tol)), soft,
+                list(np.flatnonzero(res.u >= hi - tol)), list(np.flatnonzero(res.u <= lo + tol)))
+
+    def sensitivity(self, x: np.ndarray, u_ref: np.ndarray,
+                    K: np.ndarray) -> FilterSensitivity | None:
+        """d pi/dx at x for the reference u_ref + K (x' - x), with the QP's active set at x held
+        fixed; None where the filter falls back to clip(u_ref) (hard mode, infeasible)."""
+        a, b, da, db = self.rows(x)
+        qp = self.solve(a, b, u_ref)
+        if qp is None:
+            return None
+        _, hard, soft, upper, lower = qp
+        for _ in range(self.nh + 2 * self.nu + 1):
+            M, u, nu_h, nu_u, nu_l = self._kkt(a, b, u_ref, hard, soft, upper, lower)
+            # a merely touched box bound is left to the sampler's clip; a row pulling the wrong
+            # way (negative multiplier) is not active
+            small = 1e-9 * max(1.0, float(np.abs(u_ref).max()))
+            drop = [(v, "u", j) for v, j in zip(nu_u, upper, strict=True) if v <= small]
+            drop += [(v, "l", j) for v, j in zip(nu_l, lower, strict=True) if v <= small]
+            drop += [(v, "h", i) for v, i in zip(nu_h, hard, strict=True) if v < -small]
+            if not drop:
+                break
+            _, kind, j = min(drop)
+            {"u": upper, "l": lower, "h": hard}[kind].remove(j)
+        # d/dx of the KKT residuals at fixed (u, nu); J_z dz = -J_x. Residual 1:
+        # H u - E^T nu - 2 (u* + K (x - x*)) - sum_soft (L + 2 rho b_i) a_i
+        R = np.zeros((M.shape[0], self.nx))
+        R[: self.nu] = -2.0 * K
+        for v, i in zip(nu_h, hard, strict=True):
+            R[: self.nu] -= v * da[i]
+        L, rho = self.opt.slack_linear, self.opt.slack_quadratic
+        for i in soft:
+            s_i = b[i] - a[i] @ u  # the slack
+            R[: self.nu] -= (L + 2.0 * rho * s_i) * da[i] + 2.0 * rho * np.outer(
+                a[i], db[i] - u @ da[i])
+        # residual 2: E u - e (box rows are constant)
+        for r, i in enumerate(hard):
+            R[self.nu + r] = u @ da[i] - db[i]
+        G = _solve_kkt(M, -R)[: self.nu]
+        return FilterSensitivity(gain=G, u=u, hard=tuple(int(i) for i in hard),
+                                 soft=tuple(int(i) for i in soft),
+                                 box_upper=tuple(int(j) for j in upper),
+                                 box_lower=tuple(int(j) for j in lower))
+
+    def _kkt(self, a, b, u_ref, hard, soft, upper, lower):
+        """KKT matrix, solution and multipliers (>= 0 when active) with the active set held
+        as E u = e (ECBF rows, then -u_j = -u_max_j, u_j = u_min_j):
+        [H -E^T; E 0] [u; nu] = [2 u_ref + sum_soft (L + 2 rho b_i) a_i; e]."""
+        m, o = self.model, self.opt
+        eye = np.eye(self.nu)
+        E = np.vstack([a[hard], -eye[upper], eye[lower]])
+        e = np.concatenate([b[hard], -m.u_max[upper], m.u_min[lower]])
+        H, g = 2.0 * eye, 2.0 * u_ref
+        if len(soft):
+            H = H + 2.0 * o.slack_quadratic * a[soft].T @ a[soft]
+            g = g + a[soft].T @ (o.slack_linear + 2.0 * o.slack_quadratic * b[soft])
+        M = _kkt_matrix(H, E)
+        z = _solve_kkt(M, np.concatenate([g, e]))
+        u, mult, nh_ = z[: self.nu], z[self.nu :], len(hard)
+        return M, u, mult[:nh_], mult[nh_ : nh_ + len(upper)], mult[nh_ + len(upper) :]
+
+    def gains(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
+        U = as_array("U", U, (self.T, self.nu))
+        shape = (self.T, self.nu, self.nx_full)
+        g = self.tracking.gains(x_nom, U, None, stride)
+        idle: Mapping[str, float] = {"ecbf_active": 0.0, "ecbf_infeasible": 0.0}
+        if g.fallback is not None:
+            return Gains(K=_fallback(previous, stride, shape), fallback=g.fallback,
+                         nominal_unsafe=g.nominal_unsafe, mu=np.nan, activity=idle)
+        X, Uc = self.nominal(x_nom, U)
+        nh, nu = self.nh, self.nu
+        a_all, b_all = self._rows(X[:-1], self._scene)
+        a_all = a_all.reshape(self.T, nu, nh).transpose(0, 2, 1)
+        b_all = b_all.reshape(self.T, nh)
+        # as the filter's shortcut: clip(u_ref) = u* satisfies every row to within eps_abs
+        violation = b_all - np.einsum("kij,kj->ki", a_all, Uc)
+        K = g.K.copy()
+        active = (violation > self.opt.eps_abs).any(axis=1)
+        infeasible = np.zeros(self.T, bool)
+        reason = None
+        for k in np.flatnonzero(active):
+            sens = self.sensitivity(X[k], Uc[k], g.K[k])
+            if sens is None:  # hard mode, infeasible: clip(u_ref), the tracking gain
+                infeasible[k] = True
+                continue
+            infeasible[k] = bool(sens.soft)
+            if not np.all(np.isfinite(sens.gain)):
+                finite = all(np.all(np.isfinite(r)) for r in self.rows(X[k]))
+                reason = "nonfinite_gains" if finite else "nonfinite_derivatives"
+                break
+            K[k] = sens.gain
+        activity = {"ecbf_active": float(active.mean()),
+                    "ecbf_infeasible": float(infeasible.mean())}
+        if reason is not None:
+            return Gains(K=_fallback(previous, stride, shape), fallback=reason,
+                         nominal_unsafe=g.nominal_unsafe, mu=np.nan, activity=activity)
+        return Gains(K=_pad(K, self.nx_full), fallback=None, nominal_unsafe=g.nominal_unsafe,
+                     mu=g.mu, activity=activity)
