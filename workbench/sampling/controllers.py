@@ -281,9 +281,10 @@ class RMPPIInfo:
     @property
     def stats(self) -> StepStats:
         """The real samples (with feedback: the system the plan is for) of the last SAIS
-        batch, and the ESS of the nominal weights (the ones that make the update); activity: the nominal state differs from the measured one, the feedback law
-        fell back, the selection found no admissible candidate, and the feedback law's own
-        mechanism activity (:attr:`Gains.activity`)."""
+        batch, and the ESS of the nominal weights (the ones that make the update). Activity:
+        the nominal state differs from the measured one, the feedback law fell back, the
+        selection found no admissible candidate, and the feedback law's own mechanism
+        activity (:attr:`Gains.activity`)."""
         act = {"nominal_differs": float(self.nominal_differs),
                "feedback_fallback": float(self.ksafe_fallback is not None),
                "selection_fallback": float(self.fallback_used), **self.gains_activity}

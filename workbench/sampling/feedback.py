@@ -31,7 +31,7 @@ from workbench.ilqg import make_passes
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import Model
 from workbench.problem.problem import Problem
-from workbench.validation import as_array, fail, real
+from workbench.validation import as_array, fail, integer, real
 
 FALLBACK_REASONS = ("backward_failed", "nonfinite_derivatives", "nonfinite_gains")
 
@@ -204,3 +204,35 @@ class ILQGFeedback:
         out[:, :, : K.shape[2]] = K
         return out
 
+
+def check_plain_law(model: Model, horizon: int, nx_full: int, weights: FeedbackWeights,
+                 law: str) -> None:
+    """Validate a feedback law's plain (physical) model, horizon, state size and weights."""
+    integer("horizon", horizon, 1)
+    integer("nx_full", nx_full, model.nx)
+    if model.n_physical != model.nx:
+        raise fail("model", model.name, f"{law} acts on the plain (physical) model; pass "
+                   "workbench.sampling.controllers.physical_model(embedded_model)")
+    if model.nh == 0:
+        raise fail("model.h", model.name, f"{law} needs at least one safety margin")
+    if len(weights.Q) != model.nx:
+        raise fail("FeedbackWeights.Q", weights.Q, f"need {model.nx} entries (the state of "
+                   f"{model.name}); FeedbackWeights.for_model sizes them")
+    if len(weights.R) != model.nu:
+        raise fail("FeedbackWeights.R", weights.R, f"need {model.nu} entries")
+
+
+def pad_gains(K: np.ndarray, nx_full: int) -> np.ndarray:
+    """Gains (T, nu, nx) zero-padded to the sampler's state size (gains on beta are 0)."""
+    if K.shape[2] == nx_full:
+        return K
+    out = np.zeros((K.shape[0], K.shape[1], nx_full))
+    out[:, :, : K.shape[2]] = K
+    return out
+
+
+def fallback_gains(previous: Gains | None, stride: int, shape: tuple[int, int, int]) -> np.ndarray:
+    """The gains of a failed computation: the previous ones shifted, or (none) K = 0."""
+    if previous is None or previous.K.shape != shape:
+        return np.zeros(shape)
+    return shifted(previous.K, stride)
