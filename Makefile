@@ -13,7 +13,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
 .PHONY: venv test study study-tracking-demo study-tracking study-navigation study-bound \
-	reports bench lint clean-cache clean
+	study-sampling-safety reports bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -33,7 +33,8 @@ lint: $(STAMP)
 # --set overrides (e.g. make study-tracking SET='noise_std=5 n_seeds=4')
 SETS = $(foreach s,$(SET),--set $(s))
 
-study: study-tracking-demo study-tracking study-navigation study-bound reports
+study: study-tracking-demo study-tracking study-navigation study-bound study-sampling-safety \
+	reports
 
 study-tracking-demo: $(STAMP)
 	$(WB) run tracking-demo --profile $(PROFILE) $(SETS)
@@ -50,6 +51,10 @@ study-navigation: $(STAMP)
 # Lemma 1 checked on SA-RMPPI episodes: quick about 2-2.5 min, paper 35-60 min
 study-bound: $(STAMP)
 	$(WB) run free-energy-bound --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
+
+# every safe-sampling method on one sampler (claim 1 of the paper): tiny/quick/paper profiles
+study-sampling-safety: $(STAMP)
+	$(WB) run sampling-safety --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
 
 # reports/index.html: every study's report, figures, tables and manifest, offline
 reports: $(STAMP)

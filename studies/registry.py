@@ -5,4 +5,5 @@ STUDIES = [
     "studies.tracking_comparison",
     "studies.navigation",
     "studies.free_energy_bound",
+    "studies.sampling_safety",
 ]

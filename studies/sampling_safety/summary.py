@@ -1,0 +1,161 @@
+"""Typed summary of a sampling-safety run, from the tidy tables ``episodes``, ``timing`` and
+``activity``.
+
+Metrics, each defined once here: safety = share of episodes without a crash (Wilson 95 %
+interval); collision-free sample fraction = per control step, the share of the samples the
+update was weighted over whose rollout never crashed (for the robust controllers: the real
+samples, with feedback), averaged over the episode's steps, then over realisations (95 %
+t-interval over realisations); ESS likewise; final error = distance to the goal at the end,
+over safe episodes; ms per step = mean compute time of a control step. Paired comparisons use
+the same realisations (common random numbers): McNemar's exact test on safety, a paired
+t-interval on the collision-free fraction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from studies.navigation.paired import Paired
+from workbench.study import Rate, RunStore, Spread, to_jsonable
+from workbench.study.spec import Summary
+
+
+def mean_interval(values, lo: float = -math.inf,
+                  hi: float = math.inf) -> tuple[float, float, float]:
+    """Mean and 95 % t-interval of a sample (nan interval for fewer than 2 values), the
+    interval cut to the quantity's range [lo, hi] (a fraction cannot leave [0, 1])."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return math.nan, math.nan, math.nan
+    m = float(v.mean())
+    if v.size < 2:
+        return m, math.nan, math.nan
+    half = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / math.sqrt(v.size))
+    return m, max(m - half, lo), min(m + half, hi)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One (controller, variance) cell over its realisations."""
+
+    controller: str
+    variance: float
+    n: int
+    safety: float
+    ci_low: float
+    ci_high: float
+    safe: Rate
+    reached: Rate  # within the goal radius at some step, over all realisations
+    final_error: Spread  # over safe realisations
+    final_error_low: float
+    final_error_high: float
+    collision_free_sample_fraction: float
+    cf_low: float
+    cf_high: float
+    ess_mean: float
+    ess_low: float
+    ess_high: float
+    mean_step_ms: float
+    median_step_ms: float
+    activity: dict[str, float]  # mechanism -> mean activity over steps and realisations
+
+    @classmethod
+    def of(cls, controller: str, variance: float, rows: pd.DataFrame, timing: pd.DataFrame,
+           activity: pd.DataFrame) -> Cell:
+        safe_mask = ~rows["crashed"].to_numpy(bool)
+        safe = Rate.of(safe_mask)
+        err = rows["final_error"].to_numpy(float)[safe_mask]
+        fe = mean_interval(err, 0.0)
+        cf = mean_interval(rows["collision_free_fraction"], 0.0, 1.0)
+        ess = mean_interval(rows["ess_mean"], 1.0)
+        act = {k: float(g["activity"].mean()) for k, g in activity.groupby("mechanism")}
+        return cls(controller, float(variance), safe.n, safe.value, safe.low, safe.high, safe,
+                   Rate.of(rows["reached"].to_numpy(bool)), Spread.of(err), fe[1], fe[2],
+                   *cf, *ess, float(timing["mean_step_ms"].mean()),
+                   float(timing["median_step_ms"].median()), act)
+
+
+@dataclass(frozen=True)
+class PairedFraction:
+    """Collision-free sample fraction of ``first`` minus ``second`` on the same realisations:
+    mean paired difference and its 95 % t-interval."""
+
+    first: str
+    second: str
+    variance: float
+    n: int
+    difference: float
+    low: float
+    high: float
+
+
+REFERENCES = ("bas_mppi", "sa_rmppi")  # every controller is paired with these
+
+
+@dataclass(frozen=True)
+class SamplingSafetySummary:
+    config: dict
+    dt: float  # the control period [s]
+    cells: tuple[Cell, ...]
+    paired: tuple[Paired, ...]
+    paired_fraction: tuple[PairedFraction, ...]
+
+    def cell(self, controller: str, variance: float) -> Cell | None:
+        return next((c for c in self.cells
+                     if (c.controller, c.variance) == (controller, variance)), None)
+
+    def pair(self, first: str, second: str, variance: float) -> Paired | None:
+        return next((p for p in self.paired
+                     if (p.first, p.second, p.variance) == (first, second, variance)), None)
+
+    def pair_fraction(self, first: str, second: str, variance: float) -> PairedFraction | None:
+        return next((p for p in self.paired_fraction
+                     if (p.first, p.second, p.variance) == (first, second, variance)), None)
+
+
+def summarise(config, store: RunStore) -> SamplingSafetySummary:
+    ep, timing, act = store.table("episodes"), store.table("timing"), store.table("activity")
+    cells = []
+    for (c, v), rows in ep.groupby(["controller", "variance"], sort=False):
+        tids = set(rows["task_id"])
+        cells.append(Cell.of(c, v, rows, timing[timing["task_id"].isin(tids)],
+                             act[act["task_id"].isin(tids)]))
+    paired, fractions = [], []
+    for v in config.variances:
+        at = ep[ep["variance"] == v]
+        for ref in REFERENCES:
+            ry = at[at["controller"] == ref]
+            if not len(ry):
+                continue
+            for c in config.controllers:
+                rx = at[at["controller"] == c]
+                if c == ref or not len(rx):
+                    continue
+                paired.append(Paired.of(c, ref, v, rx[["realisation", "crashed"]],
+                                        ry[["realisation", "crashed"]]))
+                m = rx.merge(ry, on="realisation", suffixes=("_1", "_2"))
+                d = (m["collision_free_fraction_1"] - m["collision_free_fraction_2"]).to_numpy()
+                fractions.append(PairedFraction(c, ref, float(v), int(d.size),
+                                                *mean_interval(d, -1.0, 1.0)))
+    return SamplingSafetySummary(config.as_dict(), float(config.scene.scene().dt), tuple(cells),
+                                 tuple(paired), tuple(fractions))
+
+
+def summary(finished) -> Summary:
+    """summary.json: the cells (with the fields the issue names), paired tests, the verdicts
+    on the paper's claim (1), and one console line per cell."""
+    from studies.sampling_safety.findings import verdicts
+    from workbench.scenarios.methods import NAMES
+
+    s = summarise(finished.config, finished.store)
+    lines = tuple(f"{NAMES[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
+                  f"[{100 * c.ci_low:.0f}, {100 * c.ci_high:.0f}]  collision-free samples "
+                  f"{100 * c.collision_free_sample_fraction:5.1f} %  ESS {c.ess_mean:7.1f}  "
+                  f"{c.mean_step_ms:6.2f} ms/step" for c in s.cells)
+    return Summary({**to_jsonable(s), "claims": to_jsonable(verdicts(s))}, s, lines)

@@ -1,0 +1,168 @@
+"""Tasks of the sampling-safety study: one closed-loop episode per (controller, variance,
+realisation), with per-step sample statistics.
+
+Common random numbers: a realisation's stream key is (variance, realisation) only, so every
+controller meets the same plant disturbances (``ctx.rng(1)``) and draws from the same
+controller stream (``ctx.rng(0)``) in realisation j at a variance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from functools import cache
+
+import numpy as np
+
+from studies.navigation.scene import MapSpec
+from studies.sampling_safety.config import RESULT_VERSION, StudyConfig, variance_key
+from workbench.sampling.calibration import calibrate
+from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
+from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.threshold import AlphaRule, Threshold
+from workbench.scenarios.methods import (
+    FEEDBACK,
+    ROBUST_METHODS,
+    MethodSettings,
+    build,
+    feedback_law,
+)
+from workbench.scenarios.navigation import NavigationSetup, navigation_setup
+from workbench.sim import Disturbance, closed_loop
+from workbench.study import TaskContext, TaskOutput
+from workbench.study.spec import Declaration
+
+
+@dataclass(frozen=True)
+class Realisation:
+    controller: str
+    variance: float
+    realisation: int
+
+    def stream_key(self) -> tuple[int, int]:
+        return variance_key(self.variance), self.realisation  # not the controller: CRN
+
+    def columns(self) -> dict[str, object]:
+        return {"controller": self.controller, "variance": self.variance,
+                "realisation": self.realisation}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """The config's controller settings as one hashable key for the per-process caches."""
+
+    scene: MapSpec
+    sampler: MPPIConfig
+    q_beta: float
+    robust: RMPPIConfig
+    feedback: FeedbackWeights
+    rule: AlphaRule
+    methods: MethodSettings
+
+    @classmethod
+    def of(cls, c: StudyConfig) -> Settings:
+        return cls(c.scene, c.sampler, c.q_beta, c.robust, c.feedback, c.rule, c.methods)
+
+
+@cache
+def setup(s: Settings) -> NavigationSetup:
+    return navigation_setup(s.scene.scene(), q_beta=s.q_beta, mppi=s.sampler)
+
+
+Thresholds = dict[str, Threshold]
+
+
+def prepare(config: StudyConfig, out=None) -> Thresholds:
+    """Each robust controller's threshold, calibrated once in the coordinating process on an
+    undisturbed episode of that controller with its own feedback law."""
+    s = Settings.of(config)
+    nav = setup(s)
+    return {name: calibrate(s.rule, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi,
+                            feedback_law(nav, FEEDBACK[name], s.methods, s.feedback), s.robust,
+                            seed=config.calibration_seed)
+            for name in config.controllers if name in ROBUST_METHODS}
+
+
+_CONTROLLERS: dict = {}
+
+
+def controller(s: Settings, name: str, thresholds: Thresholds):
+    key = (s, name)
+    if key not in _CONTROLLERS:
+        _CONTROLLERS[key] = build(setup(s), name, s.methods, threshold=thresholds.get(name),
+                                  robust=s.robust, weights=s.feedback)
+    return _CONTROLLERS[key]
+
+
+def step_rows(infos) -> dict[str, np.ndarray]:
+    """Per control step: samples, collision-free samples, ESS, compute time."""
+    st = [i.stats for i in infos]
+    return {"step": np.arange(len(st)), "n_samples": np.array([s.n_samples for s in st]),
+            "n_collision_free": np.array([s.n_collision_free for s in st]),
+            "ess": np.array([s.ess for s in st], dtype=float)}
+
+
+def activity_rows(infos) -> dict[str, np.ndarray]:
+    """Per mechanism of the controller: its mean activity over the episode's steps."""
+    keys = sorted({k for i in infos for k in i.stats.activity})
+    means = [float(np.mean([i.stats.activity.get(k, 0.0) for i in infos])) for k in keys]
+    return {"mechanism": np.array(keys, dtype=str), "activity": np.array(means, dtype=float)}
+
+
+def run_task(task: Realisation, ctx: TaskContext, config: StudyConfig,
+             prepared: Thresholds) -> TaskOutput:
+    s = Settings.of(config)
+    nav = setup(s)
+    ctrl = controller(s, task.controller, prepared)
+    lib = getattr(ctrl.sampler, "lib", None)
+    if lib is not None:
+        lib.set_threads(ctx.threads)
+    ep = closed_loop(ctrl, nav.plant, nav.x0, config.steps, ctx.rng(0), ctx.rng(1),
+                     Disturbance(task.variance))
+    steps = step_rows(ep.infos)
+    dist = np.linalg.norm(ep.X[:, :2] - nav.goal[:2], axis=1)
+    inside = np.flatnonzero(dist <= config.goal_radius)
+    ms = 1e3 * ep.step_time_s
+    cf = steps["n_collision_free"] / np.maximum(steps["n_samples"], 1)
+    episode = {"crashed": ep.crashed, "steps": len(ep.U), "final_error": dist[-1],
+               "reached": bool(inside.size), "min_h": ep.min_margin,
+               "time_to_goal_s": inside[0] * nav.plant.dt if inside.size else np.nan,
+               "collision_free_fraction": float(cf.mean()),
+               "ess_mean": float(steps["ess"].mean())}
+    # compute time is not reproducible: its own table, as in the navigation study
+    timing = {"mean_step_ms": float(ms.mean()), "median_step_ms": float(np.median(ms))}
+    return TaskOutput(tables={"episodes": {k: np.array([v]) for k, v in episode.items()},
+                              "timing": {k: np.array([v]) for k, v in timing.items()},
+                              "activity": activity_rows(ep.infos)},
+                      arrays={"X": ep.X, "U": np.asarray(ep.U), "collision_free": cf,
+                              "ess": steps["ess"]})
+
+
+# slowest first (measured on the navigation map, N = 1024, T = 100, one thread)
+SPEED = ("cbf_projection", "sais_ecbf", "sais_al", "sa_rmppi", "rmppi", "tube_mppi",
+         "shield_mppi", "gatekeeper", "bas_mppi", "mppi_crash")
+
+
+@dataclass(frozen=True)
+class Plan:
+    tasks: tuple[Realisation, ...]
+    cells: dict[tuple[str, float], tuple[Realisation, ...]]
+
+
+def plan(config: StudyConfig) -> Plan:
+    cells = {(c, v): tuple(Realisation(c, v, j) for j in range(config.realisations))
+             for v in config.variances for c in config.controllers}
+    tasks = sorted((t for ts in cells.values() for t in ts),
+                   key=lambda t: (SPEED.index(t.controller), t.variance, t.realisation))
+    return Plan(tuple(tasks), cells)
+
+
+def fingerprint(config: StudyConfig) -> dict:
+    d = asdict(config)
+    for k in ("controllers", "variances", "realisations", "seed"):
+        d.pop(k)
+    return d
+
+
+def declare(config: StudyConfig) -> Declaration:
+    p = plan(config)
+    return Declaration(p.tasks, run_task, fingerprint(config), RESULT_VERSION, p)
