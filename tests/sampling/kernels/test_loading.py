@@ -3,6 +3,8 @@ and every loaded library checked against CasADi before first use."""
 
 from __future__ import annotations
 
+import ctypes
+
 import numpy as np
 import pytest
 from conftest import swap_library
@@ -114,3 +116,32 @@ def test_class5_kernel_check_rejects_another_problems_kernel():
     verify_kernel(lib_b.mppi)  # its own spec: fine
     with pytest.raises(KernelMismatch, match="wb_mppi"):
         verify_kernel(kernels.CompiledKernel(spec_a, lib_b.cdll))
+
+
+def test_set_threads_reaches_every_kernel_library_loaded_before_and_after():
+    """set_threads is global: the sampler, the safe-MPPI and the diagnostics libraries all
+    follow it, whether they were loaded before the call or after it."""
+    from workbench.problem.barrier import embed_barrier
+    from workbench.problem.obstacles import Circle
+    from workbench.sampling.kernels.build import get_threads, sampler_library, set_threads
+    from workbench.sampling.kernels.diagnostics import diagnostics_library
+    from workbench.sampling.kernels.safe import safe_library
+    from workbench.sampling.problem import navigation_costs
+
+    old = get_threads()
+    plain = double_integrator(obstacles=(Circle((2.0, 2.0), 0.5),))
+    sp = navigation_costs(embed_barrier(plain))
+    try:
+        safe = safe_library(navigation_costs(plain, S=(10.0, 10.0, 1.0, 1.0)))  # before
+        if safe is None:
+            pytest.skip("no C compiler")
+        safe.cdll.wb_get_threads.restype = ctypes.c_int
+        for n in (1, 2):
+            set_threads(n)
+            diag = diagnostics_library(sp)  # loaded after the first call
+            diag.cdll.wb_get_threads.restype = ctypes.c_int
+            assert safe.cdll.wb_get_threads() == n
+            assert diag.cdll.wb_get_threads() == n
+            assert sampler_library(sp).cdll.wb_get_threads() == n
+    finally:
+        set_threads(old or 2)

@@ -310,17 +310,18 @@ class SamplerLibrary:
 _LIBS: dict[str, SamplerLibrary | None] = {}
 _FALLBACK_WARNED: set[str] = set()
 _THREADS: list[int] = []  # the count set by set_threads, for libraries loaded later
+_LOADED: list[ctypes.CDLL] = []  # every kernel library loaded (sampler, safe, diagnostics)
 
 
 def set_threads(n: int) -> None:
-    """OpenMP threads of the compiled sampler kernels: every library loaded so far and every
-    one loaded later (default: OpenMP's, one per core). Applies to kernels called from the
-    calling thread (OpenMP's setting is per thread); study workers run with 1."""
+    """OpenMP threads of the compiled sampler kernels: every kernel library loaded so far
+    (sampler, safe-MPPI, diagnostics) and every one loaded later (default: OpenMP's, one per
+    core). Applies to kernels called from the calling thread (OpenMP's setting is per thread);
+    study workers run with 1."""
     integer("threads", n, 1)
     _THREADS[:] = [int(n)]
-    for lib in _LIBS.values():
-        if lib is not None:
-            lib.set_threads(int(n))
+    for cdll in _LOADED:
+        cdll.wb_set_threads(int(n))
 
 
 def get_threads() -> int | None:
@@ -338,14 +339,22 @@ def load_verified(stem: str, source: str, build: Callable[[ctypes.CDLL], L],
     lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS)
     if lib is None:
         return None
+    lib.cdll.wb_set_threads.argtypes = [ctypes.c_int]
+    if _THREADS:
+        lib.cdll.wb_set_threads(_THREADS[0])
+    _LOADED.append(lib.cdll)
     obj = build(lib.cdll)
     try:
         for k in kernels(obj):
             verify_kernel(k)
     except KernelMismatch as exc:
         warnings.warn(f"workbench: {exc}; rebuilding {stem}", RuntimeWarning, stacklevel=3)
-        obj = build(build_library(stem, [], source, extra_flags=KERNEL_FLAGS,
-                                  rebuild=True).cdll)
+        rebuilt = build_library(stem, [], source, extra_flags=KERNEL_FLAGS, rebuild=True).cdll
+        rebuilt.wb_set_threads.argtypes = [ctypes.c_int]
+        if _THREADS:
+            rebuilt.wb_set_threads(_THREADS[0])
+        _LOADED.append(rebuilt)
+        obj = build(rebuilt)
         for k in kernels(obj):
             verify_kernel(k)
     return obj
@@ -384,11 +393,8 @@ def load_sampler_library(sp: SamplingProblem, vector_math: bool | None = None) \
     per-process table of :func:`sampler_library` (e.g. to compare scalar and vector libm)."""
     stem, specs, source = library_sources(sp, vector_math)
     lays = [layouts(sp, k) for k in ("mppi", "sais", "candidates")]
-    lib = load_verified(stem, source, lambda c: _sampler_library(c, specs, lays),
-                        lambda lib: (lib.mppi, lib.sais, lib.candidates))
-    if _THREADS and lib is not None:
-        lib.set_threads(_THREADS[0])
-    return lib
+    return load_verified(stem, source, lambda c: _sampler_library(c, specs, lays),
+                         lambda lib: (lib.mppi, lib.sais, lib.candidates))
 
 
 def sampler_library(sp: SamplingProblem) -> SamplerLibrary | None:

@@ -56,7 +56,6 @@ from workbench.sampling.kernels.build import (
     _crashed,
     _model_parts,
     _symbols,
-    get_threads,
     kernel_source,
     load_verified,
 )
@@ -204,9 +203,7 @@ def safe_library(sp: SamplingProblem) -> SafeLibrary | None:
                               f"{str(exc).splitlines()[0]}; using the NumPy/CasADi evaluation "
                               "(correct, slower)", RuntimeWarning, stacklevel=2)
             lib = None
-        if lib is not None and get_threads() is not None:
-            lib.set_threads(get_threads())
-        _LIBS[key] = lib
+        _LIBS[key] = lib  # load_verified applied the set_threads count
     return _LIBS[key]
 
 
