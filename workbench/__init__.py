@@ -43,6 +43,15 @@ _EXPORTS = {
     "workbench.sampling.problem": ("SamplingProblem", "navigation_costs"),
     "workbench.sampling.controllers": ("MPPI", "MPPIConfig", "RMPPIConfig", "RobustMPPI"),
     "workbench.sampling.feedback": ("FeedbackWeights", "ILQGFeedback"),
+    "workbench.sampling.al_feedback": ("ALFeedback", "ALFeedbackOptions"),
+    "workbench.sampling.ecbf_feedback": ("ECBFFeedback",),
+    "workbench.sampling.step_stats": ("StepStats",),
+    "workbench.sampling.methods.tube": ("TubeConfig", "TubeMPPI"),
+    "workbench.sampling.methods.cbf_projection": ("CBFProjectionConfig", "CBFProjectionMPPI"),
+    "workbench.sampling.methods.shield": ("ShieldConfig", "ShieldMPPI"),
+    "workbench.sampling.methods.gatekeeper": ("Gatekeeper", "GatekeeperConfig",
+                                              "backup_from_expression", "braking_backup"),
+    "workbench.problem.dcbf": ("DiscreteCBF", "discrete_cbf"),
     "workbench.sampling.threshold": ("AlphaRule", "ConstantThreshold", "ProgressThreshold",
                                      "make_threshold"),
     "workbench.sampling.calibration": ("calibrate", "calibration_trace"),
@@ -50,6 +59,7 @@ _EXPORTS = {
     "workbench.sim": ("Disturbance", "Episode", "closed_loop", "scene_sequence"),
     "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "TrackingScene"),
     "workbench.scenarios.navigation": ("NavigationSetup", "navigation_setup"),
+    "workbench.scenarios.methods": ("METHODS", "MethodSettings"),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 __all__ = [*sorted(_WHERE), "__version__"]

@@ -122,6 +122,7 @@ def build(nav: NavigationSetup, name: str, settings: MethodSettings = MethodSett
     if threshold is None:
         raise fail("threshold", None, f"{name} is a robust controller: give its selection "
                    f"threshold, calibrated with its own feedback law (nav.threshold(rule, "
-                   f"feedback={FEEDBACK[name]!r}))")
+                   f"feedback={FEEDBACK[name]!r})), or use nav.controller({name!r}), which "
+                   "calibrates one")
     law = feedback_law(nav, FEEDBACK[name], settings, weights)
     return RobustMPPI(nav.problem, nav.goal, nav.mppi, robust, law, threshold)

@@ -54,19 +54,32 @@ class NavigationSetup:
                   robust: RMPPIConfig = RMPPIConfig(),
                   weights: FeedbackWeights = FeedbackWeights(), seed: int = 0) -> Threshold:
         """The selection threshold of ``rule`` on this map (:func:`calibrate`: one undisturbed
-        episode of the robust controller with this feedback, seeded with ``seed``)."""
+        episode of the robust controller with this feedback, seeded with ``seed``).
+        ``feedback``: "bas_ilqg" (K_safe), "ilqg", "al_ilqg" or "ecbf" (see
+        :func:`workbench.scenarios.methods.feedback_law`)."""
+        from workbench.scenarios.methods import feedback_law
+
         return calibrate(rule, self.problem, self.goal, self.plant, self.x0, self.mppi,
-                         self.feedback(feedback, weights), robust, seed=seed)
+                         feedback_law(self, feedback, weights=weights), robust, seed=seed)
 
     def controller(self, name: str, rule: AlphaRule = AlphaRule(),
                    robust: RMPPIConfig = RMPPIConfig(),
                    weights: FeedbackWeights = FeedbackWeights(), seed: int = 0,
                    threshold: Threshold | None = None):
         """One of :data:`CONTROLLERS`: BaS-MPPI, SA-RMPPI, RMPPI (plain iLQG feedback) or MPPI
-        with a crash cost only. The robust ones use ``threshold``; without one, they calibrate
-        ``rule`` here (:meth:`threshold`, on the controller itself, seeded with ``seed``): pass a
-        threshold computed once when you build many controllers."""
-        one_of("controller", name, CONTROLLERS)
+        with a crash cost only, or any other safe-sampling method of
+        :data:`workbench.scenarios.methods.METHODS` (default options; use
+        :func:`workbench.scenarios.methods.build` to set them). The robust ones use
+        ``threshold``; without one, they calibrate ``rule`` here (:meth:`threshold`, on the
+        controller itself, seeded with ``seed``): pass a threshold computed once when you build
+        many controllers."""
+        from workbench.scenarios.methods import FEEDBACK, METHODS, build
+
+        one_of("controller", name, METHODS)
+        if name not in CONTROLLERS:
+            if name in FEEDBACK and threshold is None:
+                threshold = self.threshold(rule, FEEDBACK[name], robust, weights, seed)
+            return build(self, name, threshold=threshold, robust=robust, weights=weights)
         if name == "bas_mppi":
             return MPPI(self.problem, self.goal, self.mppi)
         if name == "mppi_crash":
