@@ -183,3 +183,26 @@ class SafeMPPIPlanner:
 
 
 __all__ = ["SafeBatch", "SafeMPPIPlanner", "SafeMPPIState", "SafeOptions", "SafeSampler"]
+
+
+class SafeMPPIController:
+    """The scene, constants and state of a controller planned by a :class:`SafeMPPIPlanner`
+    (its ``planner``): shared by the CBF-projection and Shield-MPPI controllers."""
+
+    planner: SafeMPPIPlanner
+
+    @property
+    def consts(self) -> SamplerConstants:
+        return self.planner.consts
+
+    @property
+    def scene(self) -> np.ndarray:
+        """The current scene vector."""
+        return self.planner.scene
+
+    def set_scene(self, scene) -> None:
+        """Sample, plan and act in ``scene`` from the next step on (no recompilation)."""
+        self.planner.set_scene(scene)
+
+    def initial_state(self, x0=None) -> SafeMPPIState:
+        return self.planner.initial_state(x0)

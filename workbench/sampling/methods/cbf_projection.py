@@ -23,10 +23,14 @@ import numpy as np
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma, discrete_cbf
 from workbench.sampling.controllers import MPPIConfig, _shift
-from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import projection_function
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.safe_sampler import SafeMPPIPlanner, SafeMPPIState, SafeOptions
+from workbench.sampling.safe_sampler import (
+    SafeMPPIController,
+    SafeMPPIPlanner,
+    SafeMPPIState,
+    SafeOptions,
+)
 from workbench.sampling.step_stats import StepStats
 from workbench.validation import fail, flag
 
@@ -73,7 +77,7 @@ class CBFProjectionInfo:
                                    "applied_projected": float(self.applied_projected)})
 
 
-class CBFProjectionMPPI:
+class CBFProjectionMPPI(SafeMPPIController):
     """MPPI with per-sample CBF projection (see module docstring) on a sampling problem
     (physical or barrier-embedded). ``sampler`` is its
     :class:`~workbench.sampling.safe_sampler.SafeSampler`."""
@@ -89,22 +93,6 @@ class CBFProjectionMPPI:
                                        SafeOptions(project=True, w_dcbf=0.0, gamma=cbf.gamma))
         self.sampler = self.planner.sampler
         self._project = FastFunction(projection_function(self.dcbf))
-
-    @property
-    def consts(self) -> SamplerConstants:
-        return self.planner.consts
-
-    @property
-    def scene(self) -> np.ndarray:
-        """The current scene vector."""
-        return self.planner.scene
-
-    def set_scene(self, scene) -> None:
-        """Plan and project in ``scene`` from the next step on (no recompilation)."""
-        self.planner.set_scene(scene)
-
-    def initial_state(self, x0=None) -> SafeMPPIState:
-        return self.planner.initial_state(x0)
 
     def project(self, xb, u) -> tuple[np.ndarray, bool, float]:
         """(v_hat, acted, min_i c_i(xb, v_hat)): the closed-form projection of clip(u) at the

@@ -35,10 +35,14 @@ from workbench.codegen.fastcall import FastFunction
 from workbench.problem.barrier import min_margin
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma, discrete_cbf
 from workbench.sampling.controllers import MPPIConfig, _shift
-from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import INFEASIBLE_TOL, projection_function
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.safe_sampler import SafeMPPIPlanner, SafeMPPIState, SafeOptions
+from workbench.sampling.safe_sampler import (
+    SafeMPPIController,
+    SafeMPPIPlanner,
+    SafeMPPIState,
+    SafeOptions,
+)
 from workbench.sampling.step_stats import StepStats
 from workbench.validation import fail, integer, real
 
@@ -114,7 +118,7 @@ class Repair:
     c_min_after: float
 
 
-class ShieldMPPI:
+class ShieldMPPI(SafeMPPIController):
     """Shield-MPPI (see module docstring) on a sampling problem (physical or barrier-embedded).
     ``sampler`` is its :class:`~workbench.sampling.safe_sampler.SafeSampler`."""
 
@@ -135,22 +139,6 @@ class ShieldMPPI:
         g, s = ca.SX.sym("gamma"), ca.SX.sym("scene", m.n_scene)
         self._cmin = FastFunction(ca.Function(
             "dcbf_min", [x, u, g, s], [min_margin(self.dcbf.c(x, u, g, s), range(self.dcbf.nh))]))
-
-    @property
-    def consts(self) -> SamplerConstants:
-        return self.planner.consts
-
-    @property
-    def scene(self) -> np.ndarray:
-        """The current scene vector."""
-        return self.planner.scene
-
-    def set_scene(self, scene) -> None:
-        """Sample and shield in ``scene`` from the next step on (no recompilation)."""
-        self.planner.set_scene(scene)
-
-    def initial_state(self, x0=None) -> SafeMPPIState:
-        return self.planner.initial_state(x0)
 
     def repair(self, xb, u) -> Repair:
         """The shield's repair of clip(u) at the full state xb (see module docstring)."""
