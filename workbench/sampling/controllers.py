@@ -118,6 +118,31 @@ def _full_state(sp: SamplingProblem, x, scene=None) -> np.ndarray:
     return as_array("x", x, (sp.nx,))
 
 
+def plan_constants(sp: SamplingProblem, goal,
+                   config: MPPIConfig) -> tuple[SamplerConstants, np.ndarray | None]:
+    """The batch constants of a controller planning to ``goal`` with ``config`` in the model's
+    own scene, and the physical goal to lift again in every new scene (None when the goal is
+    not lifted: a full state, or cost parameters that are not a state)."""
+    g = np.asarray(goal, dtype=float).ravel()
+    # a physical goal is lifted in the current scene (beta_g = B(h(p_g))), again per scene
+    lift = g if sp.n_p == sp.nx and g.size == sp.model.n_physical != sp.nx else None
+    p = _full_state(sp, goal) if sp.n_p == sp.nx else as_array("goal", goal, (sp.n_p,))
+    consts = SamplerConstants(
+        sigma=np.array(config.sigma), lam=config.lam, nu_mix=config.nu_mix,
+        u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost, p=p,
+        scene=sp.model.scene_value.copy())
+    return consts, lift
+
+
+def constants_in_scene(sp: SamplingProblem, consts: SamplerConstants, goal: np.ndarray | None,
+                       scene) -> SamplerConstants:
+    """``consts`` in ``scene`` (circles or a flat vector), the goal ``goal`` (from
+    :func:`plan_constants`) lifted there when it is one to lift."""
+    s = sp.model.scene_vector(scene)
+    p = consts.p if goal is None else sp.model.lift(goal, s)
+    return replace(consts, scene=s, p=p)
+
+
 @dataclass(frozen=True)
 class MPPIState:
     U: np.ndarray  # (T, nu) importance-sampling sequence
@@ -150,14 +175,7 @@ class MPPI:
             raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
         self.sp, self.cfg = sp, config
         self.sampler = Sampler(sp, config.backend)
-        g = np.asarray(goal, dtype=float).ravel()
-        # a physical goal is lifted in the current scene (beta_g = B(h(p_g))), again per scene
-        self._goal = g if sp.n_p == sp.nx and g.size == sp.model.n_physical != sp.nx else None
-        goal = _full_state(sp, goal) if sp.n_p == sp.nx else as_array("goal", goal, (sp.n_p,))
-        self.consts = SamplerConstants(
-            sigma=np.array(config.sigma), lam=config.lam, nu_mix=config.nu_mix,
-            u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost, p=goal,
-            scene=sp.model.scene_value.copy())
+        self.consts, self._goal = plan_constants(sp, goal, config)
 
     @property
     def scene(self) -> np.ndarray:
@@ -169,9 +187,7 @@ class MPPI:
         :class:`~workbench.problem.Circle` or (x, y, radius) triples, at most the model's
         ``scene_capacity``) or a flat scene vector (see
         :meth:`~workbench.problem.Model.scene_vector`). Costs microseconds."""
-        s = self.sp.model.scene_vector(scene)
-        p = self.consts.p if self._goal is None else self.sp.model.lift(self._goal, s)
-        self.consts = replace(self.consts, scene=s, p=p)
+        self.consts = constants_in_scene(self.sp, self.consts, self._goal, scene)
 
     def initial_state(self, x0=None) -> MPPIState:
         return MPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)))

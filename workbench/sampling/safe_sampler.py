@@ -13,19 +13,25 @@ on a :class:`SafeSampler`; the safe controllers of :mod:`workbench.sampling.meth
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma
-from workbench.sampling.controllers import MPPIConfig, _check_plan, _full_state
+from workbench.sampling.controllers import (
+    MPPIConfig,
+    _check_plan,
+    _full_state,
+    constants_in_scene,
+    plan_constants,
+)
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import safe_library
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.safe_reference import safe_reference
-from workbench.sampling.sampler import Backend
+from workbench.sampling.sampler import Backend, check_batch
 from workbench.sampling.weights import Weights, importance_weights, weighted_controls
-from workbench.validation import as_array, fail, flag, integer, one_of, real
+from workbench.validation import as_array, fail, flag, one_of, real
 
 
 @dataclass(frozen=True)
@@ -82,23 +88,9 @@ class SafeSampler:
         """N samples from the full state x0 around the plan U (T, nu); an empty
         ``consts.scene`` means the model's own."""
         sp = self.sp
-        integer("N", N, 1)
         if not isinstance(options, SafeOptions):
             raise fail("options", options, "must be a SafeOptions")
-        U = np.asarray(U, dtype=float)
-        if U.ndim != 2 or U.shape[1] != sp.nu or U.shape[0] < 1 or not np.all(np.isfinite(U)):
-            raise fail("U", getattr(U, "shape", U), f"the plan must be a finite (T >= 1, "
-                       f"{sp.nu}) array")
-        for name, val, n in (("sigma", consts.sigma, sp.nu), ("u_min", consts.u_min, sp.nu),
-                             ("u_max", consts.u_max, sp.nu), ("p", consts.p, sp.n_p)):
-            if np.shape(val) != (n,):
-                raise fail(f"SamplerConstants.{name}", np.shape(val), f"expected ({n},)")
-        ns = sp.model.n_scene
-        if np.size(consts.scene) == 0 and ns:
-            consts = replace(consts, scene=sp.model.scene_value)
-        elif np.shape(consts.scene) != (ns,):
-            raise fail("SamplerConstants.scene", np.shape(consts.scene),
-                       f"expected ({ns},) (the model's scene size) or empty (its own scene)")
+        U, consts = check_batch(sp, N, U, consts)
         x0 = as_array("x0", x0, (sp.nx,))
         T = U.shape[0]
         if self.lib is not None:
@@ -138,13 +130,7 @@ class SafeMPPIPlanner:
             raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
         self.sp, self.cfg, self.options = sp, config, options
         self.sampler = SafeSampler(sp, config.backend)
-        g = np.asarray(goal, dtype=float).ravel()
-        self._goal = g if sp.n_p == sp.nx and g.size == sp.model.n_physical != sp.nx else None
-        goal = _full_state(sp, goal) if sp.n_p == sp.nx else as_array("goal", goal, (sp.n_p,))
-        self.consts = SamplerConstants(
-            sigma=np.array(config.sigma), lam=config.lam, nu_mix=config.nu_mix,
-            u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost, p=goal,
-            scene=sp.model.scene_value.copy())
+        self.consts, self._goal = plan_constants(sp, goal, config)
 
     @property
     def scene(self) -> np.ndarray:
@@ -153,9 +139,7 @@ class SafeMPPIPlanner:
     def set_scene(self, scene) -> None:
         """Plan in ``scene`` from the next step on (see
         :meth:`~workbench.sampling.controllers.MPPI.set_scene`)."""
-        s = self.sp.model.scene_vector(scene)
-        p = self.consts.p if self._goal is None else self.sp.model.lift(self._goal, s)
-        self.consts = replace(self.consts, scene=s, p=p)
+        self.consts = constants_in_scene(self.sp, self.consts, self._goal, scene)
 
     def initial_state(self, x0=None) -> SafeMPPIState:
         return SafeMPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)))
@@ -182,9 +166,6 @@ class SafeMPPIPlanner:
         return U, W, batch
 
 
-__all__ = ["SafeBatch", "SafeMPPIPlanner", "SafeMPPIState", "SafeOptions", "SafeSampler"]
-
-
 class SafeMPPIController:
     """The scene, constants and state of a controller planned by a :class:`SafeMPPIPlanner`
     (its ``planner``): shared by the CBF-projection and Shield-MPPI controllers."""
@@ -206,3 +187,7 @@ class SafeMPPIController:
 
     def initial_state(self, x0=None) -> SafeMPPIState:
         return self.planner.initial_state(x0)
+
+
+__all__ = ["SafeBatch", "SafeMPPIController", "SafeMPPIPlanner", "SafeMPPIState", "SafeOptions",
+           "SafeSampler"]

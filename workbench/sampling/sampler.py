@@ -78,24 +78,7 @@ class Sampler:
         return np.random.default_rng(seed).standard_normal((N, T, self.sp.nu))
 
     def _check(self, N: int, U, c: SamplerConstants) -> tuple[np.ndarray, SamplerConstants]:
-        """The validated plan and constants; an empty ``c.scene`` means the model's own."""
-        integer("N", N, 1)
-        U = np.asarray(U, dtype=float)
-        if U.ndim != 2 or U.shape[1] != self.sp.nu or U.shape[0] < 1:
-            raise fail("U", U.shape, f"the plan must have shape (T >= 1, {self.sp.nu})")
-        if not np.all(np.isfinite(U)):
-            raise fail("U", U, "the plan must be finite")
-        for name, val, n in (("sigma", c.sigma, self.sp.nu), ("u_min", c.u_min, self.sp.nu),
-                             ("u_max", c.u_max, self.sp.nu), ("p", c.p, self.sp.n_p)):
-            if np.shape(val) != (n,):
-                raise fail(f"SamplerConstants.{name}", np.shape(val), f"expected ({n},)")
-        ns = self.sp.model.n_scene
-        if np.size(c.scene) == 0 and ns:
-            c = replace(c, scene=self.sp.model.scene_value)
-        elif np.shape(c.scene) != (ns,):
-            raise fail("SamplerConstants.scene", np.shape(c.scene),
-                       f"expected ({ns},) (the model's scene size) or empty (its own scene)")
-        return U, c
+        return check_batch(self.sp, N, U, c)
 
     def mppi(self, x0, U, N: int, c: SamplerConstants, seed: int) -> MPPIBatch:
         U, c = self._check(N, U, c)
@@ -192,3 +175,26 @@ class Sampler:
         U_lane = np.where(stride[:, None, None] > 0, U_next[None], U[None])
         return mppi_reference(self.sp, starts, U_lane, self._noise(N, T, seed), c,
                               delay=stride)["S"]
+
+
+def check_batch(sp: SamplingProblem, N: int, U,
+                c: SamplerConstants) -> tuple[np.ndarray, SamplerConstants]:
+    """The validated plan and constants of a batch (any sampler of ``sp``); an empty
+    ``c.scene`` means the model's own."""
+    integer("N", N, 1)
+    U = np.asarray(U, dtype=float)
+    if U.ndim != 2 or U.shape[1] != sp.nu or U.shape[0] < 1:
+        raise fail("U", U.shape, f"the plan must have shape (T >= 1, {sp.nu})")
+    if not np.all(np.isfinite(U)):
+        raise fail("U", U, "the plan must be finite")
+    for name, val, n in (("sigma", c.sigma, sp.nu), ("u_min", c.u_min, sp.nu),
+                         ("u_max", c.u_max, sp.nu), ("p", c.p, sp.n_p)):
+        if np.shape(val) != (n,):
+            raise fail(f"SamplerConstants.{name}", np.shape(val), f"expected ({n},)")
+    ns = sp.model.n_scene
+    if np.size(c.scene) == 0 and ns:
+        c = replace(c, scene=sp.model.scene_value)
+    elif np.shape(c.scene) != (ns,):
+        raise fail("SamplerConstants.scene", np.shape(c.scene),
+                   f"expected ({ns},) (the model's scene size) or empty (its own scene)")
+    return U, c
