@@ -1,5 +1,6 @@
-"""Closed-loop simulation on the true plant with the disturbance models of SPEC 2.3, in a
-scene that may move: obstacles are checked against the scene of each step."""
+"""Closed-loop simulation on the true plant under a plant disturbance (:class:`Disturbance`), in
+a scene that may move: obstacles are checked against the scene of each step; optionally the
+episode ends at the goal."""
 
 from __future__ import annotations
 
@@ -15,8 +16,12 @@ from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
 from workbench.validation import fail, integer, one_of, real
 
-DisturbanceModel = Literal["velocity_variance", "velocity_std", "white_noise", "kick"]
-DISTURBANCE_MODELS: tuple[str, ...] = ("velocity_variance", "velocity_std", "white_noise", "kick")
+DisturbanceModel = Literal["velocity_variance", "velocity_std", "white_noise", "kick",
+                           "impulse", "step", "uniform", "periodic"]
+DISTURBANCE_MODELS: tuple[str, ...] = ("velocity_variance", "velocity_std", "white_noise", "kick",
+                                       "impulse", "step", "uniform", "periodic")
+# the deterministic signals may push either way: their level may be negative
+_SIGNED = ("impulse", "step", "periodic")
 
 
 # the built-in planar integrators (workbench.problem.models) and their physical state names:
@@ -36,29 +41,83 @@ def is_planar_integrator(plant: Model) -> bool:
 
 @dataclass(frozen=True)
 class Disturbance:
-    """Plant disturbance w on some states (SPEC 2.3): the velocities of the double integrator.
+    """Plant disturbance w_k added to some states after step k (x_{k+1} = F(x_k, u_k) + w_k).
 
-    velocity_variance (default): w = dt [0, 0, xi], xi ~ N(0, level I) (level = variance);
-    velocity_std: level is the std, xi ~ N(0, level^2 I);
-    white_noise: w = sqrt(dt) sqrt(level) xi01 on the disturbed states;
-    kick: w = [0, 0, xi] without the dt factor, xi ~ N(0, level I).
+    Four readings of one "variance" level of a Gaussian velocity disturbance (Table I of the
+    SAIS paper; xi ~ N(0, I) on the disturbed states, drawn afresh every step):
+
+    - velocity_variance (default): w = dt sqrt(level) xi (level = variance of the rate);
+    - velocity_std: w = dt level xi (level = std of the rate);
+    - white_noise: w = sqrt(dt) sqrt(level) xi (continuous-time white noise of intensity level:
+      a Wiener increment per step);
+    - kick: w = sqrt(level) xi (no dt: level is the variance of the per-step jump).
+
+    The disturbance types of safe-control-gym (Yuan et al. 2022, arXiv:2109.06325;
+    ``safe_control_gym/envs/disturbances.py``), re-implemented. They act there as forces on
+    the dynamics, so here as rates: w = dt s_k on every disturbed state, s_k the signal of step
+    k (an acceleration on the double integrator's velocities, a velocity on the single
+    integrator's positions), the same scaling as velocity_variance:
+
+    - impulse: s_k = level decay^|k - c| on the ``duration`` steps k = start_step ..
+      start_step + duration - 1 (centre c = start_step + (duration - 1) / 2), 0 elsewhere
+      (decay 1: a square pulse; decay < 1: a triangle-like peak). Its magnitude, step_offset,
+      duration and decay_rate are level, start_step, duration and decay. For an odd duration
+      this is safe-control-gym's pulse step for step; for an even one theirs is nonzero on
+      ``duration - 1`` steps from start_step + 1, this one on exactly ``duration`` steps.
+    - step: s_k = level for k >= start_step, 0 before (magnitude, step_offset).
+    - uniform: s_k = level U(low, high), i.i.d. per step and state (their low/high; level
+      scales, so the default is U(-level, level) and level 1 gives theirs exactly).
+    - periodic: s_k = level sin(2 pi frequency k dt + phase) (their scale and frequency, time
+      k dt in the plant's seconds, the same phase on every disturbed state). safe-control-gym
+      draws a new phase U(-pi, pi) at every step, which makes its signal i.i.d. in time rather
+      than periodic; here the phase is a fixed field (draw it per episode to randomise it).
+
+    safe-control-gym's WhiteNoise (i.i.d. N(0, std^2) per step, a force) is the velocity_std
+    reading with level = std (w = dt std xi), not the white_noise reading above; there is no
+    separate model for it. Their random step_offset (step_offset=None) is left out: a study
+    draws start_step from its own generator. impulse, step and periodic draw no random numbers
+    and may have a negative level (a push the other way); the others need level >= 0.
+
+    Fields other than level are read by some models only (start_step: impulse and step;
+    duration, decay: impulse; low, high: uniform; frequency, phase: periodic); they are
+    validated for every model and ignored by the others (a step has no duration: it lasts).
 
     The disturbed states: ``states`` names them, by the plant's state names or by index
     (``Disturbance(1.0, states=("v",))``); ``velocity_index`` gives indices (the older
     spelling; give one of the two). Without either, :func:`closed_loop` takes them from the
     plant only for the built-in planar integrators (:func:`disturbed_states`: the velocities of
     the double integrator, the positions of the single integrator); any other plant with
-    ``level > 0`` must name them (a ValueError lists its state names).
+    ``level != 0`` must name them (a ValueError lists its state names).
     """
 
     level: float = 0.0
     model: DisturbanceModel = "velocity_variance"
     velocity_index: tuple[int, ...] | None = None
     states: tuple[str | int, ...] | None = None
+    start_step: int = 0
+    duration: int = 1
+    decay: float = 1.0
+    low: float = -1.0
+    high: float = 1.0
+    frequency: float = 1.0
+    phase: float = 0.0
 
     def __post_init__(self) -> None:
-        real("Disturbance.level", self.level, 0.0)
         one_of("Disturbance.model", self.model, DISTURBANCE_MODELS)
+        if self.model in _SIGNED:
+            real("Disturbance.level", self.level)
+        else:
+            real("Disturbance.level", self.level, 0.0)
+        integer("Disturbance.start_step", self.start_step, 0)
+        integer("Disturbance.duration", self.duration, 1)
+        real("Disturbance.decay", self.decay, 0.0, strict=True, maximum=1.0)
+        real("Disturbance.low", self.low)
+        real("Disturbance.high", self.high)
+        if self.high < self.low:
+            raise fail("Disturbance.high", self.high,
+                       f"must be >= Disturbance.low = {self.low!r}")
+        real("Disturbance.frequency", self.frequency, 0.0, strict=True)
+        real("Disturbance.phase", self.phase)
         if self.velocity_index is not None:
             idx = self.velocity_index
             allowed = ("must be a non-empty tuple of distinct state indices >= 0, or None "
@@ -87,6 +146,29 @@ class Disturbance:
             object.__setattr__(self, "states", st)
 
     @property
+    def label(self) -> str:
+        """A short name for result tables: the model, its level and the fields it reads, e.g.
+        ``velocity_variance(10)``, ``impulse(2, k=100..109)`` (first..last step of the
+        pulse), ``step(-3, k>=50)``, ``uniform(1, [-1, 1])``, ``periodic(2, f=0.5)``; named
+        states follow (``step(3, k>=0) on vx``)."""
+        g = f"{self.level:g}"
+        if self.model == "impulse":
+            last = self.start_step + self.duration - 1
+            g += f", k={self.start_step}..{last}"
+            if self.decay != 1.0:
+                g += f", decay={self.decay:g}"
+        elif self.model == "step":
+            g += f", k>={self.start_step}"
+        elif self.model == "uniform":
+            g += f", [{self.low:g}, {self.high:g}]"
+        elif self.model == "periodic":
+            g += f", f={self.frequency:g}" + (f", phase={self.phase:g}" if self.phase else "")
+        text = f"{self.model}({g})"
+        if self.named is not None:
+            text += " on " + ",".join(str(s) for s in self.named)
+        return text
+
+    @property
     def named(self) -> tuple[str | int, ...] | None:
         """The disturbed states this disturbance names itself (``states`` or
         ``velocity_index``), None when it leaves them to the plant."""
@@ -95,7 +177,7 @@ class Disturbance:
     def indices(self, plant: Model) -> tuple[int, ...]:
         """The disturbed states for ``plant``: the named ones (checked against the plant), the
         built-in planar integrators' own, or () for any other plant when ``level`` is 0 (nothing
-        to disturb). Any other plant with ``level > 0`` must name them: ValueError."""
+        to disturb). Any other plant with ``level != 0`` must name them: ValueError."""
         if self.states is not None:
             return self._resolve(plant)
         if self.velocity_index is None:
@@ -139,7 +221,11 @@ class Disturbance:
         return tuple(out)
 
     def sample(self, nx: int, dt: float, rng: np.random.Generator,
-               index: tuple[int, ...] | None = None) -> np.ndarray:
+               index: tuple[int, ...] | None = None, k: int = 0) -> np.ndarray:
+        """The disturbance w_k (nx,) of step k (the step from x_k to x_{k+1}, time k dt) on
+        the states ``index`` (default: the named ones). The Gaussian readings draw
+        ``rng.standard_normal(len(index))`` and uniform ``rng.uniform(low, high,
+        len(index))`` once per call; impulse, step and periodic draw nothing."""
         if index is None and self.states is not None:
             if not all(isinstance(s, int) for s in self.states):
                 raise fail("Disturbance.states", self.states, "names need the plant: pass "
@@ -149,17 +235,36 @@ class Disturbance:
         if not idx:
             raise fail("Disturbance.velocity_index", self.velocity_index,
                        "give the disturbed state indices (closed_loop takes them from the plant)")
+        k = integer("k", k, 0)
         w = np.zeros(nx)
+        model = self.model
+        if model == "uniform":
+            w[idx] = dt * self.level * rng.uniform(self.low, self.high, len(idx))
+            return w
+        if model in _SIGNED:
+            w[idx] = dt * self._signal(k, dt)
+            return w
         xi = rng.standard_normal(len(idx))
-        if self.model == "velocity_variance":
+        if model == "velocity_variance":
             w[idx] = dt * np.sqrt(self.level) * xi
-        elif self.model == "velocity_std":
+        elif model == "velocity_std":
             w[idx] = dt * self.level * xi
-        elif self.model == "white_noise":
+        elif model == "white_noise":
             w[idx] = np.sqrt(dt) * np.sqrt(self.level) * xi
         else:
             w[idx] = np.sqrt(self.level) * xi
         return w
+
+    def _signal(self, k: int, dt: float) -> float:
+        """The deterministic signal s_k of impulse, step and periodic."""
+        if self.model == "step":
+            return self.level if k >= self.start_step else 0.0
+        if self.model == "impulse":
+            if not self.start_step <= k < self.start_step + self.duration:
+                return 0.0
+            centre = self.start_step + (self.duration - 1) / 2
+            return self.level * self.decay ** abs(k - centre)
+        return self.level * float(np.sin(2 * np.pi * self.frequency * k * dt + self.phase))
 
 
 def disturbed_states(plant: Model) -> tuple[int, ...]:
@@ -201,7 +306,8 @@ class Episode:
 
     ``scene_time_s`` (n,): time spent handing each step's scene to the controller (zeros when
     the scene is static); ``scenes`` (n+1, n_scene): the scene of every state in X when the
-    scene moves (empty otherwise)."""
+    scene moves (empty otherwise). ``reached_goal``/``goal_step``: with ``stop_at_goal``, whether
+    and at which state X[goal_step] the episode reached the goal (it ends there)."""
 
     X: np.ndarray
     U: np.ndarray
@@ -212,6 +318,8 @@ class Episode:
     infos: tuple = field(default=(), repr=False)
     scene_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     scenes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+    reached_goal: bool = False
+    goal_step: int | None = None
 
 
 SceneInput = Callable[[int], object] | object
@@ -232,7 +340,8 @@ def scene_sequence(scenes: Sequence) -> Callable[[int], object]:
 
 def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.random.Generator,
                 rng_plant: np.random.Generator, disturbance: Disturbance = Disturbance(),
-                keep_infos: bool = True, scene: SceneInput = None) -> Episode:
+                keep_infos: bool = True, scene: SceneInput = None,
+                stop_at_goal: float | None = None, goal=None) -> Episode:
     """Run ``controller`` on the plant x+ = F(x, u) + w for ``steps`` steps; stop at a crash
     (min_i h_i <= 0 on the true plant, in the scene of that time). w acts on
     ``disturbance.indices(plant)`` (none when that is empty: a plant of one's own without a
@@ -242,12 +351,24 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
     :meth:`~workbench.problem.Model.scene_vector`), or a callable ``k -> scene`` giving the
     scene at step k = 0..steps (:func:`scene_sequence` makes one from a list). Before step k
     the controller gets scene k through its ``set_scene`` (when it has one); the state after
-    step k is checked against scene k + 1: obstacles move while the plant does.
+    step k is checked against scene k + 1: obstacles move while the plant does. Step k draws
+    the disturbance of step k (``disturbance.sample(..., k=k)``).
+
+    ``stop_at_goal``: a distance > 0; the episode ends after the first step whose state is
+    within it (Euclidean, on ``plant.position``) of the goal position (``reached_goal``,
+    ``goal_step``). ``goal``: a physical state or a position; default ``controller.goal``.
+    A state that crashes is a crash, never a goal, even when within the distance.
     """
     integer("steps", steps, 1)
     x = np.asarray(x0, dtype=float)
     if x.shape != (plant.nx,) or not np.all(np.isfinite(x)):
         raise fail("x0", x0, f"must be {plant.nx} finite numbers")
+    goal_p = None if stop_at_goal is None else _goal_position(plant, controller, stop_at_goal,
+                                                              goal)
+    if stop_at_goal is None and goal is not None:
+        raise fail("goal", goal, "is only read with stop_at_goal (give both, or neither)")
+    reached, goal_step = False, None
+    pos = list(plant.position) if goal_p is not None else []
     if scene is not None and not plant.n_scene:
         raise fail("scene", "given", f"the plant {plant.name} has no run-time scene (its "
                    "obstacles are baked in); build it with runtime obstacles")
@@ -287,7 +408,7 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
         stimes.append(t1 - t0)
         u = np.clip(u, plant.u_min, plant.u_max)
         x_model = f(x, u)[0]
-        x = (x_model + disturbance.sample(plant.nx, plant.dt, rng_plant, disturbed)
+        x = (x_model + disturbance.sample(plant.nx, plant.dt, rng_plant, disturbed, k)
              if disturbed else x_model.copy())
         s = scene_at(k + 1)
         X.append(x.copy())
@@ -302,7 +423,37 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
             if h <= 0:
                 crashed, crash_step = True, k + 1
                 break
+        if goal_p is not None and np.linalg.norm(x[pos] - goal_p) <= stop_at_goal:
+            reached, goal_step = True, k + 1
+            break
     return Episode(X=np.array(X), U=np.array(U), crashed=crashed, crash_step=crash_step,
                    min_margin=min_h, step_time_s=np.array(times), infos=tuple(infos),
                    scene_time_s=np.array(stimes),
-                   scenes=np.array(scenes) if moving else np.zeros((0, 0)))
+                   scenes=np.array(scenes) if moving else np.zeros((0, 0)),
+                   reached_goal=reached, goal_step=goal_step)
+
+
+def _goal_position(plant: Model, controller, stop_at_goal, goal) -> np.ndarray:
+    """The goal position for :func:`closed_loop`'s ``stop_at_goal``, checked."""
+    real("stop_at_goal", stop_at_goal, 0.0, strict=True)
+    if plant.position is None:
+        raise fail("stop_at_goal", stop_at_goal, f"the plant {plant.name} has no position "
+                   "(Model.position) to measure the distance to the goal on")
+    if goal is None:
+        goal = getattr(controller, "goal", None)
+        if goal is None:
+            raise fail("goal", None, f"{type(controller).__name__} has no goal attribute; "
+                       "give goal= (a physical state or a position)")
+    pos = list(plant.position)
+    try:
+        g = np.asarray(goal, dtype=float).ravel()
+    except (TypeError, ValueError) as exc:
+        raise fail("goal", goal, "expected a numeric state or position") from exc
+    if g.size in (plant.nx, plant.n_physical):
+        g = g[pos]
+    elif g.size != len(pos):
+        raise fail("goal", goal, f"must be a state of {plant.n_physical} (or {plant.nx}) "
+                   f"entries or a position of {len(pos)}")
+    if not np.all(np.isfinite(g)):
+        raise fail("goal", goal, "must be finite")
+    return g

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from numbers import Integral
 
-from workbench.validation import fail
+import numpy as np
+
+from workbench.validation import fail, integer
 
 Z_95 = 1.959963984540054  # standard normal quantile 0.975
 
@@ -62,3 +66,106 @@ def paired_difference_interval(a: int, b: int, c: int, d: int,
     du = math.sqrt(max((u1 - p1) ** 2 - 2 * phi * (u1 - p1) * (p2 - l2) + (p2 - l2) ** 2, 0.0))
     theta = p1 - p2
     return theta, max(-1.0, theta - dl), min(1.0, theta + du)
+
+
+@dataclass(frozen=True)
+class PooledPaired:
+    """Two controllers A and B compared on paired binary outcomes (1 = safe) over strata
+    (maps); see :func:`pooled_paired`."""
+
+    b: int  # pairs where only A was safe, summed over the strata
+    c: int  # pairs where only B was safe, summed
+    n: int  # pairs
+    n_strata: int  # strata given (uninformative ones included)
+    difference: float  # safety rate of A minus that of B: (b - c) / n
+    low: float  # 95% interval of the difference
+    high: float
+    p_value: float  # exact McNemar on the summed b, c
+    cmh_p: float  # Cochran-Mantel-Haenszel: common odds ratio (controller x outcome) is 1
+    homogeneity_p: float | None  # same paired odds ratio b_i / c_i in every stratum
+
+
+_COUNTS = ("a", "b", "c", "d")
+
+
+def pooled_paired(strata: Sequence[tuple[int, int, int, int]]) -> PooledPaired:
+    """Stratified paired comparison of controllers A and B (e.g. one stratum per map).
+
+    Each stratum is (a, b, c, d), counts of pairs (A's episode and B's episode on the same
+    map, seed and start): a both safe, b only A safe, c only B safe, d neither; the order of
+    :func:`paired_difference_interval`. Safety rates are (a + b) / n for A and (a + c) / n for
+    B, so A - B = (b - c) / n over all n pairs (weights n_i / n per stratum).
+
+    - ``low``, ``high``: Newcombe's interval (:func:`paired_difference_interval`) on the summed
+      table. It treats the pairs as one sample and ignores the strata, so when the strata
+      differ it is at least as wide as a stratified interval (conservative).
+    - ``p_value``: exact McNemar on the summed discordant counts (:func:`mcnemar_exact`).
+    - ``cmh_p``: Cochran-Mantel-Haenszel test (no continuity correction, chi-square with 1
+      degree of freedom, statsmodels ``StratifiedTable.test_null_odds``) that the common odds
+      ratio of the per-stratum 2x2 tables controller x outcome, [[a + b, c + d], [a + c,
+      b + d]], is 1. Strata with a zero column margin (every episode safe, or every one
+      unsafe: no information, and 0/0 when empty) are left out; with none left it is 1.0.
+      These tables count the two controllers' episodes as independent samples: with the
+      usual positive correlation of paired episodes (same map and seed) the test is
+      conservative; the paired test is ``p_value``.
+    - ``homogeneity_p``: whether the paired effect is the same in every stratum. Given the
+      m_i = b_i + c_i discordant pairs of stratum i, b_i ~ Binomial(m_i, psi_i / (1 + psi_i))
+      with psi_i the stratum's paired (conditional) odds ratio, the argument behind
+      McNemar's test; equal psi_i is equal proportions b_i / m_i, tested by Pearson's
+      chi-square on the k x 2 table [b_i, c_i] of the k strata with m_i > 0 (k - 1 degrees of
+      freedom; asymptotic, so rough with few discordant pairs per stratum). Breslow-Day on the
+      controller x outcome tables is not used: it tests the marginal odds ratios and assumes
+      independent rows, which paired episodes are not. None when fewer than 2 strata have
+      discordant pairs; 1.0 when all discordant pairs go one way (every proportion 0 or 1).
+    """
+    if (isinstance(strata, str | bytes) or not isinstance(strata, Sequence | np.ndarray)
+            or len(strata) == 0):
+        raise fail("strata", strata, "must be a non-empty sequence of (a, b, c, d) counts")
+    rows = []
+    for i, s in enumerate(strata):
+        if not isinstance(s, tuple | list | np.ndarray) or len(s) != 4:
+            raise fail(f"strata[{i}]", s, "must be 4 counts (a, b, c, d): pairs both safe, "
+                       "only A safe, only B safe, neither")
+        rows.append([integer(f"strata[{i}].{name}", v, 0) for name, v in zip(_COUNTS, s,
+                                                                               strict=True)])
+    t = np.array(rows, dtype=np.int64)
+    a, b, c, d = (int(v) for v in t.sum(axis=0))
+    n = a + b + c + d
+    if n < 1:
+        raise fail("strata", strata, "need at least one pair")
+    diff, low, high = paired_difference_interval(a, b, c, d)
+    return PooledPaired(b=b, c=c, n=n, n_strata=len(rows), difference=diff, low=low, high=high,
+                        p_value=mcnemar_exact(b, c), cmh_p=_cmh_p(t),
+                        homogeneity_p=_homogeneity_p(t[:, 1], t[:, 2]))
+
+
+def _cmh_p(t: np.ndarray) -> float:
+    """CMH p-value over the strata rows (a, b, c, d) of ``t`` with both outcomes present."""
+    a, b, c, d = t.T
+    safe, unsafe = 2 * a + b + c, b + c + 2 * d  # column margins of [[a+b, c+d], [a+c, b+d]]
+    keep = (safe > 0) & (unsafe > 0)
+    if not keep.any():
+        return 1.0
+    from scipy.stats import chi2
+    from statsmodels.stats.contingency_tables import StratifiedTable
+
+    tables = np.stack([np.stack([a + b, c + d]), np.stack([a + c, b + d])])[:, :, keep]
+    stat = float(StratifiedTable(tables.astype(float)).test_null_odds(correction=False).statistic)
+    return float(chi2.sf(stat, 1))  # sf: accurate for small p (statsmodels takes 1 - cdf)
+
+
+def _homogeneity_p(b: np.ndarray, c: np.ndarray) -> float | None:
+    """Pearson chi-square p-value for equal b_i / (b_i + c_i) over the strata with b_i + c_i
+    > 0; None with fewer than 2 of them."""
+    m = b + c
+    keep = m > 0
+    if keep.sum() < 2:
+        return None
+    b, m = b[keep].astype(float), m[keep].astype(float)
+    p = b.sum() / m.sum()
+    if p in (0.0, 1.0):
+        return 1.0
+    stat = float(np.sum((b - m * p) ** 2 / (m * p * (1.0 - p))))
+    from scipy.stats import chi2
+
+    return float(chi2.sf(stat, int(keep.sum()) - 1))
