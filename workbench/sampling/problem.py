@@ -30,7 +30,7 @@ class SamplingProblem:
 
     problem: Problem
     description: str = ""
-    weights: dict[str, np.ndarray] | None = None  # set by navigation_costs (for the NumPy twin)
+    weights: dict[str, np.ndarray] | None = None  # set by navigation_costs, goal_costs (twins)
 
     def __post_init__(self) -> None:
         if ca.depends_on(self.problem.cost.stage, self.problem.model.u):
@@ -112,3 +112,51 @@ def navigation_costs(model: Model, *, Qp=(1.0, 1.0), Qv=(0.1, 0.1), q_beta: floa
     weights = {"Qp": Qp, "Qv": Qv, "q_beta": float(q_beta), "S": S}
     return SamplingProblem.from_costs(model, q, ca.dot(S * e, e), g,
                                       description="navigation (SPEC 8.2)", weights=weights)
+
+
+ANGLE_STATES = ("theta", "heading", "psi", "yaw")  # names goal_costs wraps by default
+
+
+def goal_costs(model: Model, *, Q, S, q_beta: float = 1.0, s_beta: float = 1.0,
+               angles: tuple[int, ...] | None = None) -> SamplingProblem:
+    """Goal-reaching state costs for any model (the navigation costs of other systems):
+
+        q = |x - g|²_Q + q_beta |beta - beta_g|²,   phi = |x - g|²_S (the barrier states too),
+
+    ``Q`` one weight per physical state; ``S`` one weight per state of ``model`` (barrier
+    states included), or per physical state, the barrier states then weighted ``s_beta``.
+    The parameter p is the goal's full state x_g (physical goal lifted, beta_g = B(h(g))),
+    as in :func:`navigation_costs`.
+
+    Angles: for the states in ``angles`` (default: those named theta, heading, psi or yaw) the
+    error e enters as 2 (1 - cos e) instead of e², equal to second order at the goal, smooth,
+    and the same for e and e + 2 pi (a heading that has turned once more is at the goal).
+    """
+    n = model.n_physical
+    Q = as_array("Q", Q, (n,))
+    S = np.asarray(S, dtype=float)
+    if S.shape == (n,) and model.nx > n:
+        S = np.concatenate([S, np.full(model.nx - n, real("s_beta", s_beta, 0.0))])
+    S = as_array("S", S, (model.nx,))
+    for name, w in (("Q", Q), ("S", S)):
+        if np.any(w < 0):
+            raise fail(name, w, "weights must be finite numbers >= 0")
+    real("q_beta", q_beta, 0.0)
+    if angles is None:
+        angles = tuple(i for i, s in enumerate(model.state_names[:n]) if s in ANGLE_STATES)
+    if not isinstance(angles, tuple | list) or any(
+            isinstance(i, bool) or not isinstance(i, int | np.integer) or not 0 <= i < n
+            for i in angles) or len(set(angles)) != len(angles):
+        raise fail("angles", angles, f"need distinct physical state indices in [0, {n - 1}]")
+    angles = tuple(int(i) for i in angles)
+    x, g = model.x, ca.SX.sym("goal", model.nx)
+    e2 = [2.0 * (1.0 - ca.cos(x[i] - g[i])) if i in angles else (x[i] - g[i]) ** 2
+          for i in range(n)]
+    e2 += [(x[i] - g[i]) ** 2 for i in range(n, model.nx)]
+    q = sum((Q[i] * e2[i] for i in range(n)), ca.SX(0))
+    if model.nx > n:
+        q += q_beta * sum(e2[n:], ca.SX(0))
+    phi = sum((S[i] * e2[i] for i in range(model.nx)), ca.SX(0))
+    weights = {"Q": Q, "S": S, "q_beta": float(q_beta), "angles": np.array(angles, dtype=int)}
+    return SamplingProblem.from_costs(model, q, phi, g, description="goal reaching",
+                                      weights=weights)

@@ -159,7 +159,9 @@ def make_threshold(rule: AlphaRule, X: np.ndarray | None = None, F: np.ndarray |
                    "(Model.position) or a progress measure: give progress= a CasADi expression "
                    "in the plant's state (>= 0, 0 at the goal)")
     position = tuple(position or ())
-    goal = np.asarray(goal, float)[: len(position)]
+    goal = np.asarray(goal, float).ravel()
+    if goal.size != len(position):  # a full state: its position coordinates
+        goal = goal[list(position)]
     log_d, vals = progress_curve(progress_distance(X, goal, position, progress), F)
     return ProgressThreshold(log_d=log_d, F=vals, kappa=rule.kappa, goal=goal,
                              position=position, measure=progress)

@@ -20,18 +20,20 @@ its own safety mechanism:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
+import casadi as ca
 import numpy as np
 
 from workbench.filters.ecbf import ECBFOptions
+from workbench.problem.models import Model
 from workbench.sampling.al_feedback import ALFeedback, ALFeedbackOptions
 from workbench.sampling.controllers import MPPI, RMPPIConfig, RobustMPPI, physical_model
 from workbench.sampling.ecbf_feedback import ECBFFeedback
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
-from workbench.sampling.methods.gatekeeper import Gatekeeper, GatekeeperConfig, braking_backup
+from workbench.sampling.methods.gatekeeper import Gatekeeper, GatekeeperConfig
 from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
 from workbench.sampling.methods.tube import TubeConfig, TubeMPPI
 from workbench.validation import fail, one_of
@@ -66,7 +68,9 @@ class MethodSettings:
     shield: ShieldConfig = field(default_factory=ShieldConfig)
     gatekeeper: GatekeeperConfig = field(default_factory=GatekeeperConfig)
     # [A] the backup's u = -gain v (clipped); None: 1/dt, which stops each axis within 50
-    # steps from 5 m/s, inside the gatekeeper's 60-step horizon
+    # steps from 5 m/s, inside the gatekeeper's 60-step horizon. Other systems: the gain of
+    # their own backup law (System.backup; the bicycle brakes a = -gain v, the quadrotor's
+    # hover law uses it as its velocity gain, the unicycle's stop ignores it)
     braking_gain: float | None = None
     al: ALFeedbackOptions = field(default_factory=ALFeedbackOptions)
     ecbf: ECBFOptions = field(default_factory=ECBFOptions)
@@ -84,25 +88,44 @@ class MethodSettings:
                        "1/dt)")
 
 
+def affine_in_controls(model: Model) -> Model:
+    """``model`` itself when its step is affine in u, else its first-order expansion in u
+    about u = 0, F(x, 0) + dF/du(x, 0) u (same margins, box and names; for the kinematic
+    bicycle tan(delta) becomes delta, 8.5 % less turn rate at the 0.5 rad steering limit)."""
+    if not ca.depends_on(ca.jacobian(model.x_next, model.u), model.u):
+        return model
+    u0 = ca.DM.zeros(model.nu)
+    f0 = ca.substitute(model.x_next, model.u, u0)
+    g0 = ca.substitute(ca.jacobian(model.x_next, model.u), model.u, u0)
+    return replace(model, name=f"{model.name}~affine", x_next=f0 + ca.mtimes(g0, model.u))
+
+
 def feedback_law(nav: NavigationSetup, kind: str, settings: MethodSettings = MethodSettings(),
-                 weights: FeedbackWeights = FeedbackWeights()):
+                 weights: FeedbackWeights | None = None):
     """The feedback law of a robust method: "bas_ilqg" (K_safe), "ilqg", "al_ilqg", "ecbf"
-    (the last two act on the plain model; gains on the barrier state are zero)."""
+    (the last two act on the plain model; gains on the barrier state are zero). ``weights``:
+    tracking weights (default: the system's). The ECBF filter needs dynamics affine in u: for
+    a system without them (the kinematic bicycle) its gains come from
+    :func:`affine_in_controls` of the plant (the sampler keeps the true model)."""
     one_of("feedback", kind, ("bas_ilqg", "ilqg", "al_ilqg", "ecbf"))
+    weights = nav.system.feedback_weights if weights is None else weights
     if kind in ("bas_ilqg", "ilqg"):
         return nav.feedback(kind, weights)
     plain = physical_model(nav.problem.model)
     if kind == "al_ilqg":
         return ALFeedback(plain, nav.mppi.horizon, nav.problem.nx, weights, settings.al)
-    return ECBFFeedback(plain, nav.mppi.horizon, nav.problem.nx, weights, settings.ecbf)
+    return ECBFFeedback(affine_in_controls(plain), nav.mppi.horizon, nav.problem.nx, weights,
+                        settings.ecbf)
 
 
 def build(nav: NavigationSetup, name: str, settings: MethodSettings = MethodSettings(), *,
           threshold: Threshold | None = None, robust: RMPPIConfig = RMPPIConfig(),
-          weights: FeedbackWeights = FeedbackWeights()):
+          weights: FeedbackWeights | None = None):
     """The controller ``name`` (one of :data:`METHODS`) on ``nav``. Robust methods need a
     ``threshold`` calibrated with their own feedback law (``nav.threshold(rule, feedback=
-    FEEDBACK[name])``); ``robust`` and ``weights`` are their selection and tracking settings."""
+    FEEDBACK[name])``); ``robust`` and ``weights`` are their selection and tracking settings
+    (weights default to the system's). The gatekeeper's backup is the system's
+    (:attr:`~workbench.scenarios.systems.System.backup`: braking for the double integrator)."""
     one_of("controller", name, METHODS)
     phys = nav.physical_problem()
     if name == "bas_mppi":
@@ -117,7 +140,7 @@ def build(nav: NavigationSetup, name: str, settings: MethodSettings = MethodSett
         return ShieldMPPI(phys, nav.goal, nav.mppi, settings.shield)
     if name == "gatekeeper":
         return Gatekeeper(MPPI(phys, nav.goal, nav.mppi), nav.plant,
-                          braking_backup(nav.plant, gain=settings.braking_gain),
+                          nav.system.backup(nav.plant, settings.braking_gain),
                           settings.gatekeeper)
     if threshold is None:
         raise fail("threshold", None, f"{name} is a robust controller: give its selection "

@@ -1,58 +1,77 @@
-"""The navigation set-up: a map of circles, the double-integrator plant, the barrier-embedded
-sampling problem and the sampler settings, and the controllers built on them."""
+"""The navigation set-up: a map of circles, the plant of a :class:`System` (the planar double
+integrator by default), the barrier-embedded sampling problem and the sampler settings, and the
+controllers built on them."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import casadi as ca
 import numpy as np
 
 from workbench.problem.barrier import BarrierOptions, embed_barrier
-from workbench.problem.models import Model, double_integrator
+from workbench.problem.models import Model
 from workbench.sampling.calibration import calibrate
 from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
-from workbench.sampling.problem import SamplingProblem, navigation_costs
+from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
 from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.scenes import CircleScene, NavigationScene
+from workbench.scenarios.systems import SYSTEMS, System
+from workbench.scenarios.systems import TUNED_LAMBDA as TUNED_LAMBDA
+from workbench.scenarios.systems import TUNED_Q_BETA as TUNED_Q_BETA
+from workbench.scenarios.systems import TUNED_SIGMA as TUNED_SIGMA
+from workbench.scenarios.systems import system as system_named
 from workbench.validation import fail, one_of
 
 CONTROLLERS = ("bas_mppi", "sa_rmppi", "rmppi", "mppi_crash")
 
-# [A] SPEC 8.2 starts from sigma = 2, lambda = 1, q_beta = 1 and asks to tune the undisturbed
-# BaS-MPPI to reach the goal. With q_beta = 1 the robot stalls in a local minimum of this map at
-# (3.8, 2.2); the values below reach the goal (final error ~0.01 m in 20 s); the grid that
-# chose them is documented with the navigation study.
-TUNED_SIGMA = (5.0, 5.0)
-TUNED_LAMBDA = 10.0
-TUNED_Q_BETA = 0.01
-
 
 @dataclass(frozen=True, eq=False)
 class NavigationSetup:
-    """The plant, the barrier-embedded sampling problem and the sampler settings of one map."""
+    """The plant, the barrier-embedded sampling problem and the sampler settings of one map,
+    for one :class:`~workbench.scenarios.systems.System`."""
 
     scene: NavigationScene | CircleScene
     plant: Model
     problem: SamplingProblem
-    goal: np.ndarray  # physical goal state (4,)
-    x0: np.ndarray  # physical start state (4,)
+    goal: np.ndarray  # physical goal state (n_physical,)
+    x0: np.ndarray  # physical start state (n_physical,)
     mppi: MPPIConfig
+    system: System = field(default_factory=lambda: SYSTEMS["double_integrator"])
 
     def physical_problem(self) -> SamplingProblem:
         """The same costs on the plant without a barrier state (crash cost only)."""
-        S = self.problem.weights["S"][: self.plant.nx]
-        return navigation_costs(self.plant, S=tuple(S), q_beta=0.0)
+        w = self.problem.weights
+        S = w["S"][: self.plant.nx]
+        if self.system.cost_form == "navigation":
+            return navigation_costs(self.plant, S=tuple(S), q_beta=0.0)
+        return goal_costs(self.plant, Q=w["Q"], S=S, q_beta=0.0,
+                          angles=tuple(int(i) for i in w["angles"]))
 
-    def feedback(self, kind: str, weights: FeedbackWeights = FeedbackWeights()) -> ILQGFeedback:
-        """K_safe ("bas_ilqg", on the embedded model) or plain tracking gains ("ilqg")."""
+    def _weights(self, weights: FeedbackWeights | None) -> FeedbackWeights:
+        return self.system.feedback_weights if weights is None else weights
+
+    def feedback(self, kind: str, weights: FeedbackWeights | None = None) -> ILQGFeedback:
+        """K_safe ("bas_ilqg", on the embedded model) or plain tracking gains ("ilqg");
+        ``weights`` default to the system's tracking weights."""
         one_of("feedback", kind, ("bas_ilqg", "ilqg"))
         model = self.problem.model if kind == "bas_ilqg" else physical_model(self.problem.model)
-        return ILQGFeedback(model, self.mppi.horizon, self.problem.nx, weights)
+        return ILQGFeedback(model, self.mppi.horizon, self.problem.nx, self._weights(weights))
+
+    def progress(self) -> ca.SX | None:
+        """The progress measure of the threshold rules: None (distance in the plant's position
+        coordinates (0, 1)) or, for other position coordinates, that distance as a CasADi
+        expression in the plant's state."""
+        pos = self.plant.position
+        if pos is None or tuple(pos) == (0, 1):
+            return None
+        x = self.plant.x
+        return ca.sqrt(sum((x[i] - float(self.goal[i])) ** 2 for i in pos))
 
     def threshold(self, rule: AlphaRule = AlphaRule(), feedback: str = "bas_ilqg",
                   robust: RMPPIConfig = RMPPIConfig(),
-                  weights: FeedbackWeights = FeedbackWeights(), seed: int = 0) -> Threshold:
+                  weights: FeedbackWeights | None = None, seed: int = 0) -> Threshold:
         """The selection threshold of ``rule`` on this map (:func:`calibrate`: one undisturbed
         episode of the robust controller with this feedback, seeded with ``seed``).
         ``feedback``: "bas_ilqg" (K_safe), "ilqg", "al_ilqg" or "ecbf" (see
@@ -60,11 +79,12 @@ class NavigationSetup:
         from workbench.scenarios.methods import feedback_law
 
         return calibrate(rule, self.problem, self.goal, self.plant, self.x0, self.mppi,
-                         feedback_law(self, feedback, weights=weights), robust, seed=seed)
+                         feedback_law(self, feedback, weights=self._weights(weights)), robust,
+                         seed=seed, progress=self.progress())
 
     def controller(self, name: str, rule: AlphaRule = AlphaRule(),
                    robust: RMPPIConfig = RMPPIConfig(),
-                   weights: FeedbackWeights = FeedbackWeights(), seed: int = 0,
+                   weights: FeedbackWeights | None = None, seed: int = 0,
                    threshold: Threshold | None = None):
         """One of :data:`CONTROLLERS`: BaS-MPPI, SA-RMPPI, RMPPI (plain iLQG feedback) or MPPI
         with a crash cost only, or any other safe-sampling method of
@@ -72,10 +92,12 @@ class NavigationSetup:
         :func:`workbench.scenarios.methods.build` to set them). The robust ones use
         ``threshold``; without one, they calibrate ``rule`` here (:meth:`threshold`, on the
         controller itself, seeded with ``seed``): pass a threshold computed once when you build
-        many controllers."""
+        many controllers. ``weights``: tracking weights of the feedback laws (default: the
+        system's)."""
         from workbench.scenarios.methods import FEEDBACK, METHODS, build
 
         one_of("controller", name, METHODS)
+        weights = self._weights(weights)
         if name not in CONTROLLERS:
             if name in FEEDBACK and threshold is None:
                 threshold = self.threshold(rule, FEEDBACK[name], robust, weights, seed)
@@ -92,27 +114,40 @@ class NavigationSetup:
 
 
 def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
-                     barrier: BarrierOptions | None = None, q_beta: float = TUNED_Q_BETA,
+                     system: str | System = "double_integrator",
+                     barrier: BarrierOptions | None = None, q_beta: float | None = None,
                      mppi: MPPIConfig | None = None, scene_capacity: int | None = None,
                      runtime_obstacles: bool = True) -> NavigationSetup:
     """Plant, barrier-embedded sampling problem and MPPI settings of the navigation study.
 
-    ``scene``: the paper's map (default, :class:`NavigationScene`) or your own circles
-    (:class:`~workbench.scenarios.scenes.CircleScene`); any object with ``start``, ``goal``, ``dt``,
-    ``u_limit`` and ``obstacles()`` works. The obstacles are run-time inputs with
-    ``scene_capacity`` slots (default: one per circle; every map with at most that many circles
-    then shares one compiled set of kernels); ``runtime_obstacles=False`` bakes them in."""
-    scene = scene or NavigationScene()
-    plant = double_integrator(obstacles=scene.obstacles(), u_limit=scene.u_limit, dt=scene.dt,
-                              scene_capacity=scene_capacity,
-                              runtime_obstacles=runtime_obstacles)
-    for name in ("start", "goal"):  # also for scenes that bring their own obstacles
-        h = plant.margins(np.array([*getattr(scene, name), 0.0, 0.0]))
+    ``scene``: the paper's map (default: :class:`NavigationScene`, scaled by the system's
+    ``scale``, :meth:`System.scaled`) or your own circles
+    (:class:`~workbench.scenarios.scenes.CircleScene`, used as given, in the system's units);
+    any object with ``start``, ``goal``, ``dt``, ``u_limit`` and ``obstacles()`` works.
+    ``system``: a name of :data:`~workbench.scenarios.systems.SYSTEMS` or a :class:`System`
+    (default the double integrator, whose set-up is unchanged). Start and goal are the system's
+    states at rest (:attr:`System.state_at`), both heading from start towards the goal.
+    ``q_beta`` and ``mppi`` default to the system's (sigma, lambda; N = 1024, T = 100).
+    The obstacles are run-time inputs with ``scene_capacity`` slots (default: one per circle;
+    every map with at most that many circles then shares one compiled set of kernels);
+    ``runtime_obstacles=False`` bakes them in."""
+    sysm = system if isinstance(system, System) else system_named(system)
+    scene = scene or sysm.scaled(NavigationScene())
+    plant = sysm.plant(scene, scene_capacity=scene_capacity, runtime_obstacles=runtime_obstacles)
+    start, goal = np.asarray(scene.start, float), np.asarray(scene.goal, float)
+    d = goal - start
+    heading = float(np.arctan2(d[1], d[0])) if np.any(d != 0) else 0.0
+    states = {"start": sysm.state_at(start, heading), "goal": sysm.state_at(goal, heading)}
+    for name, x in states.items():  # also for scenes that bring their own obstacles
+        h = plant.margins(x)
         if h.size and h.min() <= 0:
+            i = int(np.argmin(h))
+            where = (f"lies inside obstacle {i}"
+                     if i < (plant.scene_capacity or len(plant.obstacles))
+                     else f"violates the plant's margin {i} (a state limit)")
             raise fail(f"scene.{name}", getattr(scene, name),
-                       f"lies inside obstacle {int(np.argmin(h))}; start and goal must be in "
-                       "free space (h > 0)")
-    problem = navigation_costs(embed_barrier(plant, barrier or BarrierOptions()), q_beta=q_beta)
-    cfg = mppi or MPPIConfig(sigma=TUNED_SIGMA, lam=TUNED_LAMBDA)
-    return NavigationSetup(scene, plant, problem, np.array([*scene.goal, 0.0, 0.0]),
-                           np.array([*scene.start, 0.0, 0.0]), cfg)
+                       f"{where}; start and goal must be in free space (h > 0)")
+    qb = sysm.q_beta if q_beta is None else q_beta
+    problem = sysm.costs(embed_barrier(plant, barrier or BarrierOptions()), q_beta=qb)
+    cfg = mppi or MPPIConfig(sigma=sysm.sigma, lam=sysm.lam)
+    return NavigationSetup(scene, plant, problem, states["goal"], states["start"], cfg, sysm)
