@@ -13,7 +13,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
 .PHONY: venv test study study-tracking-demo study-tracking study-navigation study-bound \
-	study-sampling-safety reports bench lint clean-cache clean
+	study-sampling-safety study-arena tune-arena reports bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -34,7 +34,7 @@ lint: $(STAMP)
 SETS = $(foreach s,$(SET),--set $(s))
 
 study: study-tracking-demo study-tracking study-navigation study-bound study-sampling-safety \
-	reports
+	study-arena reports
 
 study-tracking-demo: $(STAMP)
 	$(WB) run tracking-demo --profile $(PROFILE) $(SETS)
@@ -55,6 +55,18 @@ study-bound: $(STAMP)
 # every safe-sampling method on one sampler (claim 1 of the paper): tiny/quick/paper profiles
 study-sampling-safety: $(STAMP)
 	$(WB) run sampling-safety --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
+
+# the arena: controllers x systems x generated maps x disturbances (quick: a few minutes;
+# PROFILE=verdict: claim (i) over 12 maps and the four disturbance readings, ~30 min)
+ARENA_PROFILE = $(if $(filter tiny verdict paper,$(PROFILE)),$(PROFILE),quick)
+study-arena: $(STAMP)
+	$(WB) run arena --profile $(ARENA_PROFILE) $(STUDY_EXEC) $(SETS)
+
+# equal-budget tuning of the arena's controllers; ships the result as their tuned defaults
+# (workbench/scenarios/tuned.json)
+tune-arena: $(STAMP)
+	$(WB) run arena-tuning --profile $(ARENA_PROFILE) $(STUDY_EXEC) $(SETS)
+	$(PY) -m studies.arena.tuning reports/arena_tuning
 
 # reports/index.html: every study's report, figures, tables and manifest, offline
 reports: $(STAMP)

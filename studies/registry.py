@@ -6,4 +6,6 @@ STUDIES = [
     "studies.navigation",
     "studies.free_energy_bound",
     "studies.sampling_safety",
+    "studies.arena",
+    "studies.arena_tuning",
 ]

@@ -40,7 +40,7 @@ _EXPORTS = {
     "workbench.ilqg.al": ("ALOptions", "ALResult", "al_ilqg", "al_problem"),
     "workbench.ilqg.oracle": ("solve_ipopt",),
     "workbench.filters.ecbf": ("ECBFFilter", "ECBFOptions"),
-    "workbench.sampling.problem": ("SamplingProblem", "navigation_costs"),
+    "workbench.sampling.problem": ("SamplingProblem", "goal_costs", "navigation_costs"),
     "workbench.sampling.controllers": ("MPPI", "MPPIConfig", "RMPPIConfig", "RobustMPPI"),
     "workbench.sampling.feedback": ("FeedbackWeights", "ILQGFeedback"),
     "workbench.sampling.al_feedback": ("ALFeedback", "ALFeedbackOptions"),
@@ -60,6 +60,13 @@ _EXPORTS = {
     "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "TrackingScene"),
     "workbench.scenarios.navigation": ("NavigationSetup", "navigation_setup"),
     "workbench.scenarios.methods": ("METHODS", "MethodSettings"),
+    "workbench.problem.vehicles": ("kinematic_bicycle", "planar_quadrotor", "unicycle"),
+    "workbench.scenarios.systems": ("SYSTEMS", "System", "system"),
+    "workbench.scenarios.maps": ("MAP_FAMILIES", "GeneratedMap", "MapDifficulty", "MapFamily",
+                                 "difficulty", "generate"),
+    "workbench.scenarios.tuned": ("ControllerSettings", "Tuned", "tuned"),
+    "workbench.study.tuning": ("Param", "TuningBudget", "tune"),
+    "workbench.study.stats": ("pooled_paired",),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 __all__ = [*sorted(_WHERE), "__version__"]
@@ -121,12 +128,25 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
         slot_margins,
     )
     from workbench.problem.problem import Problem
+    from workbench.problem.vehicles import kinematic_bicycle, planar_quadrotor, unicycle
     from workbench.sampling.calibration import calibrate, calibration_trace
     from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
     from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
     from workbench.sampling.kernels.build import get_threads, set_threads
-    from workbench.sampling.problem import SamplingProblem, navigation_costs
+    from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
     from workbench.sampling.threshold import AlphaRule, make_threshold
+    from workbench.scenarios.maps import (
+        MAP_FAMILIES,
+        GeneratedMap,
+        MapDifficulty,
+        MapFamily,
+        difficulty,
+        generate,
+    )
     from workbench.scenarios.navigation import NavigationSetup, navigation_setup
     from workbench.scenarios.scenes import CircleScene, NavigationScene, TrackingScene
+    from workbench.scenarios.systems import SYSTEMS, System, system
+    from workbench.scenarios.tuned import ControllerSettings, Tuned, tuned
     from workbench.sim import Disturbance, Episode, closed_loop, scene_sequence
+    from workbench.study.stats import pooled_paired
+    from workbench.study.tuning import Param, TuningBudget, tune

@@ -30,13 +30,10 @@ the kinematic models have no state for; a disturbance of the speed v alone would
 the heading and could never push the car sideways into an obstacle).
 
 Disturbance levels (``System.level_scale``, a factor on a level in the double integrator's
-units, for ``Disturbance(level * level_scale, states=disturbed)``): the levels are matched by
-the position spread they cause relative to the map. A variance-``L`` velocity disturbance of
-the double integrator (xi an acceleration) spreads the position with variance dt L t^3 / 3
-after t seconds; on the kinematic robots (xi a velocity) with dt L t: equal at t = sqrt(3) s
-~ 1.7 s (most of the 2 s sampling horizon) with the same L, so their factor is 1. The
-quadrotor is disturbed like the double integrator on a map 0.18 times the size: scale^2 =
-0.0324.
+units, for ``Disturbance(level * level_scale, states=disturbed)``): matched by the ratio of
+disturbance to control authority (see ``KINEMATIC_LEVEL_SCALE``): 0.16 for the unicycle and the
+bicycle. The quadrotor is disturbed like the double integrator on a map 0.18 times the size:
+scale^2 = 0.0324.
 """
 
 from __future__ import annotations
@@ -255,6 +252,14 @@ QUAD_SCALE = 0.18  # [A] the map [0, 10]^2 times 0.18 lies inside the quadrotor'
 # Tracking weights of the feedback laws ([A], sized like the double integrator's
 # FeedbackWeights(): 500 on positions, 100 on speeds, 50 / 10 on angles, and R_i =
 # (5 / half-range of control i)^2, the double integrator's R = 1 at |u_i| <= 5).
+# [A] Disturbance levels of the kinematic robots. Their disturbance is a velocity (per step
+# dt sqrt(level) xi on the positions), the double integrator's an acceleration. Matched by the
+# ratio of disturbance to control authority: the double integrator's sqrt(L) against its
+# 5 m/s^2, the kinematic robots' sqrt(s L) against about 2 m/s, so s = (2 / 5)^2 = 0.16. With
+# s = 1 (equal position spread at t = 1.7 s) a level of 50 is a 7 m/s white velocity noise
+# against the unicycle's 2 m/s: in the arena's first tuning run no episode reached the goal.
+KINEMATIC_LEVEL_SCALE = 0.16
+
 SYSTEMS: dict[str, System] = {
     "double_integrator": System(
         name="double_integrator", label="double integrator", model=_di_model,
@@ -274,6 +279,7 @@ SYSTEMS: dict[str, System] = {
         name="unicycle", label="unicycle", model=_unicycle_model, state_at=_unicycle_at,
         Q=(10.0, 10.0, 0.1), S=(100.0, 100.0, 1.0),
         sigma=(0.5, 1.0), lam=0.3, q_beta=0.1, disturbed=("px", "py"), backup=_stop_backup,
+        level_scale=KINEMATIC_LEVEL_SCALE,
         feedback_weights=FeedbackWeights(Q=(500.0, 500.0, 50.0), R=(16.0, 6.25))),
     # [A] bicycle. As above with Q = (1, 1, 0.01, 0.1), S = (10, 10, 0.1, 1): 10 points of
     # sigma (a, delta) in {0.5, 1, 3} x {0.2, 0.5, 1}, lambda in {0.03, 0.1, 0.3}, q_beta 0.01;
@@ -286,7 +292,7 @@ SYSTEMS: dict[str, System] = {
         name="bicycle", label="kinematic bicycle", model=_bicycle_model, state_at=_bicycle_at,
         Q=(10.0, 10.0, 0.1, 1.0), S=(100.0, 100.0, 1.0, 10.0),
         sigma=(1.0, 0.5), lam=1.0, q_beta=0.1, disturbed=("px", "py"),
-        backup=_bicycle_backup,
+        backup=_bicycle_backup, level_scale=KINEMATIC_LEVEL_SCALE,
         feedback_weights=FeedbackWeights(Q=(500.0, 500.0, 50.0, 100.0), R=(3.0, 100.0))),
     # [A] quadrotor (hover-offset inputs; weights scaled by 1/scale^2, q_beta by scale^4, from
     # the map's units). Open-loop thrust noise flips it: from hover with sigma = 5e-3 N, 98 %

@@ -1,0 +1,158 @@
+"""Configuration of the arena: frozen, validated at construction (errors name the field)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
+from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.threshold import AlphaRule
+from workbench.scenarios.maps import MapFamily, generate
+from workbench.scenarios.methods import METHODS, MethodSettings
+from workbench.scenarios.systems import SYSTEMS
+from workbench.sim import DISTURBANCE_MODELS, Disturbance
+from workbench.study.tuning import TuningBudget
+from workbench.validation import fail, integer, real
+
+RESULT_VERSION = 1  # bump when the meaning of stored task results changes
+TUNINGS = ("hand", "tuned")
+
+
+def _names(field_name: str, values, allowed: tuple[str, ...], what: str) -> tuple[str, ...]:
+    if isinstance(values, str) or not hasattr(values, "__iter__") or len(values) == 0:
+        raise fail(field_name, values, f"must be a non-empty list of {what} from {allowed}")
+    for v in values:
+        if v not in allowed:
+            raise fail(field_name, v, f"unknown {what}; allowed values are {allowed}")
+    if len(set(values)) != len(values):
+        raise fail(field_name, values, f"must not repeat a {what}")
+    return tuple(a for a in allowed if a in values)
+
+
+@dataclass(frozen=True)
+class DisturbanceSpec:
+    """One disturbance of the arena: a :class:`~workbench.sim.Disturbance` ``model`` at
+    ``level`` on ``states`` (empty: the system's default disturbed states). ``level`` is in the
+    double integrator's units; each system scales it by its own ``level_scale`` (see
+    :class:`~workbench.scenarios.systems.System`). The time-dependent types take
+    ``start_step``, ``duration`` and ``frequency``; for them (and "uniform") ``level`` is an
+    acceleration on the disturbed states [m/s^2 on the double integrator's velocities]."""
+
+    model: str = "velocity_variance"
+    level: float = 50.0
+    states: tuple[str, ...] = ()
+    start_step: int = 100
+    duration: int = 20
+    frequency: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.model not in DISTURBANCE_MODELS:
+            raise fail("disturbances.model", self.model,
+                       f"unknown disturbance type; allowed values are {DISTURBANCE_MODELS}")
+        real("disturbances.level", self.level, 0.0)
+        if isinstance(self.states, str):
+            object.__setattr__(self, "states", (self.states,))
+        integer("disturbances.start_step", self.start_step, 0)
+        integer("disturbances.duration", self.duration, 1)
+        real("disturbances.frequency", self.frequency, 0.0, strict=True)
+
+    @property
+    def label(self) -> str:
+        return self.disturbance(1.0, self.states or None).label
+
+    def disturbance(self, scale: float, states: tuple[str, ...] | None) -> Disturbance:
+        kw = {}
+        if self.model in ("impulse", "step"):
+            kw = {"start_step": self.start_step, "duration": self.duration}
+        elif self.model == "periodic":
+            kw = {"frequency": self.frequency}
+        return Disturbance(self.level * scale, self.model, states=self.states or states, **kw)
+
+
+@dataclass(frozen=True)
+class ArenaConfig:
+    """Cells: every controller x system x test map x disturbance, ``realisations`` episodes
+    each, with the hand-tuned settings and/or the shipped tuned ones (``tunings``).
+
+    Maps: ``test_maps`` maps of each family in ``families`` with seeds from ``test_seed``
+    on (the tuning runs use ``tuning_maps`` maps from ``tuning_seed`` on: the ranges must not
+    overlap). Common random numbers: realisation j of a (system, map, disturbance) gives every
+    controller and tuning the same plant and sampler streams. An episode ends at a crash, at
+    the goal (within ``goal_radius``, scaled by the system) or after ``steps`` steps."""
+
+    controllers: tuple[str, ...] = ("bas_mppi", "sa_rmppi")
+    systems: tuple[str, ...] = ("double_integrator", "unicycle")
+    families: tuple[MapFamily, ...] = (MapFamily("spec"),)
+    test_maps: int = 3
+    test_seed: int = 1000
+    disturbances: tuple[DisturbanceSpec, ...] = (DisturbanceSpec(),)
+    realisations: int = 4
+    tunings: tuple[str, ...] = ("hand",)
+    steps: int = 1000
+    goal_radius: float = 0.5
+    seed: int = 2026
+    sampler: MPPIConfig = MPPIConfig()
+    robust: RMPPIConfig = RMPPIConfig()
+    feedback: FeedbackWeights | None = None  # None: each system's own weights
+    rule: AlphaRule = AlphaRule(kappa=0.1)
+    methods: MethodSettings = field(default_factory=MethodSettings)
+    calibration_seed: int = 0
+    tuning: TuningBudget = field(default_factory=TuningBudget)
+    tuning_maps: int = 4
+    tuning_seed: int = 0
+    tuning_disturbance: DisturbanceSpec = field(default_factory=DisturbanceSpec)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "controllers",
+                           _names("controllers", self.controllers, METHODS, "controller"))
+        object.__setattr__(self, "systems",
+                           _names("systems", self.systems, tuple(SYSTEMS), "system"))
+        object.__setattr__(self, "tunings", _names("tunings", self.tunings, TUNINGS, "tuning"))
+        for name, kind in (("families", MapFamily), ("disturbances", DisturbanceSpec)):
+            v = getattr(self, name)
+            if isinstance(v, kind) or not hasattr(v, "__iter__") or not v:
+                raise fail(name, v, f"must be a non-empty list of {kind.__name__}")
+            for i, x in enumerate(v):
+                if not isinstance(x, kind):
+                    raise fail(f"{name}[{i}]", x, f"must be a {kind.__name__}")
+            object.__setattr__(self, name, tuple(v))
+        if len({f.family for f in self.families}) != len(self.families):
+            raise fail("families", [f.family for f in self.families],
+                       "one entry per map family")
+        labels = [d.label for d in self.disturbances]
+        if len(set(labels)) != len(labels):
+            raise fail("disturbances", labels, "must not repeat a disturbance")
+        for name, lo in (("test_maps", 1), ("test_seed", 0), ("realisations", 1), ("steps", 1),
+                         ("seed", 0), ("calibration_seed", 0), ("tuning_maps", 1),
+                         ("tuning_seed", 0)):
+            object.__setattr__(self, name, integer(name, getattr(self, name), lo))
+        if self.realisations * self.test_maps > 10**6:
+            raise fail("realisations", self.realisations,
+                       f"x test_maps = {self.realisations * self.test_maps} episodes per cell "
+                       "is more than 10^6; lower one of them")
+        train = range(self.tuning_seed, self.tuning_seed + self.tuning_maps)
+        test = range(self.test_seed, self.test_seed + self.test_maps)
+        if set(train) & set(test):
+            raise fail("test_seed", self.test_seed,
+                       f"test maps {test.start}..{test.stop - 1} overlap the tuning maps "
+                       f"{train.start}..{train.stop - 1}; the seed ranges must be disjoint")
+        if self.feedback is not None and not isinstance(self.feedback, FeedbackWeights):
+            raise fail("feedback", self.feedback, "must be a FeedbackWeights or None")
+        real("goal_radius", self.goal_radius, 0.0, strict=True)
+        for f in self.families:  # a start or goal inside a generated obstacle fails here
+            generate(f, self.test_seed)
+        for name, kind in (("sampler", MPPIConfig), ("robust", RMPPIConfig),
+                           ("rule", AlphaRule),
+                           ("methods", MethodSettings), ("tuning", TuningBudget),
+                           ("tuning_disturbance", DisturbanceSpec)):
+            if not isinstance(getattr(self, name), kind):
+                raise fail(name, getattr(self, name), f"must be a {kind.__name__}")
+
+    def map_seeds(self) -> tuple[int, ...]:
+        return tuple(range(self.test_seed, self.test_seed + self.test_maps))
+
+    def tuning_seeds(self) -> tuple[int, ...]:
+        return tuple(range(self.tuning_seed, self.tuning_seed + self.tuning_maps))
+
+    def as_dict(self) -> dict:
+        return asdict(self)

@@ -1,0 +1,268 @@
+"""Typed summary of an arena run, from the tidy tables ``episodes``, ``timing`` and
+``activity``.
+
+Metrics, each defined once here: safety = share of episodes without a crash (Wilson 95 %
+interval); success = share of episodes that reach the goal without a crash; final error =
+distance to the goal at the episode's end; ms per step = mean compute time of a control step.
+
+Paired comparisons (controller A against B, same system, disturbance and tuning, common random
+numbers): per map, the realisations where only A or only B stayed safe; pooled over maps with
+:func:`~workbench.study.stats.pooled_paired` (exact McNemar test on the summed discordant
+pairs, the pooled difference in safety with its 95 % interval, a Cochran-Mantel-Haenszel test
+and a test that the effect is the same on every map).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from studies.arena.episodes import arena_map
+from studies.arena.tasks import family
+from workbench.scenarios.tuned import shipped, space
+from workbench.study import Rate, to_jsonable
+from workbench.study.spec import Summary
+from workbench.study.stats import pooled_paired
+
+ALL = "all"  # the disturbance label of comparisons pooled over every disturbance
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One (controller, system, map, disturbance, tuning) cell over its realisations."""
+
+    controller: str
+    system: str
+    map: str
+    disturbance: str
+    tuning: str
+    n: int
+    safety: float
+    ci_low: float
+    ci_high: float
+    success: float
+    success_low: float
+    success_high: float
+    final_error: float
+    mean_step_ms: float
+    collision_free_sample_fraction: float
+    ess_mean: float
+    activity: dict[str, float]
+
+    @classmethod
+    def of(cls, key: tuple, rows: pd.DataFrame, timing: pd.DataFrame,
+           activity: pd.DataFrame) -> Cell:
+        safe = Rate.of(~rows["crashed"].to_numpy(bool))
+        ok = Rate.of(rows["reached"].to_numpy(bool) & ~rows["crashed"].to_numpy(bool))
+        act = {k: float(g["activity"].mean()) for k, g in activity.groupby("mechanism")}
+        return cls(*key, safe.n, safe.value, safe.low, safe.high, ok.value, ok.low, ok.high,
+                   float(rows["final_error"].mean()), float(timing["mean_step_ms"].mean()),
+                   float(rows["collision_free_fraction"].mean()),
+                   float(rows["ess_mean"].mean()), act)
+
+
+@dataclass(frozen=True)
+class Pooled:
+    """``first`` against ``second`` on one system and tuning, pooled over maps (and over
+    disturbances when ``disturbance`` is "all"): summed discordant pairs b (only first safe)
+    and c (only second safe), exact McNemar p, pooled difference in safety with its 95 %
+    interval, CMH and homogeneity p-values, and the number of strata (maps, or maps x
+    disturbances)."""
+
+    first: str
+    second: str
+    system: str
+    disturbance: str
+    tuning: str
+    n: int
+    b: int
+    c: int
+    p_value: float
+    difference: float
+    low: float
+    high: float
+    n_maps: int
+    cmh_p: float | None
+    homogeneity_p: float | None
+
+
+@dataclass(frozen=True)
+class Board:
+    """A controller's line on a system's leaderboard: every map and disturbance pooled."""
+
+    system: str
+    tuning: str
+    controller: str
+    n: int
+    safety: float
+    ci_low: float
+    ci_high: float
+    success: float
+    mean_step_ms: float
+    rank: int
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    map: str
+    family: str
+    seed: int
+    n_circles: int
+    bottleneck: float
+    path_length: float
+    straight_clearance: float
+    moving: int
+
+
+@dataclass(frozen=True)
+class ArenaSummary:
+    config: dict
+    cells: tuple[Cell, ...]
+    pooled: tuple[Pooled, ...]
+    leaderboard: tuple[Board, ...]
+    maps: tuple[MapInfo, ...]
+    tuned: dict
+
+    def pair(self, first: str, second: str, system: str, disturbance: str,
+             tuning: str) -> Pooled | None:
+        return next((p for p in self.pooled if (p.first, p.second, p.system, p.disturbance,
+                                                p.tuning) == (first, second, system,
+                                                              disturbance, tuning)), None)
+
+
+REFERENCES = ("bas_mppi", "sa_rmppi")  # every controller is compared with these
+ABLATIONS = (("sa_rmppi", "rmppi"), ("rmppi", "bas_mppi"))  # why SA-RMPPI differs
+
+
+def pairs(controllers: tuple[str, ...]) -> list[tuple[str, str]]:
+    """The compared pairs: every controller against each reference present, then the
+    ablations; a pair appears once, in one order."""
+    out: list[tuple[str, str]] = []
+    cands = [(c, r) for r in REFERENCES if r in controllers for c in controllers if c != r]
+    cands += [p for p in ABLATIONS if set(p) <= set(controllers)]
+    for p in cands:
+        if p not in out and (p[1], p[0]) not in out:
+            out.append(p)
+    return out
+
+
+def _strata(ep: pd.DataFrame, first: str, second: str, by: list[str]) -> list[tuple]:
+    x, y = ep[ep["controller"] == first], ep[ep["controller"] == second]
+    m = x.merge(y, on=[*by, "realisation"], suffixes=("_1", "_2"))
+    out = []
+    for _, g in m.groupby(by, sort=True):
+        s1, s2 = ~g["crashed_1"].to_numpy(bool), ~g["crashed_2"].to_numpy(bool)
+        out.append(tuple(int(v) for v in (np.sum(s1 & s2), np.sum(s1 & ~s2),
+                                          np.sum(~s1 & s2), np.sum(~s1 & ~s2))))
+    return out
+
+
+def _pool(first, second, system, disturbance, tuning, strata) -> Pooled:
+    p = pooled_paired(strata)
+    return Pooled(first, second, system, disturbance, tuning, p.n, p.b, p.c, p.p_value,
+                  p.difference, p.low, p.high, p.n_strata, p.cmh_p, p.homogeneity_p)
+
+
+def pooled_rows(config, ep: pd.DataFrame) -> list[Pooled]:
+    out = []
+    for (system, tuning), g in ep.groupby(["system", "tuning"], sort=False):
+        for first, second in pairs(config.controllers):
+            for d in config.disturbances:
+                gd = g[g["disturbance"] == d.label]
+                st = _strata(gd, first, second, ["map"])
+                if st:
+                    out.append(_pool(first, second, system, d.label, tuning, st))
+            st = _strata(g, first, second, ["map", "disturbance"])
+            if st and len(config.disturbances) > 1:
+                out.append(_pool(first, second, system, ALL, tuning, st))
+    # tuned against hand-tuned, per controller
+    if {"hand", "tuned"} <= set(ep["tuning"]):
+        for (system, c), g in ep.groupby(["system", "controller"], sort=False):
+            t = g[g["tuning"] == "tuned"].assign(controller="tuned")
+            h = g[g["tuning"] == "hand"].assign(controller="hand")
+            both = pd.concat([t, h])
+            st = _strata(both, "tuned", "hand", ["map", "disturbance"])
+            if st:
+                p = pooled_paired(st)
+                out.append(Pooled(f"{c}:tuned", f"{c}:hand", system, ALL, "tuned-vs-hand",
+                                  p.n, p.b, p.c, p.p_value, p.difference, p.low, p.high,
+                                  p.n_strata, p.cmh_p, p.homogeneity_p))
+    return out
+
+
+def leaderboard(ep: pd.DataFrame, timing: pd.DataFrame) -> list[Board]:
+    out = []
+    t = timing.set_index("task_id")["mean_step_ms"]
+    for (system, tuning), g in ep.groupby(["system", "tuning"], sort=False):
+        lines = []
+        for c, gc in g.groupby("controller", sort=False):
+            crashed = gc["crashed"].to_numpy(bool)
+            safe = Rate.of(~crashed)
+            ok = float(np.mean(gc["reached"].to_numpy(bool) & ~crashed))
+            lines.append((c, safe, ok, float(t.reindex(gc["task_id"]).mean())))
+        lines.sort(key=lambda x: (-x[1].value, -x[2], x[3]))
+        out += [Board(system, tuning, c, s.n, s.value, s.low, s.high, ok, ms, i + 1)
+                for i, (c, s, ok, ms) in enumerate(lines)]
+    return out
+
+
+def map_infos(config) -> list[MapInfo]:
+    """Every test map with its difficulty (in the map's own units, before a system's scale)."""
+    out = []
+    for f in config.families:
+        for seed in config.map_seeds():
+            g = arena_map(family(config, f.family), seed)
+            d = g.difficulty
+            out.append(MapInfo(f"{f.family}-{seed}", f.family, seed, len(g.circles),
+                               d.bottleneck, d.path_length, d.straight_clearance,
+                               len(g.moving) if g.moving else 0))
+    return out
+
+
+def tuned_section(config) -> dict:
+    """The parameters each controller got on each system, and the budget used: the hand-tuned
+    values always; the shipped tuned ones when this run used them."""
+    from studies.arena.tasks import hand_settings
+
+    ship = shipped()
+    out = {}
+    for s in config.systems:
+        base = hand_settings(config, s)
+        for c in config.controllers:
+            entry = {"hand": base.values(c), "searched": [p.name for p in space(c)]}
+            t = ship.get((s, c))
+            if "tuned" in config.tunings and t is not None:
+                entry.update({"tuned": t.params, "budget": {**t.budget.__dict__,
+                              "total_episodes": t.budget.total_episodes},
+                              "objective": t.objective, "training": t.training,
+                              "training_score": t.score, "hand_training_score": t.start_score})
+            out[f"{s}/{c}"] = entry
+    return out
+
+
+def summarise(config, store) -> ArenaSummary:
+    ep, timing, act = store.table("episodes"), store.table("timing"), store.table("activity")
+    keys = ["controller", "system", "map", "disturbance", "tuning"]
+    cells = []
+    for key, rows in ep.groupby(keys, sort=False):
+        tids = set(rows["task_id"])
+        cells.append(Cell.of(key, rows, timing[timing["task_id"].isin(tids)],
+                             act[act["task_id"].isin(tids)]))
+    return ArenaSummary(config.as_dict(), tuple(cells), tuple(pooled_rows(config, ep)),
+                        tuple(leaderboard(ep, timing)), tuple(map_infos(config)),
+                        tuned_section(config))
+
+
+def summary(finished) -> Summary:
+    """summary.json: cells, pooled comparisons, leaderboards, maps with their difficulty, the
+    tuned parameters and budget, and the verdict on the paper's claim (i)."""
+    from studies.arena.findings import verdict
+
+    s = summarise(finished.config, finished.store)
+    lines = tuple(f"{b.system:18s} {b.tuning:5s} #{b.rank} {b.controller:14s} safety "
+                  f"{100 * b.safety:5.1f} % [{100 * b.ci_low:.0f}, {100 * b.ci_high:.0f}]  "
+                  f"success {100 * b.success:5.1f} %  {b.mean_step_ms:6.2f} ms/step"
+                  for b in s.leaderboard)
+    return Summary({**to_jsonable(s), "verdict": to_jsonable(verdict(s))}, s, lines)

@@ -1,0 +1,162 @@
+"""Tasks of the arena: one closed-loop episode per (controller, system, map, disturbance,
+tuning, realisation).
+
+Common random numbers: an episode's stream key is (system, map family, map seed, disturbance,
+realisation), not the controller or the tuning, so in realisation j every controller meets the
+same plant disturbances (``ctx.rng(1)``) and draws from the same sampler stream (``ctx.rng(0)``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from studies.arena.config import RESULT_VERSION, ArenaConfig, DisturbanceSpec
+from studies.arena.episodes import Controls, Where, capacity, run_episode
+from workbench.scenarios.maps import MAP_FAMILIES, MapFamily
+from workbench.scenarios.methods import METHODS
+from workbench.scenarios.systems import SYSTEMS, system
+from workbench.scenarios.tuned import ControllerSettings, tuned
+from workbench.study import TaskContext, TaskOutput
+from workbench.study.spec import Declaration
+from workbench.validation import fail
+
+
+def word(text: str) -> int:
+    """A stable 31-bit stream word for a label."""
+    return int(hashlib.sha256(text.encode()).hexdigest()[:8], 16) >> 1
+
+
+@dataclass(frozen=True)
+class ArenaEpisode:
+    controller: str
+    system: str
+    family: str
+    map_seed: int
+    disturbance: str  # its label
+    tuning: str
+    realisation: int
+
+    def stream_key(self) -> tuple[int, ...]:
+        return (list(SYSTEMS).index(self.system), MAP_FAMILIES.index(self.family),
+                self.map_seed, word(self.disturbance), self.realisation)
+
+    def columns(self) -> dict[str, object]:
+        return {"controller": self.controller, "system": self.system,
+                "map": f"{self.family}-{self.map_seed}", "family": self.family,
+                "map_seed": self.map_seed, "disturbance": self.disturbance,
+                "tuning": self.tuning, "realisation": self.realisation}
+
+
+def hand_settings(config: ArenaConfig, system_name: str) -> ControllerSettings:
+    """The hand-tuned settings on a system: the config's sampler (N, T, ...) with the system's
+    own sigma and lambda, its q_beta, the config's alpha rule and method options."""
+    import dataclasses
+
+    s = system(system_name)
+    sampler = dataclasses.replace(config.sampler, sigma=tuple(s.sigma), lam=float(s.lam))
+    return ControllerSettings(sampler, float(s.q_beta), config.rule, config.methods)
+
+
+def settings(config: ArenaConfig, system_name: str, controller: str,
+             tuning: str) -> ControllerSettings:
+    base = hand_settings(config, system_name)
+    if tuning == "hand":
+        return base
+    t = tuned(system_name, controller)
+    if t is None:
+        raise fail("tunings", "tuned", f"no tuned parameters are shipped for ({system_name}, "
+                   f"{controller}); run `make tune-arena` or drop 'tuned' from tunings")
+    return base.with_values(controller, t.params)
+
+
+def controls(config: ArenaConfig, system_name: str, controller: str, tuning: str) -> Controls:
+    return Controls(controller, settings(config, system_name, controller, tuning),
+                    config.robust, config.feedback, config.calibration_seed)
+
+
+def family(config: ArenaConfig, name: str) -> MapFamily:
+    return next(f for f in config.families if f.family == name)
+
+
+def where(config: ArenaConfig, system_name: str, family_name: str, seed: int) -> Where:
+    fam = family(config, family_name)
+    return Where(system_name, fam, seed, capacity(fam, config.map_seeds()
+                                                  + config.tuning_seeds()))
+
+
+def disturbance_spec(config: ArenaConfig, label: str) -> DisturbanceSpec:
+    return next(d for d in config.disturbances if d.label == label)
+
+
+def run_task(task: ArenaEpisode, ctx: TaskContext, config: ArenaConfig,
+             prepared=None) -> TaskOutput:
+    sys_ = system(task.system)
+    dist = disturbance_spec(config, task.disturbance).disturbance(sys_.level_scale,
+                                                                  sys_.disturbed)
+    out = run_episode(where(config, task.system, task.family, task.map_seed),
+                      controls(config, task.system, task.controller, task.tuning), dist,
+                      config.steps, config.goal_radius, ctx.rng(0), ctx.rng(1), ctx.threads)
+    act = out.activity
+    return TaskOutput(
+        tables={"episodes": {k: np.array([v]) for k, v in out.row().items()},
+                "timing": {"mean_step_ms": np.array([out.mean_step_ms])},
+                "activity": {"mechanism": np.array(list(act), dtype=str),
+                             "activity": np.array(list(act.values()), dtype=float)}},
+        arrays={"X": out.X, "U": out.U})
+
+
+# slowest first (one thread, navigation map)
+SPEED = ("cbf_projection", "sais_ecbf", "sais_al", "sa_rmppi", "rmppi", "tube_mppi",
+         "shield_mppi", "gatekeeper", "bas_mppi", "mppi_crash")
+assert set(SPEED) == set(METHODS)
+
+
+@dataclass(frozen=True)
+class Plan:
+    tasks: tuple[ArenaEpisode, ...]
+
+
+def plan(config: ArenaConfig) -> Plan:
+    tasks = [ArenaEpisode(c, s, f.family, m, d.label, t, j)
+             for s in config.systems for f in config.families for m in config.map_seeds()
+             for d in config.disturbances for t in config.tunings for c in config.controllers
+             for j in range(config.realisations)]
+    # slow controllers first; within one, a (system, map) stays together (cached set-ups)
+    tasks.sort(key=lambda t: (SPEED.index(t.controller), t.system, t.family, t.map_seed,
+                              t.tuning, t.disturbance, t.realisation))
+    return Plan(tuple(tasks))
+
+
+def system_values(names: tuple[str, ...]) -> dict:
+    """The numbers of each system's definition that results depend on (a change to them must
+    not reuse stored episodes)."""
+    out = {}
+    for n in names:
+        s = system(n)
+        out[n] = {k: getattr(s, k) for k in ("Q", "S", "sigma", "lam", "q_beta", "disturbed",
+                                             "scale", "level_scale", "cost_form")}
+        out[n]["feedback_weights"] = asdict(s.feedback_weights)
+    return out
+
+
+def fingerprint(config: ArenaConfig) -> dict:
+    d = asdict(config)
+    d["system_values"] = system_values(config.systems)
+    for k in ("controllers", "systems", "test_maps", "disturbances", "realisations", "tunings",
+              "seed", "tuning", "tuning_maps", "tuning_seed", "tuning_disturbance"):
+        d.pop(k)
+    # the circle slots depend on every map of a family: part of what a task computed
+    d["capacity"] = {f.family: capacity(f, config.map_seeds() + config.tuning_seeds())
+                     for f in config.families}
+    if "tuned" in config.tunings:
+        d["tuned"] = {f"{s}/{c}": asdict(settings(config, s, c, "tuned"))
+                      for s in config.systems for c in config.controllers}
+    return d
+
+
+def declare(config: ArenaConfig) -> Declaration:
+    p = plan(config)
+    return Declaration(p.tasks, run_task, fingerprint(config), RESULT_VERSION, p)

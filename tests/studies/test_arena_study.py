@@ -1,0 +1,152 @@
+"""The arena: config errors name the field, common random numbers hold within a (system, map,
+disturbance, realisation), the summary's cells and pooled comparisons are the tidy data's, the
+tuned section records parameters and budget, and the verdict text is generated."""
+
+from __future__ import annotations
+
+import json
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from studies.arena import STUDY
+from studies.arena.config import ArenaConfig, DisturbanceSpec
+from studies.arena.episodes import setup
+from studies.arena.summary import pairs
+from studies.arena.tasks import hand_settings, where
+from workbench.scenarios.maps import MapFamily
+from workbench.study import Rate, RunStore
+from workbench.study.runner import profile_config
+from workbench.study.runner import run as run_study
+from workbench.study.stats import pooled_paired
+from workbench.study.tuning import TuningBudget
+
+CELL_FIELDS = {"controller", "system", "map", "disturbance", "safety", "ci_low", "ci_high", "n",
+               "mean_step_ms"}
+POOLED_FIELDS = {"b", "c", "p_value", "difference", "low", "high", "n_maps"}
+
+
+def tiny(**overrides):
+    return profile_config(STUDY, "tiny", **overrides)
+
+
+@pytest.mark.parametrize("overrides, field", [
+    ({"systems": ("double_integrator", "hovercraft")}, "systems"),
+    ({"controllers": ("bas_mppi", "lqr")}, "controllers"),
+    ({"tunings": ("hand", "best")}, "tunings"),
+    ({"families": (MapFamily("spec"), MapFamily("spec"))}, "families"),
+    ({"realisations": 0}, "realisations"),
+    ({"test_seed": 1, "tuning_seed": 0, "tuning_maps": 4}, "test_seed"),
+])
+def test_bad_config_names_the_field(overrides, field):
+    with pytest.raises(ValueError, match=rf"^{field}"):
+        tiny(**overrides)
+
+
+def test_zero_budget_unknown_family_and_disturbance_name_the_field():
+    with pytest.raises(ValueError, match=r"^disturbances\.model"):
+        DisturbanceSpec("gust")
+    with pytest.raises(ValueError, match=r"^tuning\.trials"):
+        TuningBudget(trials=0)
+    with pytest.raises(ValueError, match=r"^map\.family"):
+        MapFamily("maze")
+
+
+def test_start_inside_a_generated_obstacle_names_the_field():
+    with pytest.raises(ValueError, match=r"^map\.start"):
+        tiny(families=(MapFamily("spec", start=(5.0 - 1.4, 5.0)),))
+
+
+def test_pairs_each_once_with_ablations():
+    p = pairs(("bas_mppi", "sa_rmppi", "rmppi"))
+    assert p == [("sa_rmppi", "bas_mppi"), ("rmppi", "bas_mppi"), ("rmppi", "sa_rmppi")]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("arena")
+    cfg = tiny()
+    return cfg, out, run_study(STUDY, cfg, out, workers=0, progress=False)
+
+
+def test_common_random_numbers(tiny_run):
+    """w_k = x_{k+1} - F(x_k, u_k) is one sequence per (system, map, disturbance,
+    realisation), whatever the controller; different realisations differ."""
+    cfg, out, _ = tiny_run
+    store = RunStore(out)
+    ep = store.table("episodes")
+    seqs: dict[tuple, list[np.ndarray]] = {}
+    for _, r in ep.iterrows():
+        plant = setup(where(cfg, r["system"], r["family"], int(r["map_seed"])),
+                      hand_settings(cfg, r["system"])).plant
+        f = ca.Function("f", [plant.x, plant.u], [plant.x_next])
+        a = store.arrays(r["task_id"])
+        X, U = a["X"], a["U"]
+        w = np.array([X[k + 1] - np.asarray(f(X[k], U[k])).ravel() for k in range(len(U))])
+        seqs.setdefault((r["system"], r["map"], r["disturbance"], r["realisation"]),
+                        []).append(w)
+    assert len(seqs) == 2 * 2 * 2 * 2
+    for ws in seqs.values():
+        assert len(ws) == len(cfg.controllers)
+        n = min(len(w) for w in ws)
+        for w in ws[1:]:
+            np.testing.assert_allclose(w[:n], ws[0][:n], rtol=0, atol=1e-12)
+    keys = sorted(seqs)
+    a, b = seqs[keys[0]][0], seqs[keys[1]][0]
+    n = min(len(a), len(b))
+    assert not np.allclose(a[:n], b[:n])
+
+
+def test_summary_is_the_data(tiny_run):
+    cfg, out, outcome = tiny_run
+    store = RunStore(out)
+    ep, timing = store.table("episodes"), store.table("timing")
+    data = json.loads((out / "summary.json").read_text())
+    cells = data["cells"]
+    assert len(cells) == 3 * 2 * 2 * 2
+    for c in cells:
+        assert CELL_FIELDS <= set(c)
+        rows = ep[(ep["controller"] == c["controller"]) & (ep["system"] == c["system"])
+                  & (ep["map"] == c["map"]) & (ep["disturbance"] == c["disturbance"])]
+        rate = Rate.of(~rows["crashed"].to_numpy(bool))
+        assert (c["n"], c["safety"], c["ci_low"], c["ci_high"]) == (
+            rate.n, rate.value, rate.low, rate.high)
+        t = timing[timing["task_id"].isin(rows["task_id"])]
+        assert c["mean_step_ms"] == pytest.approx(t["mean_step_ms"].mean(), rel=1e-12)
+    pooled = data["pooled"]
+    assert pooled
+    for p in pooled:
+        assert POOLED_FIELDS <= set(p)
+        if p["disturbance"] == "all" or ":" in p["first"]:
+            continue
+        x = ep[(ep["controller"] == p["first"]) & (ep["system"] == p["system"])
+               & (ep["disturbance"] == p["disturbance"])]
+        y = ep[(ep["controller"] == p["second"]) & (ep["system"] == p["system"])
+               & (ep["disturbance"] == p["disturbance"])]
+        m = x.merge(y, on=["map", "realisation"], suffixes=("_1", "_2"))
+        strata = []
+        for _, g in m.groupby("map"):
+            s1, s2 = ~g["crashed_1"].to_numpy(bool), ~g["crashed_2"].to_numpy(bool)
+            strata.append((int(np.sum(s1 & s2)), int(np.sum(s1 & ~s2)),
+                           int(np.sum(~s1 & s2)), int(np.sum(~s1 & ~s2))))
+        ref = pooled_paired(strata)
+        assert (p["b"], p["c"], p["n_maps"]) == (ref.b, ref.c, 2)
+        assert p["p_value"] == pytest.approx(ref.p_value, rel=1e-12)
+    tuned = data["tuned"]
+    assert set(tuned) == {f"{s}/{c}" for s in cfg.systems for c in cfg.controllers}
+    assert all("hand" in e and "searched" in e for e in tuned.values())
+    assert {m["map"] for m in data["maps"]} == {"spec-1000", "spec-1001"}
+    text = outcome.report.read_text()
+    assert data["verdict"]["text"][0] in text
+    assert "SPEC" not in text and (out / "frontier.png").stat().st_size > 10_000
+
+
+def test_task_count_of_the_profiles():
+    from studies.arena.tasks import plan
+
+    v = profile_config(STUDY, "verdict")
+    assert v.test_maps >= 10 and {d.model for d in v.disturbances} >= {
+        "velocity_variance", "velocity_std", "white_noise", "kick"}
+    assert len(plan(v).tasks) == 3 * 12 * 5 * 2 * 6
+    assert isinstance(profile_config(STUDY, "quick"), ArenaConfig)

@@ -1,0 +1,139 @@
+"""What automatic tuning may change per controller, how tuned values enter a controller's
+settings, and the tuned defaults shipped for each (controller, system) pair.
+
+Every controller tunes the sampler's exploration and temperature (``sigma_scale`` multiplies
+the system's per-control sigma; ``lam``); the robust ones also the alpha rule's ``kappa``; a
+method with a gain of its own tunes that gain too. The barrier-state weight ``q_beta`` is not
+tuned: it is compiled into the sampling kernels, so each value would cost a compile.
+
+The shipped defaults (``tuned.json`` beside this module) are written by the arena's tuning run
+(``make tune-arena``) with the budget and objective they were tuned under;
+:func:`shipped` reads them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+from workbench.sampling.controllers import MPPIConfig
+from workbench.sampling.threshold import AlphaRule
+from workbench.scenarios.methods import METHODS, ROBUST_METHODS, MethodSettings
+from workbench.study.tuning import Param, TuningBudget
+from workbench.validation import fail, one_of
+
+SHIPPED = Path(__file__).with_name("tuned.json")
+
+COMMON = (Param("sigma_scale", 0.25, 4.0), Param("lam", 0.3, 100.0))
+OWN: dict[str, tuple[Param, ...]] = {
+    "tube_mppi": (Param("tube.threshold", -100.0, 20.0, log=False),),
+    "cbf_projection": (Param("cbf_projection.gamma", 0.02, 1.0),),
+    "shield_mppi": (Param("shield.w_dcbf", 10.0, 1e5),),
+    "gatekeeper": (Param("gatekeeper.horizon", 20, 120, log=False, integer=True),),
+}
+KAPPA = Param("kappa", 0.01, 1.0)
+
+
+def space(controller: str) -> tuple[Param, ...]:
+    """The parameters tuning may change for ``controller``."""
+    one_of("controller", controller, METHODS)
+    return COMMON + ((KAPPA,) if controller in ROBUST_METHODS else ()) + OWN.get(controller, ())
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """A controller's settings on one system: the sampler, the barrier-state weight, the
+    alpha rule (robust controllers) and each method's own options."""
+
+    sampler: MPPIConfig
+    q_beta: float
+    rule: AlphaRule
+    methods: MethodSettings
+
+    def values(self, controller: str) -> dict[str, float]:
+        """The current values of ``space(controller)`` (sigma_scale relative to ``base``
+        sigma is 1 by definition: the hand-tuned point)."""
+        out = {"sigma_scale": 1.0, "lam": float(self.sampler.lam)}
+        if controller in ROBUST_METHODS:
+            out["kappa"] = float(self.rule.kappa)
+        for p in OWN.get(controller, ()):
+            group, name = p.name.split(".")
+            out[p.name] = float(getattr(getattr(self.methods, _GROUP[group]), name))
+        return out
+
+    def with_values(self, controller: str, params: dict[str, float]) -> ControllerSettings:
+        """These settings with tuned ``params`` (names of ``space(controller)``) applied."""
+        allowed = {p.name: p for p in space(controller)}
+        for k, v in params.items():
+            if k not in allowed:
+                raise fail("params", k, f"is not tuned for {controller}; allowed {list(allowed)}")
+            if not allowed[k].contains(float(v)):
+                raise fail(f"params.{k}", v, f"must lie in [{allowed[k].low:g}, "
+                           f"{allowed[k].high:g}]")
+        s = self.sampler
+        sampler = dataclasses.replace(
+            s, sigma=tuple(params.get("sigma_scale", 1.0) * v for v in s.sigma),
+            lam=float(params.get("lam", s.lam)))
+        rule = (dataclasses.replace(self.rule, kappa=float(params["kappa"]))
+                if "kappa" in params else self.rule)
+        methods = self.methods
+        for k, v in params.items():
+            if "." in k:
+                group, name = k.split(".")
+                sub = getattr(methods, _GROUP[group])
+                value = round(v) if isinstance(getattr(sub, name), int) else float(v)
+                methods = dataclasses.replace(
+                    methods, **{_GROUP[group]: dataclasses.replace(sub, **{name: value})})
+        return ControllerSettings(sampler, self.q_beta, rule, methods)
+
+
+_GROUP = {"tube": "tube", "cbf_projection": "cbf_projection", "shield": "shield",
+          "gatekeeper": "gatekeeper"}
+
+
+@dataclass(frozen=True)
+class Tuned:
+    """Tuned parameters of one (system, controller) pair: the values, the training score and
+    the hand-tuned start's score under the same objective, the budget, the objective and the
+    training maps."""
+
+    system: str
+    controller: str
+    params: dict[str, float]
+    score: float
+    start_score: float
+    budget: TuningBudget
+    objective: str
+    training: str
+
+    def as_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["budget"] = dataclasses.asdict(self.budget)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Tuned:
+        return cls(d["system"], d["controller"], {k: float(v) for k, v in d["params"].items()},
+                   float(d["score"]), float(d["start_score"]), TuningBudget(**d["budget"]),
+                   d["objective"], d["training"])
+
+
+@cache
+def _read(path: Path) -> dict[tuple[str, str], Tuned]:
+    if not path.exists():
+        return {}
+    entries = json.loads(path.read_text(encoding="utf-8"))["tuned"]
+    return {(e["system"], e["controller"]): Tuned.from_dict(e) for e in entries}
+
+
+def shipped(path: Path | None = None) -> dict[tuple[str, str], Tuned]:
+    """The shipped tuned defaults by (system, controller) ({} when none are shipped)."""
+    return dict(_read(Path(path or SHIPPED)))
+
+
+def tuned(system: str, controller: str, path: Path | None = None) -> Tuned | None:
+    """The shipped tuned parameters of (``system``, ``controller``), or None."""
+    return _read(Path(path or SHIPPED)).get((system, controller))
