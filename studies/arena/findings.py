@@ -37,6 +37,9 @@ class Setting:
     p_holm: float
     homogeneity_p: float | None
     outcome: str  # "holds", "contradicted" or "not decided"
+    success_first: float  # SA-RMPPI's share of episodes that reached the goal without a crash
+    success_second: float  # BaS-MPPI's
+    drift: float  # share of both controllers' safe episodes that never reached the goal
 
     @property
     def heterogeneous(self) -> bool:
@@ -88,14 +91,32 @@ def _pts(x: float) -> str:
     return f"{100 * x:+.1f}"
 
 
+def _success(s: ArenaSummary, controller: str, system: str, disturbance: str,
+             tuning: str) -> tuple[float, float, float]:
+    """Over the maps: (success rate, safe episodes, safe episodes that never reached the
+    goal) of one controller."""
+    cells = [c for c in s.cells if (c.controller, c.system, c.disturbance, c.tuning)
+             == (controller, system, disturbance, tuning)]
+    n = sum(c.n for c in cells)
+    ok = sum(c.success * c.n for c in cells)
+    safe = sum(c.safety * c.n for c in cells)
+    return (ok / n if n else float("nan")), safe, safe - ok
+
+
 def verdict(s: ArenaSummary) -> Verdict | None:
     rows = [p for p in s.pooled if (p.first, p.second) == CLAIM and p.disturbance != ALL]
     if not rows:
         return None
     adj = holm([p.p_value for p in rows])
-    settings = tuple(Setting(p.system, p.disturbance, p.tuning, p.n_maps, p.n, p.b, p.c,
-                             p.difference, p.low, p.high, p.p_value, a, p.homogeneity_p,
-                             _outcome(p, a)) for p, a in zip(rows, adj, strict=True))
+    settings = []
+    for p, a in zip(rows, adj, strict=True):
+        f = _success(s, CLAIM[0], p.system, p.disturbance, p.tuning)
+        g = _success(s, CLAIM[1], p.system, p.disturbance, p.tuning)
+        drift = (f[2] + g[2]) / (f[1] + g[1]) if f[1] + g[1] else 0.0
+        settings.append(Setting(p.system, p.disturbance, p.tuning, p.n_maps, p.n, p.b, p.c,
+                                p.difference, p.low, p.high, p.p_value, a, p.homogeneity_p,
+                                _outcome(p, a), f[0], g[0], drift))
+    settings = tuple(settings)
     pooled_over = ALL if any(p.disturbance == ALL for p in s.pooled) else rows[0].disturbance
     abl = tuple(Ablation(p.first, p.second, p.system, p.tuning, p.n, p.difference, p.low,
                          p.high, p.p_value)
@@ -116,8 +137,12 @@ def verdict(s: ArenaSummary) -> Verdict | None:
         text.append(f"{x.system}, {x.disturbance}, {x.tuning}: {x.outcome}; SA-RMPPI minus "
                     f"BaS-MPPI safety {_pts(x.difference)} points [{_pts(x.low)}, "
                     f"{_pts(x.high)}] over {x.n} paired episodes ({x.b} only SA-RMPPI safe, "
-                    f"{x.c} only BaS-MPPI safe; p = {x.p_value:.2g}, Holm {x.p_holm:.2g})."
-                    + flag)
+                    f"{x.c} only BaS-MPPI safe; p = {x.p_value:.2g}, Holm {x.p_holm:.2g}). "
+                    f"Reached the goal without a crash: SA-RMPPI {100 * x.success_first:.0f} %, "
+                    f"BaS-MPPI {100 * x.success_second:.0f} %." + flag
+                    + (f" {100 * x.drift:.0f} % of the safe episodes never reached the goal: "
+                       "here safety mostly means being pushed away from the obstacles, not "
+                       "avoiding them." if x.drift > 0.5 else ""))
     for a in abl:
         what = ("the barrier-state feedback K_safe (against plain tracking gains)"
                 if a.second == "rmppi" else "the robust sampler with tracking gains")

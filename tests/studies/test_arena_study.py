@@ -150,3 +150,26 @@ def test_task_count_of_the_profiles():
         "velocity_variance", "velocity_std", "white_noise", "kick"}
     assert len(plan(v).tasks) == 3 * 12 * 5 * 2 * 6
     assert isinstance(profile_config(STUDY, "quick"), ArenaConfig)
+
+
+def test_moving_obstacles_and_other_families_run(tmp_path):
+    """Corridor maps with moving circles and occupancy maps: the episode's crash check uses the
+    moving scene (its stored path is checked against the scene of each step here)."""
+    cfg = tiny(controllers=("bas_mppi",), systems=("double_integrator",),
+               families=(MapFamily("corridor", moving=2, speed=1.0), MapFamily("occupancy")),
+               test_maps=1, realisations=1, disturbances=(DisturbanceSpec(level=10.0),))
+    run_study(STUDY, cfg, tmp_path, workers=0, progress=False)
+    store = RunStore(tmp_path)
+    ep = store.table("episodes")
+    assert set(ep["family"]) == {"corridor", "occupancy"}
+    from studies.arena.episodes import arena_map
+
+    r = ep[ep["family"] == "corridor"].iloc[0]
+    m = arena_map(MapFamily("corridor", moving=2, speed=1.0), int(r["map_seed"]))
+    X = store.arrays(r["task_id"])["X"]
+    at = m.moving_scene(0.02)
+    for k in range(len(X)):  # the path never enters a circle of the scene of its time
+        h = min(float(np.sum((X[k, :2] - np.array(c.center)) ** 2) - c.radius ** 2)
+                for c in at(k))
+        assert h > 0 or (bool(r["crashed"]) and k == len(X) - 1)
+    assert at(10) != at(0)
