@@ -57,7 +57,7 @@ study-sampling-safety: $(STAMP)
 	$(WB) run sampling-safety --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
 
 # the arena: controllers x systems x generated maps x disturbances (quick: a few minutes;
-# PROFILE=verdict: claim (i) over 12 maps and the four disturbance readings, ~30 min)
+# PROFILE=verdict: claim (i) over 12 maps and the four disturbance readings, ~25 min)
 ARENA_PROFILE = $(if $(filter tiny verdict paper,$(PROFILE)),$(PROFILE),quick)
 study-arena: $(STAMP)
 	$(WB) run arena --profile $(ARENA_PROFILE) $(STUDY_EXEC) $(SETS)
