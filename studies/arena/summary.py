@@ -137,11 +137,11 @@ ABLATIONS = (("sa_rmppi", "rmppi"), ("rmppi", "bas_mppi"))  # why SA-RMPPI diffe
 
 
 def pairs(controllers: tuple[str, ...]) -> list[tuple[str, str]]:
-    """The compared pairs: every controller against each reference present, then the
-    ablations; a pair appears once, in one order."""
+    """The compared pairs: the ablations (in their own order), then every controller against
+    each reference present; a pair appears once, in one order."""
     out: list[tuple[str, str]] = []
-    cands = [(c, r) for r in REFERENCES if r in controllers for c in controllers if c != r]
-    cands += [p for p in ABLATIONS if set(p) <= set(controllers)]
+    cands = [p for p in ABLATIONS if set(p) <= set(controllers)]
+    cands += [(c, r) for r in REFERENCES if r in controllers for c in controllers if c != r]
     for p in cands:
         if p not in out and (p[1], p[0]) not in out:
             out.append(p)

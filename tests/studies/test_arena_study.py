@@ -60,7 +60,9 @@ def test_start_inside_a_generated_obstacle_names_the_field():
 
 def test_pairs_each_once_with_ablations():
     p = pairs(("bas_mppi", "sa_rmppi", "rmppi"))
-    assert p == [("sa_rmppi", "bas_mppi"), ("rmppi", "bas_mppi"), ("rmppi", "sa_rmppi")]
+    assert p == [("sa_rmppi", "rmppi"), ("rmppi", "bas_mppi"), ("sa_rmppi", "bas_mppi")]
+    assert pairs(("bas_mppi", "sa_rmppi", "tube_mppi")) == [
+        ("sa_rmppi", "bas_mppi"), ("tube_mppi", "bas_mppi"), ("tube_mppi", "sa_rmppi")]
 
 
 @pytest.fixture(scope="module")
