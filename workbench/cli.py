@@ -6,12 +6,15 @@ is resolved in layers, then checked before any work starts (:mod:`workbench.stud
 the config dataclass's defaults <- the profile's TOML file (``--profile``; the study's default
 profile when neither --profile nor --config is given) <- ``--config FILE`` <- each
 ``--set key=value`` (dotted keys for nested fields, values as TOML literals).
+
+Every path argument (``--config``, ``--out``, ``--root``) has a leading ``~`` or ``~user``
+expanded when the command line is parsed, so the checks and the writes use the same path.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import os
 import sys
 import textwrap
 from pathlib import Path
@@ -113,12 +116,13 @@ def cmd_run(args) -> int:
                           "process)")
     profile = args.profile or (entry.default_profile if args.config is None else None)
     if args.dry_run:
-        print(json.dumps({"profile": profile, **dry_manifest(entry, cfg)}, indent=1,
+        from workbench.study.io import dumps_json
+
+        print(dumps_json({"profile": profile, **dry_manifest(entry, cfg)}, indent=1,
                          sort_keys=True))
         return 0
-    out = Path(args.out or entry.default_out)
     try:
-        writable_dir("--out", out)
+        out = writable_dir("--out", args.out or entry.default_out)
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     from workbench.study import StudyInterrupted
@@ -149,6 +153,19 @@ def cmd_report(args) -> int:
 
 
 # ------------------------------------------------------------------------------ the parser
+def user_path(text: str) -> Path:
+    """A path argument with a leading ``~`` or ``~user`` expanded (once, here)."""
+    p = os.path.expanduser(text)
+    if p.startswith("~"):
+        user = p[1:].split("/", 1)[0]
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: cannot expand ~{user}: no such user with a home folder (write the path "
+            f"as ./{text} for a folder named {'~' + user!r})")
+    path = Path(p)
+    # ./~name is a folder named ~name: made absolute so that nothing expands it later
+    return path.absolute() if str(path).startswith("~") else path
+
+
 def _study_names() -> str:
     try:
         return ", ".join(registry())
@@ -162,7 +179,7 @@ def _config_args(p: argparse.ArgumentParser) -> None:
                    help="profile: a TOML file in the study's directory (quick, paper, full; "
                         "`workbench list` shows each study's); default: quick, unless --config "
                         "is given")
-    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+    p.add_argument("--config", type=user_path, default=None, metavar="FILE",
                    help="TOML file over the profile (e.g. the output of show-config or a run's "
                         "config.toml)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -193,7 +210,7 @@ def parser() -> argparse.ArgumentParser:
                    help="local worker processes (0: in this process; default 2)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:8786) instead of local workers")
-    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+    p.add_argument("--out", type=user_path, default=None, metavar="DIR",
                    help="run directory (default: the study's, e.g. reports/tracking_comparison)")
     p.add_argument("--dry-run", action="store_true",
                    help="check the config and print the run's manifest (study, seed, config, "
@@ -213,7 +230,7 @@ def parser() -> argparse.ArgumentParser:
                                    "first rebuild that study's report.md from its stored "
                                    "results (nothing is computed).")
     p.add_argument("study", nargs="?", default=None, help="study whose report to rebuild")
-    p.add_argument("--root", type=Path, default=Path("reports"),
+    p.add_argument("--root", type=user_path, default=Path("reports"),
                    help="reports directory (default: reports)")
     p.set_defaults(fn=cmd_report)
 

@@ -1,13 +1,25 @@
-"""Input checks that fail fast with a message naming the field, the value and what is allowed."""
+"""Input checks that fail fast with a message naming the field, the value and what is allowed.
+
+Sizes have documented upper bounds, checked when a config is built, so that a typo such as
+``realisations=10**12`` fails at once instead of allocating until memory runs out:
+:data:`MAX_TASKS` tasks per study run, :data:`MAX_STEPS` steps per episode (or calibration run),
+:data:`MAX_BATCH` entries (samples x horizon x controls) per sampled batch.
+"""
 
 from __future__ import annotations
 
+import os
 import tempfile
 from collections.abc import Sequence
 from numbers import Integral, Real
 from pathlib import Path
 
 import numpy as np
+
+MAX_TASKS = 10**7  # tasks of one study run
+MAX_STEPS = 10**7  # plant steps of one episode or calibration run
+MAX_BATCH = 2**31  # entries n_samples * horizon * nu of one sampled batch
+_TINY = float(np.finfo(np.float64).tiny)  # the smallest normal float64, 2.2e-308
 
 
 def _show(value: object) -> str:
@@ -74,6 +86,39 @@ def real(field: str, value: object, minimum: float | None = None, *, strict: boo
     return float(value)
 
 
+def scale(field: str, value: object, power: int = 1) -> float:
+    """A positive scale (a standard deviation with ``power=2``, a temperature with ``power=1``)
+    whose ``power``-th power and its reciprocal are both normal float64 numbers, so that
+    ``value**power`` neither underflows to 0 (a degenerate distribution, weights of 0/0) nor
+    overflows: ``value`` in [tiny^(1/power), tiny^(-1/power)], tiny = 2.2e-308 (about
+    [2.2e-308, 4.5e307] for power 1, [1.5e-154, 6.7e153] for power 2)."""
+    ok = isinstance(value, Real) and not isinstance(value, bool | np.bool_)
+    if ok:
+        with np.errstate(all="ignore"):
+            try:
+                v = np.float64(value)
+            except OverflowError:  # an int beyond float64
+                v = np.float64(np.inf)
+            p = v**power
+            inv = 1.0 / p if p != 0 else np.inf
+        ok = bool(np.isfinite(v) and v > 0 and np.isfinite(p) and p >= _TINY
+                  and np.isfinite(inv) and inv >= _TINY)
+    if not ok:
+        lo, hi = _TINY ** (1.0 / power), _TINY ** (-1.0 / power)
+        what = "the value" if power == 1 else "its square" if power == 2 else f"value^{power}"
+        raise fail(field, value, f"must be a finite number in [{lo:.4g}, {hi:.4g}] ({what} and "
+                   "its reciprocal must be normal float64 numbers: no underflow to 0, no "
+                   "overflow)")
+    return float(value)
+
+
+def at_most(field: str, value: object, total: int, limit: int, what: str) -> None:
+    """Refuse a size: ``total`` (``what``, computed from ``value`` of ``field`` and others) must
+    be <= ``limit``."""
+    if total > limit:
+        raise fail(field, value, f"gives {what} = {total}, above the limit {limit}; lower it")
+
+
 def real_or_inf(field: str, value: object) -> float:
     """A real number (never ``bool``) or +inf: NaN and -inf are rejected."""
     ok = (isinstance(value, Real) and not isinstance(value, bool | np.bool_)
@@ -117,8 +162,11 @@ def bounds(field_lo: str, lo: np.ndarray, field_hi: str, hi: np.ndarray) -> None
 
 def writable_dir(field: str, path) -> Path:
     """Check that ``path`` is (or can be created as) a directory this process can write:
-    returns it as a Path, or raises ValueError naming ``field``. Creates the directory."""
-    p = Path(path).expanduser()
+    returns it as a Path (a leading ``~`` expanded), or raises ValueError naming ``field``.
+    Creates the directory."""
+    p = Path(os.path.expanduser(str(path)))
+    if str(p).startswith("~"):
+        raise fail(field, str(path), "starts with ~ but names no user with a home folder")
     if p.exists() and not p.is_dir():
         raise fail(field, str(p), "is an existing file, not a directory")
     for parent in p.parents:

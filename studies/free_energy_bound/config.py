@@ -4,13 +4,24 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from workbench.validation import fail, flag, integer, one_of, real
+from workbench.validation import (
+    MAX_BATCH,
+    MAX_STEPS,
+    MAX_TASKS,
+    at_most,
+    fail,
+    flag,
+    integer,
+    one_of,
+    real,
+)
 
 # SPEC 11.3 tests as workbench.bound.checks names them (T2E: independent batch, "true-F" form)
 TESTS: tuple[str, ...] = ("T1", "T1s", "T2", "T2E", "T3", "T3b", "T3c", "T3d")
 STEP_TESTS = ("T1", "T1s", "T2", "T2E")
 CONSTANTS: tuple[str, ...] = ("local", "global")
 RESULT_VERSION = 2  # bump when the meaning of stored task results changes
+MAX_GRID = 10**7  # points of the global-Lipschitz grid
 
 
 
@@ -25,6 +36,9 @@ class StudyConfig:
     horizon: the SAIS batch (N, T); calibration_steps: the undisturbed alpha-calibration run;
     grid_*: the global-Lipschitz grid (workbench.bound.LipschitzGrid); independent: draw a second
     batch per step for T2E; z, n_q, space: workbench.bound.BoundConfig.
+
+    Size limits (checked here): at most 10^7 tasks per run, 10^7 steps per episode or
+    calibration run, n_samples * horizon * 2 <= 2^31, 10^7 grid points.
     """
 
     variances: tuple[float, ...] = (0.0, 10.0, 100.0)
@@ -52,10 +66,17 @@ class StudyConfig:
         if len(set(vs)) != len(vs):
             raise fail("variances", v, "must not repeat a value")
         object.__setattr__(self, "variances", tuple(sorted(vs)))
-        for name, lo in (("episodes", 1), ("steps", 2), ("seed", 0), ("n_samples", 4),
-                         ("horizon", 2), ("calibration_steps", 10), ("grid_rings", 1),
-                         ("grid_angles", 4)):
-            object.__setattr__(self, name, integer(name, getattr(self, name), lo))
+        for name, lo, hi in (("episodes", 1, MAX_TASKS), ("steps", 2, MAX_STEPS),
+                             ("seed", 0, None), ("n_samples", 4, MAX_BATCH),
+                             ("horizon", 2, MAX_BATCH), ("calibration_steps", 10, MAX_STEPS),
+                             ("grid_rings", 1, MAX_GRID), ("grid_angles", 4, MAX_GRID)):
+            object.__setattr__(self, name, integer(name, getattr(self, name), lo, hi))
+        at_most("episodes", self.episodes, len(vs) * self.episodes, MAX_TASKS,
+                "variances x episodes (tasks of a run)")
+        at_most("n_samples", self.n_samples, self.n_samples * self.horizon * 2, MAX_BATCH,
+                "n_samples * horizon * nu (entries of a sampled batch; nu = 2)")
+        at_most("grid_rings", self.grid_rings, self.grid_rings * self.grid_angles, MAX_GRID,
+                "grid_rings * grid_angles (points of the Lipschitz grid)")
         t = self.tests
         if isinstance(t, str) or not hasattr(t, "__iter__") or len(t) == 0:
             raise fail("tests", t, f"must be a non-empty subset of {TESTS}")

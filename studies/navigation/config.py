@@ -9,7 +9,16 @@ from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.navigation import CONTROLLERS, TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
-from workbench.validation import fail, flag, integer, one_of, real
+from workbench.validation import (
+    MAX_STEPS,
+    MAX_TASKS,
+    at_most,
+    fail,
+    flag,
+    integer,
+    one_of,
+    real,
+)
 
 ROBUST = ("sa_rmppi", "rmppi")  # controllers that use an alpha rule
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
@@ -57,7 +66,9 @@ class StudyConfig:
     ``q_beta`` (the barrier-state weight of the sampling cost), ``robust`` (the RMPPI selection
     and its candidates), ``feedback`` (the weights of K_safe and of the plain iLQG gains).
     ``calibration_seed``: the seed of the undisturbed episode that calibrates each alpha rule
-    once per run (``rule.calibration_steps`` steps; the episodes' streams come from ``seed``)."""
+    once per run (``rule.calibration_steps`` steps; the episodes' streams come from ``seed``).
+
+    Size limits (checked here): at most 10^7 tasks per run, 10^7 steps per episode."""
 
     controllers: tuple[str, ...] = CONTROLLERS
     variances: tuple[float, ...] = (0.0, 5.0, 10.0, 50.0, 100.0)
@@ -94,16 +105,23 @@ class StudyConfig:
             raise fail("controllers", ctrls, "must not repeat a controller")
         object.__setattr__(self, "controllers", tuple(c for c in CONTROLLERS if c in ctrls))
         object.__setattr__(self, "variances", _variances("variances", self.variances))
-        for name, lo in (("realisations", 1), ("steps", 1), ("seed", 0),
-                         ("sweep_realisations", 1), ("velocity_stride", 1),
-                         ("illustration_steps", 2)):
-            object.__setattr__(self, name, integer(name, getattr(self, name), lo))
+        for name, lo, hi in (("realisations", 1, MAX_TASKS), ("steps", 1, MAX_STEPS),
+                             ("seed", 0, None), ("sweep_realisations", 1, MAX_TASKS),
+                             ("velocity_stride", 1, MAX_STEPS),
+                             ("illustration_steps", 2, MAX_STEPS)):
+            object.__setattr__(self, name, integer(name, getattr(self, name), lo, hi))
         if not isinstance(self.rule, AlphaRule):
             raise fail("rule", self.rule, "must be an AlphaRule")
         one_of("sweep_controller", self.sweep_controller, ROBUST)
         object.__setattr__(self, "sweep_variances",
                            _variances("sweep_variances", self.sweep_variances, True))
         object.__setattr__(self, "sweep_rules", _rules("sweep_rules", self.sweep_rules))
+        main = len(self.controllers) * len(self.variances) * self.realisations
+        sweep = len(self.sweep_variances) * (1 + len(self.sweep_rules)) * self.sweep_realisations
+        big = "realisations" if main >= sweep else "sweep_realisations"
+        at_most(big, getattr(self, big), main + sweep + 1, MAX_TASKS,
+                "controllers x variances x realisations + sweep_variances x (1 + sweep_rules) "
+                "x sweep_realisations + 1 (tasks of a run, at most)")
         object.__setattr__(self, "goal_radius",
                            real("goal_radius", self.goal_radius, 0.0, strict=True))
         object.__setattr__(self, "illustration", flag("illustration", self.illustration))

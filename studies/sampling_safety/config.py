@@ -12,7 +12,7 @@ from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import METHODS, MethodSettings
 from workbench.scenarios.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
-from workbench.validation import fail, integer, real
+from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, real
 
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
 
@@ -29,7 +29,9 @@ class StudyConfig:
     ``sampler``, ``q_beta``, ``robust``, ``feedback`` and ``rule`` are the navigation study's
     settings (every method shares the sampler: the same N, T, sigma and lambda); ``methods``
     holds each method's own options. The robust controllers calibrate ``rule`` once per run
-    on an undisturbed episode seeded with ``calibration_seed``."""
+    on an undisturbed episode seeded with ``calibration_seed``.
+
+    Size limits (checked here): at most 10^7 tasks per run, 10^7 steps per episode."""
 
     controllers: tuple[str, ...] = METHODS
     variances: tuple[float, ...] = (10.0, 50.0, 100.0)
@@ -57,9 +59,12 @@ class StudyConfig:
             raise fail("controllers", ctrls, "must not repeat a controller")
         object.__setattr__(self, "controllers", tuple(c for c in METHODS if c in ctrls))
         object.__setattr__(self, "variances", _variances("variances", self.variances))
-        for name, lo in (("realisations", 1), ("steps", 1), ("seed", 0),
-                         ("calibration_seed", 0)):
-            object.__setattr__(self, name, integer(name, getattr(self, name), lo))
+        for name, lo, hi in (("realisations", 1, MAX_TASKS), ("steps", 1, MAX_STEPS),
+                             ("seed", 0, None), ("calibration_seed", 0, None)):
+            object.__setattr__(self, name, integer(name, getattr(self, name), lo, hi))
+        at_most("realisations", self.realisations,
+                len(self.controllers) * len(self.variances) * self.realisations, MAX_TASKS,
+                "controllers x variances x realisations (tasks of a run)")
         object.__setattr__(self, "goal_radius",
                            real("goal_radius", self.goal_radius, 0.0, strict=True))
         if not isinstance(self.scene, MapSpec):

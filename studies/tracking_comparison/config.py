@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 
-from workbench.validation import fail, integer, one_of, real
+from workbench.validation import MAX_TASKS, at_most, fail, flag, integer, one_of, real
 
 METHODS: tuple[str, ...] = ("ecbf", "al", "bas")
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
+MAX_ROLLOUTS = 10**6  # rollouts of one task (n_rollouts, sweep_rollouts)
 SWEPT = ("q_beta", "pole", "q_scale", "ecbf_noise", "noise_std")
 NOISE_PLACEMENTS = ("before", "after")
 # the swept values each method's results depend on
@@ -66,6 +67,8 @@ class StudyConfig:
     of its values (others at base), sweep_seeds x sweep_rollouts per method. failure = unsafe or
     final distance > target_radius [A]; ``radii``: the success radii of the radius sweep
     (computed from the same rollouts).
+
+    Size limits (checked here): at most 10^7 tasks per run and 10^6 rollouts per task.
     """
 
     methods: tuple[str, ...] = METHODS
@@ -94,8 +97,9 @@ class StudyConfig:
         if len(set(methods)) != len(methods):
             raise fail("methods", methods, "must not repeat a method")
         object.__setattr__(self, "methods", tuple(m for m in METHODS if m in methods))
-        object.__setattr__(self, "n_rollouts", integer("n_rollouts", self.n_rollouts, 1))
-        object.__setattr__(self, "n_seeds", integer("n_seeds", self.n_seeds, 1))
+        object.__setattr__(self, "n_rollouts",
+                           integer("n_rollouts", self.n_rollouts, 1, MAX_ROLLOUTS))
+        object.__setattr__(self, "n_seeds", integer("n_seeds", self.n_seeds, 1, MAX_TASKS))
         object.__setattr__(self, "seed", integer("seed", self.seed, 0))
         object.__setattr__(self, "target_radius",
                            real("target_radius", self.target_radius, 0.0, strict=True))
@@ -113,8 +117,15 @@ class StudyConfig:
                        f"{NOISE_PLACEMENTS}")
         object.__setattr__(self, "sweep_ecbf_noise", tuple(placements))
         object.__setattr__(self, "sweep_rollouts",
-                           integer("sweep_rollouts", self.sweep_rollouts, 1))
-        object.__setattr__(self, "sweep_seeds", integer("sweep_seeds", self.sweep_seeds, 1))
+                           integer("sweep_rollouts", self.sweep_rollouts, 1, MAX_ROLLOUTS))
+        object.__setattr__(self, "sweep_seeds",
+                           integer("sweep_seeds", self.sweep_seeds, 1, MAX_TASKS))
+        object.__setattr__(self, "sweep", flag("sweep", self.sweep))
+        points = sum(len(getattr(self, f"sweep_{name}")) for name in SWEPT) if self.sweep else 0
+        main, swept = self.n_seeds, points * self.sweep_seeds
+        big = "n_seeds" if main >= swept else "sweep_seeds"
+        at_most(big, getattr(self, big), len(self.methods) * (1 + main + swept), MAX_TASKS,
+                "methods x (1 + n_seeds + sweep points x sweep_seeds) (tasks of a run, at most)")
 
     def sweep_points(self) -> list[tuple[str, float | str, Variant]]:
         """(parameter, value, variant) for every swept value, the others at base."""

@@ -29,7 +29,22 @@ from workbench.sampling.sampler import Backend, SAISBatch, Sampler
 from workbench.sampling.step_stats import StepStats
 from workbench.sampling.threshold import ConstantThreshold, Threshold
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
-from workbench.validation import as_array, fail, flag, integer, one_of, real, real_or_inf
+from workbench.validation import (
+    MAX_BATCH,
+    as_array,
+    at_most,
+    fail,
+    flag,
+    integer,
+    one_of,
+    real,
+    real_or_inf,
+    scale,
+)
+
+MAX_ITERATIONS = 1000  # MPPI iterations per step
+MAX_CANDIDATES = 1001  # RMPPI candidate nominal states
+MAX_CANDIDATE_ROLLOUTS = 2**24  # RMPPI candidate rollouts per step
 
 
 @cache
@@ -45,7 +60,11 @@ def savgol_matrix(T: int, window: int, order: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class MPPIConfig:
-    """Sampling settings (SPEC 8.2, 15 defaults [A])."""
+    """Sampling settings (SPEC 8.2, 15 defaults [A]).
+
+    Bounds checked here: every ``sigma`` in [1.5e-154, 6.7e153] and ``lam`` in
+    [2.2e-308, 4.5e307] (their squares, resp. values, and reciprocals are normal float64
+    numbers); ``n_samples * horizon * len(sigma) <= 2**31``; ``iterations <= 1000``."""
 
     n_samples: int = 1024
     horizon: int = 100
@@ -59,14 +78,23 @@ class MPPIConfig:
     backend: Backend = "auto"
 
     def __post_init__(self) -> None:
-        for name in ("n_samples", "horizon", "iterations"):
-            integer(f"MPPIConfig.{name}", getattr(self, name), 1)
-        real("MPPIConfig.lam", self.lam, 0.0, strict=True)
+        for name in ("n_samples", "horizon"):  # the kernels take them as a C int
+            integer(f"MPPIConfig.{name}", getattr(self, name), 1, MAX_BATCH - 1)
+        integer("MPPIConfig.iterations", self.iterations, 1, MAX_ITERATIONS)
+        scale("MPPIConfig.lam", self.lam)  # the weights divide by lambda
+        if isinstance(self.sigma, str) or not hasattr(self.sigma, "__len__") or any(
+                isinstance(v, bool | np.bool_) for v in self.sigma):
+            raise fail("MPPIConfig.sigma", self.sigma, "must be a list of standard deviations, "
+                       "one per control, each in [1.492e-154, 6.704e+153]")
         s = np.asarray(self.sigma, dtype=float)
-        if s.ndim != 1 or not np.all(np.isfinite(s)) or np.any(s <= 0):
+        if s.ndim != 1 or s.size == 0 or not np.all(np.isfinite(s)) or np.any(s <= 0):
             raise fail("MPPIConfig.sigma", s, "Sigma = diag(sigma^2) must be positive definite: "
                        "every sigma must be finite and > 0")
+        for i, v in enumerate(s):  # sigma^2 and 1/sigma^2 enter the sampler and the costs
+            scale(f"MPPIConfig.sigma[{i}]", float(v), power=2)
         object.__setattr__(self, "sigma", tuple(float(v) for v in s))
+        at_most("MPPIConfig.n_samples", self.n_samples, self.n_samples * self.horizon * s.size,
+                MAX_BATCH, "n_samples * horizon * nu (entries of a sampled batch)")
         if not 0.0 <= real("MPPIConfig.nu_mix", self.nu_mix) < 1.0:
             raise fail("MPPIConfig.nu_mix", self.nu_mix, "must lie in [0, 1)")
         real("MPPIConfig.crash_cost", self.crash_cost, 0.0)
@@ -219,6 +247,9 @@ class RMPPIConfig:
     navigation set-up calibrates one by default, see ``NavigationSetup.controller``). The
     default +inf never binds, so :class:`RobustMPPI` refuses it unless a threshold is given
     (``wb.calibrate(...)``, or ``ConstantThreshold.selection_off()`` to opt out explicitly).
+    Bounds: ``n_candidates <= 1001``, ``n_candidates * candidate_samples <= 2**24``; with the
+    MPPI settings, ``n_candidates * candidate_samples * horizon * nu <= 2**31`` (checked by
+    :class:`RobustMPPI`).
     """
 
     alpha: float = np.inf
@@ -233,8 +264,12 @@ class RMPPIConfig:
 
     def __post_init__(self) -> None:
         real_or_inf("RMPPIConfig.alpha", self.alpha)
-        integer("RMPPIConfig.n_candidates", self.n_candidates, 3)
-        integer("RMPPIConfig.candidate_samples", self.candidate_samples, 1)
+        integer("RMPPIConfig.n_candidates", self.n_candidates, 3, MAX_CANDIDATES)
+        integer("RMPPIConfig.candidate_samples", self.candidate_samples, 1,
+                MAX_CANDIDATE_ROLLOUTS)
+        at_most("RMPPIConfig.candidate_samples", self.candidate_samples,
+                self.n_candidates * self.candidate_samples, MAX_CANDIDATE_ROLLOUTS,
+                "n_candidates * candidate_samples (candidate rollouts per step)")
         if self.n_candidates % 2 == 0:
             raise fail("RMPPIConfig.n_candidates", self.n_candidates, "must be odd and >= 3")
         one_of("RMPPIConfig.fallback", self.fallback, ("propagated", "keep_previous"))
@@ -333,6 +368,10 @@ class RobustMPPI:
                  threshold: Threshold | None = None):
         if sp.nx == sp.model.n_physical:
             raise fail("sp.model", sp.model.name, "RMPPI here runs on a barrier-embedded model")
+        at_most("RMPPIConfig.candidate_samples", robust.candidate_samples,
+                robust.n_candidates * robust.candidate_samples * config.horizon * sp.nu,
+                MAX_BATCH, "n_candidates * candidate_samples * horizon * nu (entries of the "
+                "candidate batch)")
         self.mppi = MPPI(sp, goal, config)
         self.sp, self.cfg, self.rcfg = sp, config, robust
         self.sampler = self.mppi.sampler

@@ -19,6 +19,7 @@ import enum
 import tomllib
 import types
 import typing
+import unicodedata
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -44,11 +45,16 @@ def read_toml(path: Path | str) -> dict[str, Any]:
 
 
 def parse_sets(items: Iterable[str], aliases: Mapping[str, str] | None = None) -> dict:
-    """``["a.b=1", "c=[1, 2]", "d=before"]`` -> nested dict. Values are TOML literals; a value
-    that is not one (a bare word) is taken as a string. ``aliases`` maps short keys to dotted
-    paths (e.g. ``noise_std`` -> ``base.noise_std``)."""
+    """``["a.b=1", "c=[1, 2]", "d=before"]`` -> nested dict. Each item is exactly one
+    ``key=value`` on one line: a control character (newline, carriage return, tab, ...) is an
+    error, so that ``$'a=1\nb=2'`` is not read as a=1 with b=2 dropped. Values are TOML
+    literals; a value that is not one (a bare word) is taken as a string. ``aliases`` maps
+    short keys to dotted paths (e.g. ``noise_std`` -> ``base.noise_std``)."""
     out: dict[str, Any] = {}
     for item in items:
+        if not isinstance(item, str):
+            raise ConfigError(f"--set {item!r}: expected a string key=value")
+        _one_line(item)
         key, sep, text = item.partition("=")
         key = key.strip()
         if not sep or not key:
@@ -67,6 +73,18 @@ def parse_sets(items: Iterable[str], aliases: Mapping[str, str] | None = None) -
                 raise ConfigError(f"--set {item!r}: {p} is set twice, as a value and a table")
         node[last] = value
     return out
+
+
+def _one_line(item: str) -> None:
+    for i, ch in enumerate(item):
+        if unicodedata.category(ch) == "Cc":  # C0 and C1 controls, DEL
+            name = {"\n": "a newline", "\r": "a carriage return", "\t": "a tab"}.get(
+                ch, "a control character")
+            raise ConfigError(
+                f"--set {item!r} is invalid: it contains {name} (U+{ord(ch):04X}) at position "
+                f"{i}; each --set is exactly one key=value on one line, without control "
+                "characters (repeat --set for more keys: --set a=1 --set b=2; inside a TOML "
+                "string write \\n, \\t)")
 
 
 def merge(*layers: Mapping[str, Any]) -> dict[str, Any]:

@@ -1,24 +1,58 @@
-"""Atomic result files and run manifests (DESIGN principle 8)."""
+"""Atomic result files and run manifests (DESIGN principle 8).
+
+Files are written atomically (a temporary file beside the target, renamed into place) with the
+permissions an ordinary ``open`` would give: ``0666 & ~umask`` (directories ``0777 & ~umask``),
+so that others can read a report when the umask allows it. JSON files are strict JSON
+(RFC 8259): a non-finite number (NaN, +-inf) is written as ``null``.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import os
 import platform
 import subprocess
 import tempfile
+from collections.abc import Mapping
 from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 
 
+def current_umask() -> int:
+    """The process's umask, read without changing it where the system allows (Linux:
+    /proc/self/status); elsewhere set and restored at once."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+def make_dirs(path: Path) -> None:
+    """Create ``path`` and its parents with mode ``0777 & ~umask`` (as ``mkdir -p``)."""
+    Path(path).mkdir(mode=0o777, parents=True, exist_ok=True)
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write to a temporary file beside ``path`` and rename it into place."""
+    """Write to a temporary file beside ``path`` and rename it into place; the file gets mode
+    ``0666 & ~umask``, as a plain ``open(path, "wb")`` would give it."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_dirs(path.parent)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        try:
+            os.fchmod(fd, 0o666 & ~current_umask())  # mkstemp creates 0600
+        except OSError:  # a file system without modes: keep what it gives
+            pass
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
         os.replace(tmp, path)
@@ -39,8 +73,37 @@ def _default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def strict_json(obj):
+    """``obj`` as strict-JSON-ready data: NumPy arrays and scalars as Python values, tuples as
+    lists, dataclasses as dicts, and every non-finite float (NaN, +-inf) as ``None`` (JSON
+    ``null``). A reader of such a file gets None where the writer had NaN or inf."""
+    if isinstance(obj, bool | np.bool_):
+        return bool(obj)
+    if isinstance(obj, float | np.floating):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.ndarray):
+        return strict_json(obj.tolist())
+    if isinstance(obj, np.generic):
+        return strict_json(obj.item())
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: strict_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Mapping):
+        return {k.item() if isinstance(k, np.generic) else k: strict_json(v)
+                for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [strict_json(v) for v in obj]
+    return obj
+
+
+def dumps_json(obj, **kw) -> str:
+    """Strict JSON text of ``obj`` (:func:`strict_json`: NaN and inf as null)."""
+    return json.dumps(strict_json(obj), allow_nan=False, default=_default, **kw)
+
+
 def atomic_write_json(path: Path, obj) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2, default=_default) + "\n")
+    """Write ``obj`` as strict JSON (NaN and inf as null, see :func:`strict_json`)."""
+    atomic_write_text(path, dumps_json(obj, indent=2) + "\n")
 
 
 def manifest() -> dict[str, object]:

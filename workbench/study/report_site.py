@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import html
 import json
+import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -18,7 +19,7 @@ from urllib.parse import quote
 
 import markdown
 
-from workbench.study.io import atomic_write_text
+from workbench.study.io import atomic_write_text, make_dirs
 
 CSS = """
 body { font: 15px/1.45 system-ui, sans-serif; max-width: 72rem; margin: 2rem auto;
@@ -137,6 +138,11 @@ def _profile(d: Path) -> str:
     return "unknown"
 
 
+def _num(v, spec: str) -> str:
+    """A number of a strict-JSON file (null where the writer had NaN or inf: "n/a")."""
+    return "n/a" if v is None else format(float(v), spec)
+
+
 def _bench_section(root: Path) -> str:
     p = root / "bench" / "bench.json"
     if not p.is_file():
@@ -146,9 +152,9 @@ def _bench_section(root: Path) -> str:
         records = json.loads(p.read_text())
         records = records.get("records", records) if isinstance(records, dict) else records
         rows = "".join(
-            f"<tr><td>{html.escape(str(r.get('name')))}</td><td>{r.get('value', 0):.4g} "
+            f"<tr><td>{html.escape(str(r.get('name')))}</td><td>{_num(r.get('value'), '.4g')} "
             f"{html.escape(str(r.get('unit', '')))}</td><td>{html.escape(str(r.get('baseline')))}"
-            f"</td><td>{(r.get('ratio') or float('nan')):.3g}</td></tr>" for r in records)
+            f"</td><td>{_num(r.get('ratio'), '.3g')}</td></tr>" for r in records)
         table = ("<table><tr><th>benchmark</th><th>value</th><th>baseline</th>"
                  f"<th>speed-up</th></tr>{rows}</table>")
     except (ValueError, TypeError, AttributeError) as exc:
@@ -158,9 +164,11 @@ def _bench_section(root: Path) -> str:
 
 
 def build_site(root: Path | str, registry: Mapping[str, object]) -> Path:
-    """Write ``root/index.html`` (and each study's report.html); return its path."""
-    root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
+    """Write ``root/index.html`` (and each study's report.html); return its path. Files get
+    mode ``0666 & ~umask``, directories ``0777 & ~umask`` (readable by others when the umask
+    allows it)."""
+    root = Path(os.path.expanduser(str(root)))
+    make_dirs(root)
     toc = " · ".join(f"<a href=\"#{html.escape(n)}\">{html.escape(n)}</a>"
                      for n in [*registry, "bench"])
     body = [

@@ -4,6 +4,11 @@ A run directory ends up holding ``config.toml`` (the resolved config: every size
 ``manifest.json`` and the per-task results (:mod:`workbench.study.store`), the tidy tables,
 ``summary.json`` (a function of the results only), ``run.json`` (profile, wall time, tasks
 computed and loaded, back end, cores and load) and the study's ``report.md`` with its figures.
+Every JSON file is strict JSON: a NaN or infinite number (e.g. the rate of an empty cell, an
+``alpha = inf`` in the manifest's config) is written as ``null``.
+
+A run refuses more than :data:`~workbench.validation.MAX_TASKS` tasks (10^7) before computing
+anything; each study's config bounds its own sizes when it is built.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import dataclasses
 import json
 import os
 import time
+import tomllib
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -26,6 +32,7 @@ from workbench.study.spec import Finished, StudySpec, Summary
 from workbench.study.store import RunStore, study_manifest
 from workbench.study.summary import to_jsonable
 from workbench.study.tasks import Study
+from workbench.validation import MAX_TASKS
 
 RUN_FILE = "run.json"
 
@@ -45,6 +52,32 @@ def _no_profile_key(layer: dict, where: str, spec: StudySpec) -> None:
             f"{where}: profile = {layer['profile']!r} is not a config key: a profile is a set of "
             f"sizes chosen with --profile NAME ({', '.join(spec.profiles)}); the run records the "
             "profile in run.json and every resolved size in config.toml")
+
+
+def _user_path(path: Path | str) -> Path:
+    """``path`` with a leading ``~`` (or ``~user``) expanded, as the command line does."""
+    return Path(os.path.expanduser(str(path)))
+
+
+def _stored_config(spec: StudySpec, out: Path) -> Any:
+    """The config of the run in ``out``: the manifest's, unless it holds a null (the config
+    holds no None, :func:`~workbench.study.config_io.to_dict` leaves None out, so a null is an
+    inf or NaN that strict JSON could not keep): then the run's config.toml (TOML keeps them)."""
+    data = RunStore(out).manifest()["config"]
+    toml = out / "config.toml"
+    if _has_null(data) and toml.is_file():
+        data = tomllib.loads(toml.read_text())
+    return config_io.load(spec.config_type, data)
+
+
+def _has_null(obj: Any) -> bool:
+    if obj is None:
+        return True
+    if isinstance(obj, dict):
+        return any(_has_null(v) for v in obj.values())
+    if isinstance(obj, list):
+        return any(_has_null(v) for v in obj)
+    return False
 
 
 def resolve_config(spec: StudySpec, profile: str | None = None, config: Path | None = None,
@@ -78,6 +111,10 @@ def declare(spec: StudySpec, config: Any, prepared: Any = None) -> tuple[Study, 
     """The framework's :class:`~workbench.study.Study` for ``config`` and the study's plan.
     ``prepared`` is bound into the task function when the study prepares something."""
     d = spec.fn("tasks")(config)
+    if len(d.tasks) > MAX_TASKS:
+        raise ConfigError(f"study {spec.name!r}: the config gives {len(d.tasks)} tasks, above "
+                          f"the limit {MAX_TASKS}; lower its counts (realisations, seeds, "
+                          "episodes, ...)")
     bound = {"config": config} if spec.prepare is None else {"config": config,
                                                             "prepared": prepared}
     run_task = partial(d.run_task, **bound)
@@ -117,7 +154,7 @@ def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers:
         raise ConfigError(f"config = {type(config).__name__} is invalid: study {spec.name!r} "
                           f"takes a {spec.config_type.__name__}")
     t0, load0 = time.perf_counter(), os.getloadavg()[0]
-    out = Path(out or spec.default_out)
+    out = _user_path(out or spec.default_out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.toml", config_io.dump(
         config, header=f"resolved config of this run; rerun: workbench run {spec.name} "
@@ -145,11 +182,12 @@ def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers:
 
 def rebuild_report(spec: StudySpec, out: Path | str) -> Path:
     """Rebuild summary.json and report.md of a finished run from its stored results (nothing
-    is computed; run.json, the record of the run, is left as it is)."""
-    out = Path(out)
+    is computed; run.json, the record of the run, is left as it is). The config is the
+    manifest's (the run's config.toml where the manifest holds null for an inf or NaN)."""
+    out = _user_path(out)
     try:
-        config = config_io.load(spec.config_type, RunStore(out).manifest()["config"])
-    except (OSError, KeyError, json.JSONDecodeError) as exc:
+        config = _stored_config(spec, out)
+    except (OSError, KeyError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(f"{out}: no readable manifest.json; run `workbench run {spec.name} "
                           f"--out {out}` first") from exc
     study, finished = _prepared(spec, config, out)
@@ -160,10 +198,10 @@ def rebuild_report(spec: StudySpec, out: Path | str) -> Path:
                           f"{out}` completes them")
     summary = _summarise(spec, study, finished)
     try:
-        record = json.loads((out / RUN_FILE).read_text())
+        record = json.loads((out / RUN_FILE).read_text())  # wall_time_s may be null
         run_line = (f"Wall time {record['wall_time_s']:.1f} s ({record['tasks']['computed']} of "
                     f"{record['tasks']['total']} tasks computed in the last run; "
                     f"{record['backend']}).")
-    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+    except (OSError, KeyError, TypeError, ValueError):
         run_line = "Report rebuilt from stored results (no run record found)."
     return Path(spec.fn("report")(dataclasses.replace(finished, run_line=run_line), summary))

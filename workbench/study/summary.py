@@ -18,7 +18,8 @@ from workbench.validation import fail
 
 @dataclass(frozen=True)
 class Rate:
-    """k events in n trials: the rate and its 95% Wilson interval (n = 0: nan in [0, 1])."""
+    """k events in n trials: the rate and its 95% Wilson interval (n = 0: nan in [0, 1]; a
+    JSON file such as summary.json holds ``null`` for the nan)."""
 
     k: int
     n: int
@@ -59,7 +60,8 @@ class Rate:
 
 @dataclass(frozen=True)
 class Spread:
-    """Mean, standard deviation (ddof 0), min, median and max of a sample."""
+    """Mean, standard deviation (ddof 0), min, median and max of a sample (an empty sample:
+    n = 0 and nan, written as ``null`` in a JSON file)."""
 
     n: int
     mean: float
@@ -78,7 +80,9 @@ class Spread:
 
 
 def to_jsonable(obj: Any) -> Any:
-    """Dataclasses (nested, in tuples, lists and dicts) as plain JSON-able data."""
+    """Dataclasses (nested, in tuples, lists and dicts) as plain JSON-able data. Non-finite
+    floats stay as they are; the writers (:func:`workbench.study.io.atomic_write_json`) turn
+    them into ``null``."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, dict):
