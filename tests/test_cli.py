@@ -40,7 +40,7 @@ def call(*args: str) -> tuple[int, str]:
 
 def test_the_existing_studies_are_registered():
     assert {"tracking", "tracking-demo", "navigation", "free-energy-bound",
-            "sampling-safety"} == set(REGISTRY)
+            "sampling-safety", "arena", "arena-tuning"} == set(REGISTRY)
     for e in REGISTRY.values():
         assert isinstance(e, StudySpec) and e.profiles and e.default_profile in e.profiles
     assert {"quick", "paper", "full"} <= set(REGISTRY["tracking"].profiles)

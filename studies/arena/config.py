@@ -12,7 +12,7 @@ from workbench.scenarios.methods import METHODS, MethodSettings
 from workbench.scenarios.systems import SYSTEMS
 from workbench.sim import DISTURBANCE_MODELS, Disturbance
 from workbench.study.tuning import TuningBudget
-from workbench.validation import fail, integer, real
+from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, real
 
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
 TUNINGS = ("hand", "tuned")
@@ -52,8 +52,8 @@ class DisturbanceSpec:
         real("disturbances.level", self.level, 0.0)
         if isinstance(self.states, str):
             object.__setattr__(self, "states", (self.states,))
-        integer("disturbances.start_step", self.start_step, 0)
-        integer("disturbances.duration", self.duration, 1)
+        integer("disturbances.start_step", self.start_step, 0, MAX_STEPS)
+        integer("disturbances.duration", self.duration, 1, MAX_STEPS)
         real("disturbances.frequency", self.frequency, 0.0, strict=True)
 
     @property
@@ -126,10 +126,11 @@ class ArenaConfig:
                          ("seed", 0), ("calibration_seed", 0), ("tuning_maps", 1),
                          ("tuning_seed", 0)):
             object.__setattr__(self, name, integer(name, getattr(self, name), lo))
-        if self.realisations * self.test_maps > 10**6:
-            raise fail("realisations", self.realisations,
-                       f"x test_maps = {self.realisations * self.test_maps} episodes per cell "
-                       "is more than 10^6; lower one of them")
+        for name in ("test_maps", "realisations", "tuning_maps", "steps"):
+            at_most(name, getattr(self, name), getattr(self, name), MAX_STEPS, name)
+        at_most("realisations", self.realisations, len(self.controllers) * len(self.systems)
+                * len(self.families) * self.test_maps * len(self.disturbances)
+                * len(self.tunings) * self.realisations, MAX_TASKS, "the number of episodes")
         train = range(self.tuning_seed, self.tuning_seed + self.tuning_maps)
         test = range(self.test_seed, self.test_seed + self.test_maps)
         if set(train) & set(test):

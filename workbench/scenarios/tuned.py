@@ -116,8 +116,11 @@ class Tuned:
 
     @classmethod
     def from_dict(cls, d: dict) -> Tuned:
+        def num(v) -> float:  # strict JSON writes a non-finite score as null
+            return float("nan") if v is None else float(v)
+
         return cls(d["system"], d["controller"], {k: float(v) for k, v in d["params"].items()},
-                   float(d["score"]), float(d["start_score"]), TuningBudget(**d["budget"]),
+                   num(d["score"]), num(d["start_score"]), TuningBudget(**d["budget"]),
                    d["objective"], d["training"])
 
 

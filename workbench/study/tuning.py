@@ -56,8 +56,8 @@ class TuningBudget:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        integer("tuning.trials", self.trials, 1)
-        integer("tuning.episodes", self.episodes, 1)
+        integer("tuning.trials", self.trials, 1, 10**5)
+        integer("tuning.episodes", self.episodes, 1, 10**5)
         integer("tuning.seed", self.seed, 0)
 
     @property
