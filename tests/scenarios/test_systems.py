@@ -142,7 +142,8 @@ def test_disturbed_states_and_level_scales_resolve_on_each_plant(navs):
         idx = Disturbance(1.0, states=s.disturbed).indices(navs[name].plant)
         assert tuple(navs[name].plant.state_names[i] for i in idx) == s.disturbed
     assert system("planar_quadrotor").level_scale == pytest.approx(0.18**2)
-    assert system("unicycle").level_scale == 1.0
+    assert system("unicycle").level_scale == system("bicycle").level_scale == 0.16
+    assert system("double_integrator").level_scale == 1.0
 
 
 def test_unknown_system_and_bad_system_fields_name_the_field():
