@@ -14,12 +14,10 @@ from functools import cache
 
 import numpy as np
 
-from workbench.problem.obstacles import Circle
-from workbench.sampling.calibration import calibrate
 from workbench.sampling.controllers import RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.scenarios.maps import GeneratedMap, MapFamily, generate, scaled
-from workbench.scenarios.methods import FEEDBACK, ROBUST_METHODS, build, feedback_law
+from workbench.scenarios.methods import FEEDBACK, ROBUST_METHODS, build
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.scenarios.systems import System, system
 from workbench.scenarios.tuned import ControllerSettings
@@ -56,13 +54,9 @@ class Where:
         return scaled(arena_map(self.family, self.seed), self.spec.scale).scene()
 
     def moving(self, dt: float):
+        """The moving scene ``k -> circles`` (None for a static map), in the system's scale."""
         m = arena_map(self.family, self.seed)
-        if not m.moving:
-            return None
-        scale = self.spec.scale
-        at = m.moving_scene(dt)
-        return lambda k: tuple(Circle((scale * c.center[0], scale * c.center[1]),
-                                      scale * c.radius) for c in at(k))
+        return scaled(m, self.spec.scale).moving_scene(dt) if m.moving else None
 
 
 @dataclass(frozen=True)
@@ -87,13 +81,10 @@ def controller(where: Where, c: Controls):
     """The controller on this map (robust ones calibrate their alpha rule on it first: one
     undisturbed episode seeded with ``c.calibration_seed``)."""
     nav = setup(where, c.settings)
-    threshold = None
-    if c.name in ROBUST_METHODS:
-        s = c.settings
-        threshold = calibrate(s.rule, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi,
-                              feedback_law(nav, FEEDBACK[c.name], s.methods, c.feedback),
-                              c.robust, seed=c.calibration_seed,
-                              progress=nav.progress())
+    s = c.settings
+    threshold = (nav.threshold(s.rule, FEEDBACK[c.name], c.robust, c.feedback,
+                               c.calibration_seed, s.methods)
+                 if c.name in ROBUST_METHODS else None)
     return build(nav, c.name, c.settings.methods, threshold=threshold, robust=c.robust,
                  weights=c.feedback)
 

@@ -24,7 +24,7 @@ from studies.arena.tasks import family
 from workbench.scenarios.tuned import shipped, space
 from workbench.study import Rate, to_jsonable
 from workbench.study.spec import Summary
-from workbench.study.stats import pooled_paired
+from workbench.study.stats import paired_counts, pooled_paired
 
 ALL = "all"  # the disturbance label of comparisons pooled over every disturbance
 
@@ -151,12 +151,8 @@ def pairs(controllers: tuple[str, ...]) -> list[tuple[str, str]]:
 def _strata(ep: pd.DataFrame, first: str, second: str, by: list[str]) -> list[tuple]:
     x, y = ep[ep["controller"] == first], ep[ep["controller"] == second]
     m = x.merge(y, on=[*by, "realisation"], suffixes=("_1", "_2"))
-    out = []
-    for _, g in m.groupby(by, sort=True):
-        s1, s2 = ~g["crashed_1"].to_numpy(bool), ~g["crashed_2"].to_numpy(bool)
-        out.append(tuple(int(v) for v in (np.sum(s1 & s2), np.sum(s1 & ~s2),
-                                          np.sum(~s1 & s2), np.sum(~s1 & ~s2))))
-    return out
+    return [paired_counts(~g["crashed_1"].to_numpy(bool), ~g["crashed_2"].to_numpy(bool))
+            for _, g in m.groupby(by, sort=True)]
 
 
 def _pool(first, second, system, disturbance, tuning, strata) -> Pooled:

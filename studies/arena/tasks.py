@@ -9,14 +9,14 @@ same plant disturbances (``ctx.rng(1)``) and draws from the same sampler stream 
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from studies.arena.config import RESULT_VERSION, ArenaConfig, DisturbanceSpec
 from studies.arena.episodes import Controls, Where, capacity, run_episode
 from workbench.scenarios.maps import MAP_FAMILIES, MapFamily
-from workbench.scenarios.methods import METHODS
+from workbench.scenarios.methods import SLOWEST_FIRST
 from workbench.scenarios.systems import SYSTEMS, system
 from workbench.scenarios.tuned import ControllerSettings, tuned
 from workbench.study import TaskContext, TaskOutput
@@ -53,10 +53,8 @@ class ArenaEpisode:
 def hand_settings(config: ArenaConfig, system_name: str) -> ControllerSettings:
     """The hand-tuned settings on a system: the config's sampler (N, T, ...) with the system's
     own sigma and lambda, its q_beta, the config's alpha rule and method options."""
-    import dataclasses
-
     s = system(system_name)
-    sampler = dataclasses.replace(config.sampler, sigma=tuple(s.sigma), lam=float(s.lam))
+    sampler = replace(config.sampler, sigma=tuple(s.sigma), lam=float(s.lam))
     return ControllerSettings(sampler, float(s.q_beta), config.rule, config.methods)
 
 
@@ -108,12 +106,6 @@ def run_task(task: ArenaEpisode, ctx: TaskContext, config: ArenaConfig,
         arrays={"X": out.X, "U": out.U})
 
 
-# slowest first (one thread, navigation map)
-SPEED = ("cbf_projection", "sais_ecbf", "sais_al", "sa_rmppi", "rmppi", "tube_mppi",
-         "shield_mppi", "gatekeeper", "bas_mppi", "mppi_crash")
-assert set(SPEED) == set(METHODS)
-
-
 @dataclass(frozen=True)
 class Plan:
     tasks: tuple[ArenaEpisode, ...]
@@ -125,7 +117,7 @@ def plan(config: ArenaConfig) -> Plan:
              for d in config.disturbances for t in config.tunings for c in config.controllers
              for j in range(config.realisations)]
     # slow controllers first; within one, a (system, map) stays together (cached set-ups)
-    tasks.sort(key=lambda t: (SPEED.index(t.controller), t.system, t.family, t.map_seed,
+    tasks.sort(key=lambda t: (SLOWEST_FIRST.index(t.controller), t.system, t.family, t.map_seed,
                               t.tuning, t.disturbance, t.realisation))
     return Plan(tuple(tasks))
 

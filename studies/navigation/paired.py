@@ -5,10 +5,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import pandas as pd
 
-from workbench.study.stats import mcnemar_exact, paired_difference_interval
+from workbench.study.stats import mcnemar_exact, paired_counts, paired_difference_interval
 
 
 @dataclass(frozen=True)
@@ -34,9 +33,8 @@ class Paired:
     def of(cls, first: str, second: str, variance: float, x: pd.DataFrame,
            y: pd.DataFrame) -> Paired:
         m = x.merge(y, on="realisation", suffixes=("_1", "_2"))
-        s1, s2 = ~m["crashed_1"].to_numpy(bool), ~m["crashed_2"].to_numpy(bool)
-        a, b, c, d = (int(v) for v in (np.sum(s1 & s2), np.sum(s1 & ~s2), np.sum(~s1 & s2),
-                                       np.sum(~s1 & ~s2)))
+        a, b, c, d = paired_counts(~m["crashed_1"].to_numpy(bool),
+                                   ~m["crashed_2"].to_numpy(bool))
         diff, lo, hi = paired_difference_interval(a, b, c, d)
         return cls(first, second, variance, a + b + c + d, a, b, c, d, diff, lo, hi,
                    mcnemar_exact(b, c))

@@ -22,6 +22,7 @@ from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.methods import (
     FEEDBACK,
     ROBUST_METHODS,
+    SLOWEST_FIRST,
     MethodSettings,
     build,
     feedback_law,
@@ -137,11 +138,6 @@ def run_task(task: Realisation, ctx: TaskContext, config: StudyConfig,
                               "ess": steps["ess"]})
 
 
-# slowest first (measured on the navigation map, N = 1024, T = 100, one thread)
-SPEED = ("cbf_projection", "sais_ecbf", "sais_al", "sa_rmppi", "rmppi", "tube_mppi",
-         "shield_mppi", "gatekeeper", "bas_mppi", "mppi_crash")
-
-
 @dataclass(frozen=True)
 class Plan:
     tasks: tuple[Realisation, ...]
@@ -152,7 +148,7 @@ def plan(config: StudyConfig) -> Plan:
     cells = {(c, v): tuple(Realisation(c, v, j) for j in range(config.realisations))
              for v in config.variances for c in config.controllers}
     tasks = sorted((t for ts in cells.values() for t in ts),
-                   key=lambda t: (SPEED.index(t.controller), t.variance, t.realisation))
+                   key=lambda t: (SLOWEST_FIRST.index(t.controller), t.variance, t.realisation))
     return Plan(tuple(tasks), cells)
 
 

@@ -56,6 +56,10 @@ MECHANISM = {"bas_mppi": "barrier state", "sa_rmppi": "barrier state + BaS-iLQG 
              "cbf_projection": "per-sample CBF projection", "shield_mppi": "DCBF cost + shield",
              "gatekeeper": "crash cost + backup shield",
              "sais_al": "barrier state + AL feedback", "sais_ecbf": "barrier state + ECBF feedback"}
+# slowest first (measured on the navigation map, N = 1024, T = 100, one thread): the order in
+# which studies dispatch their tasks
+SLOWEST_FIRST = ("cbf_projection", "sais_ecbf", "sais_al", "sa_rmppi", "rmppi", "tube_mppi",
+                 "shield_mppi", "gatekeeper", "bas_mppi", "mppi_crash")
 FEEDBACK = {"sa_rmppi": "bas_ilqg", "rmppi": "ilqg", "sais_al": "al_ilqg", "sais_ecbf": "ecbf"}
 
 

@@ -71,16 +71,19 @@ class NavigationSetup:
 
     def threshold(self, rule: AlphaRule = AlphaRule(), feedback: str = "bas_ilqg",
                   robust: RMPPIConfig = RMPPIConfig(),
-                  weights: FeedbackWeights | None = None, seed: int = 0) -> Threshold:
+                  weights: FeedbackWeights | None = None, seed: int = 0,
+                  settings=None) -> Threshold:
         """The selection threshold of ``rule`` on this map (:func:`calibrate`: one undisturbed
         episode of the robust controller with this feedback, seeded with ``seed``).
         ``feedback``: "bas_ilqg" (K_safe), "ilqg", "al_ilqg" or "ecbf" (see
-        :func:`workbench.scenarios.methods.feedback_law`)."""
-        from workbench.scenarios.methods import feedback_law
+        :func:`workbench.scenarios.methods.feedback_law`); ``settings``: the methods' options
+        (a :class:`~workbench.scenarios.methods.MethodSettings`; default options when None)."""
+        from workbench.scenarios.methods import MethodSettings, feedback_law
 
-        return calibrate(rule, self.problem, self.goal, self.plant, self.x0, self.mppi,
-                         feedback_law(self, feedback, weights=self._weights(weights)), robust,
-                         seed=seed, progress=self.progress())
+        law = feedback_law(self, feedback, settings or MethodSettings(),
+                           weights=self._weights(weights))
+        return calibrate(rule, self.problem, self.goal, self.plant, self.x0, self.mppi, law,
+                         robust, seed=seed, progress=self.progress())
 
     def controller(self, name: str, rule: AlphaRule = AlphaRule(),
                    robust: RMPPIConfig = RMPPIConfig(),

@@ -61,7 +61,7 @@ class ControllerSettings:
             out["kappa"] = float(self.rule.kappa)
         for p in OWN.get(controller, ()):
             group, name = p.name.split(".")
-            out[p.name] = float(getattr(getattr(self.methods, _GROUP[group]), name))
+            out[p.name] = float(getattr(getattr(self.methods, group), name))
         return out
 
     def with_values(self, controller: str, params: dict[str, float]) -> ControllerSettings:
@@ -83,15 +83,11 @@ class ControllerSettings:
         for k, v in params.items():
             if "." in k:
                 group, name = k.split(".")
-                sub = getattr(methods, _GROUP[group])
+                sub = getattr(methods, group)  # the MethodSettings field of that name
                 value = round(v) if isinstance(getattr(sub, name), int) else float(v)
                 methods = dataclasses.replace(
-                    methods, **{_GROUP[group]: dataclasses.replace(sub, **{name: value})})
+                    methods, **{group: dataclasses.replace(sub, **{name: value})})
         return ControllerSettings(sampler, self.q_beta, rule, methods)
-
-
-_GROUP = {"tube": "tube", "cbf_projection": "cbf_projection", "shield": "shield",
-          "gatekeeper": "gatekeeper"}
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,14 @@ def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, flo
     return low, high
 
 
+def paired_counts(first, second) -> tuple[int, int, int, int]:
+    """Counts of paired binary outcomes (True = success): (a, b, c, d) = both, only the
+    first, only the second, neither."""
+    s1, s2 = np.asarray(first, dtype=bool), np.asarray(second, dtype=bool)
+    return (int(np.sum(s1 & s2)), int(np.sum(s1 & ~s2)), int(np.sum(~s1 & s2)),
+            int(np.sum(~s1 & ~s2)))
+
+
 def mcnemar_exact(b: int, c: int) -> float:
     """Two-sided exact McNemar p-value from the discordant counts b (only the first method
     succeeded) and c (only the second): a binomial test of b in b + c trials at p = 1/2."""
