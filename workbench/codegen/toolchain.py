@@ -2,13 +2,15 @@
 
 Environment: ``WORKBENCH_CC`` (compiler; when it cannot be run, a warning names it and the
 compiler used instead), ``WORKBENCH_CFLAGS`` (extra flags, appended to the required and default
-ones; flags that change floating-point semantics are refused), ``WORKBENCH_NO_CODEGEN=1`` (force
-the CasADi virtual machine / NumPy fallbacks).
+ones; flags that change floating-point semantics are refused), ``WORKBENCH_COMPILE_TIMEOUT``
+(seconds one compile may take before the compiler is killed; default 600),
+``WORKBENCH_NO_CODEGEN=1`` (force the CasADi virtual machine / NumPy fallbacks).
 """
 
 from __future__ import annotations
 
 import functools
+import math
 import os
 import shlex
 import shutil
@@ -16,7 +18,11 @@ import subprocess
 import warnings
 from dataclasses import dataclass
 
-from workbench.validation import fail
+from workbench.validation import fail, real
+
+# Seconds one compile may take (WORKBENCH_COMPILE_TIMEOUT overrides it): a hung compiler is
+# killed instead of hanging the build forever.
+DEFAULT_COMPILE_TIMEOUT = 600.0
 
 # Needed to build a loadable shared library at all; never removed by WORKBENCH_CFLAGS.
 REQUIRED_FLAGS = ("-fPIC", "-shared")
@@ -50,11 +56,18 @@ FORBIDDEN_FLAGS = {
 
 @dataclass(frozen=True)
 class Toolchain:
-    """A C compiler, its version line and the flags used for every build."""
+    """A C compiler, its version line and the flags used for every build. ``timeout``: seconds
+    one compile may take (None: :func:`compile_timeout`); it is not part of :meth:`key`."""
 
     cc: str
     version: str
     flags: tuple[str, ...]
+    timeout: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.timeout is not None:
+            object.__setattr__(self, "timeout", real("Toolchain.timeout", self.timeout, 0.0,
+                                                     strict=True))
 
     def key(self) -> str:
         return "\n".join([self.cc, self.version, *self.flags])
@@ -91,6 +104,22 @@ def build_flags(extra: str | None) -> tuple[str, ...]:
     return DEFAULT_FLAGS + words
 
 
+def compile_timeout() -> float:
+    """``WORKBENCH_COMPILE_TIMEOUT`` (seconds, a finite number > 0) or
+    :data:`DEFAULT_COMPILE_TIMEOUT`."""
+    text = os.environ.get("WORKBENCH_COMPILE_TIMEOUT", "").strip()
+    if not text:
+        return DEFAULT_COMPILE_TIMEOUT
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise fail("WORKBENCH_COMPILE_TIMEOUT", text, "must be a finite number of seconds > 0 "
+                   f"(unset: {DEFAULT_COMPILE_TIMEOUT:g} s)")
+    return value
+
+
 _WARNED: set[tuple[str, str]] = set()
 
 
@@ -99,13 +128,14 @@ def find_toolchain() -> Toolchain | None:
     if os.environ.get("WORKBENCH_NO_CODEGEN", "") not in ("", "0"):
         return None
     flags = build_flags(os.environ.get("WORKBENCH_CFLAGS"))
+    timeout = compile_timeout()
     wanted = os.environ.get("WORKBENCH_CC")
     names = [wanted] if wanted else []
     names += [n for n in (os.environ.get("CC"), "cc", "gcc", "clang") if n]
     for name in names:
         path = shutil.which(name)
         if path and (version := _version(path)):
-            tc = Toolchain(cc=path, version=version, flags=flags)
+            tc = Toolchain(cc=path, version=version, flags=flags, timeout=timeout)
             if wanted and name != wanted and (wanted, path) not in _WARNED:
                 _WARNED.add((wanted, path))
                 warnings.warn(f"WORKBENCH_CC = {wanted!r} is not a working C compiler (not found "
