@@ -46,6 +46,7 @@ _EXPORTS = {
     "workbench.sampling.al_feedback": ("ALFeedback", "ALFeedbackOptions"),
     "workbench.sampling.ecbf_feedback": ("ECBFFeedback",),
     "workbench.sampling.step_stats": ("StepStats",),
+    "workbench.sampling.samples": ("SampleTrajectories",),
     "workbench.sampling.methods.tube": ("TubeConfig", "TubeMPPI"),
     "workbench.sampling.methods.cbf_projection": ("CBFProjectionConfig", "CBFProjectionMPPI"),
     "workbench.sampling.methods.shield": ("ShieldConfig", "ShieldMPPI"),
@@ -134,6 +135,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
     from workbench.sampling.kernels.build import get_threads, set_threads
     from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
+    from workbench.sampling.samples import SampleTrajectories
     from workbench.sampling.threshold import AlphaRule, make_threshold
     from workbench.scenarios.maps import (
         MAP_FAMILIES,

@@ -8,6 +8,12 @@
 
 Controllers hold only immutable configuration and external workspaces (compiled kernels, iLQG
 passes); everything that changes between steps lives in the returned state.
+
+Seeing the samples: ``ctrl.record_samples(k)`` makes every later step's info carry
+``info.samples``, k of the last batch's sample trajectories with their weights and crash flags
+(:class:`~workbench.sampling.samples.SampleTrajectories`; MPPI: the one system, ``nominal`` is
+None; Robust MPPI: real and nominal). Off by default (``info.samples`` is None, no extra work);
+the same call exists on every method of :mod:`workbench.sampling.methods`.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.sampler import Backend, SAISBatch, Sampler
+from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.sampling.threshold import ConstantThreshold, Threshold
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
@@ -184,6 +191,7 @@ class MPPIInfo:
     valid_weights: bool
     time_s: float
     n_samples: int = 0  # samples of the last batch (the one the update was weighted over)
+    samples: SampleTrajectories | None = None  # with MPPI.record_samples, else None
 
     @property
     def stats(self) -> StepStats:
@@ -192,11 +200,12 @@ class MPPIInfo:
                          n_collision_free=self.n_samples - self.n_crashed, ess=self.ess)
 
 
-class MPPI:
+class MPPI(RecordsSamples):
     """MPPI on a sampling problem (BaS-MPPI when the problem's model is barrier-embedded).
 
     The obstacles are the model's own scene until :meth:`set_scene` gives another (a new map
-    or a moved obstacle: no recompilation, the kernels take the scene as an input)."""
+    or a moved obstacle: no recompilation, the kernels take the scene as an input).
+    :meth:`record_samples` hands out the last batch's samples (``nominal`` None)."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig()):
         if len(config.sigma) != sp.nu:
@@ -232,9 +241,13 @@ class MPPI:
             if W.valid:
                 U = self.cfg.smooth(weighted_controls(batch.v, W.w))
         u = U[0].copy()
+        dt = time.perf_counter() - t0
+        rec = self.sample_recorder
+        samples = None if rec is None else rec.record(
+            x0=xb, v=batch.v, crashed=batch.crashed, weights=W.w, scene=self.consts.scene)
         info = MPPIInfo(free_energy=W.free_energy, ess=W.ess, n_crashed=int(batch.crashed.sum()),
-                        valid_weights=W.valid, time_s=time.perf_counter() - t0,
-                        n_samples=self.cfg.n_samples)
+                        valid_weights=W.valid, time_s=dt, n_samples=self.cfg.n_samples,
+                        samples=samples)
         return MPPIState(U=_shift(U, 1, self.cfg.tail)), u, info
 
 
@@ -324,6 +337,8 @@ class RMPPIInfo:
     batch: SAISBatch | None = None  # first SAIS batch with diagnostics (RMPPIConfig.diagnostics)
     n_samples: int = 0  # samples of the last SAIS batch
     gains_activity: dict[str, float] = field(default_factory=dict)  # Gains.activity
+    # the last SAIS batch's samples, real and nominal (RobustMPPI.record_samples), else None
+    samples: SampleTrajectories | None = None
 
     @property
     def feedback_ok(self) -> bool:
@@ -359,9 +374,12 @@ def candidate_weights(n_candidates: int) -> np.ndarray:
     return np.array(W)
 
 
-class RobustMPPI:
+class RobustMPPI(RecordsSamples):
     """Robust MPPI with the SAIS sampler: SA-RMPPI with K_safe (the default feedback, BaS-iLQG
-    gains on the embedded model), RMPPI with plain iLQG gains, or any :class:`FeedbackLaw`."""
+    gains on the embedded model), RMPPI with plain iLQG gains, or any :class:`FeedbackLaw`.
+    :meth:`record_samples` hands out the last SAIS batch's samples: ``real`` from the measured
+    state with feedback, ``nominal`` from x*_0 without; ``weights`` the nominal weights (the
+    update of u*), ``weights_real`` the real ones."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig(),
                  robust: RMPPIConfig = RMPPIConfig(), feedback: FeedbackLaw | None = None,
@@ -481,6 +499,11 @@ class RobustMPPI:
         t4 = time.perf_counter()
         timing = {"selection": t1 - t0, "k_safe": t2 - t1, "sais": t3 - t2, "update": t4 - t3,
                   "total": t4 - t0}
+        rec = self.sample_recorder
+        samples = None if rec is None else rec.record(
+            x0=xb, v=b.v_real, crashed=b.crashed_real, weights=Wn.w, scene=consts.scene,
+            x0_nominal=x_nom, v_nominal=b.v_nom, crashed_nominal=b.crashed_nom,
+            weights_real=Wr.w)
         info = RMPPIInfo(
             candidate=sel.index, candidate_free_energy=sel.free_energy,
             candidate_alpha=sel.alpha, fallback_used=sel.fallback,
@@ -490,7 +513,8 @@ class RobustMPPI:
             ess_real=Wr.ess, n_crashed_real=int(b.crashed_real.sum()),
             n_crashed_nom=int(b.crashed_nom.sum()), ksafe_fallback=gains.fallback,
             nominal_unsafe=gains.nominal_unsafe, timing=timing, x_nom=x_nom, batch=first,
-            n_samples=self.cfg.n_samples, gains_activity=dict(gains.activity))
+            n_samples=self.cfg.n_samples, gains_activity=dict(gains.activity),
+            samples=samples)
         return RMPPIState(U=U, x_nom=x_nom, index=sel.index, gains=gains), u, info
 
 

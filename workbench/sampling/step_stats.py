@@ -7,6 +7,9 @@ step (a projection, a shield repair, a backup control, a nominal reset, ...), as
 [0, 1] (a fraction of samples or sample-steps, or 0/1 for a per-step event). A mechanism that
 never acts shows up as an activity of 0, which is how a method that runs but does nothing is
 caught.
+
+The samples themselves are the info's ``samples``: None unless the controller records them
+(``ctrl.record_samples(k)``, :mod:`workbench.sampling.samples`).
 """
 
 from __future__ import annotations

@@ -11,6 +11,9 @@ DCBF cost). The likelihood ratio uses the effective noise v_hat - u (the project
 like the clip) and the plan is updated to the weighted average of the *applied* sample
 controls. With ``project_applied`` the control sent to the plant is projected once more, at the
 measured state, by the same closed form (a CasADi Function evaluated in place).
+
+``record_samples(k)`` (:mod:`workbench.sampling.samples`) hands out the last batch's samples
+with their projected controls (``nominal`` None).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from workbench.sampling.safe_sampler import (
     SafeMPPIState,
     SafeOptions,
 )
+from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.validation import fail, flag
 
@@ -68,6 +72,7 @@ class CBFProjectionInfo:
     infeasible: float
     applied_projected: bool
     applied_c_min: float
+    samples: SampleTrajectories | None = None  # with record_samples, else None
 
     @property
     def stats(self) -> StepStats:
@@ -77,7 +82,7 @@ class CBFProjectionInfo:
                                    "applied_projected": float(self.applied_projected)})
 
 
-class CBFProjectionMPPI(SafeMPPIController):
+class CBFProjectionMPPI(RecordsSamples, SafeMPPIController):
     """MPPI with per-sample CBF projection (see module docstring) on a sampling problem
     (physical or barrier-embedded). ``sampler`` is its
     :class:`~workbench.sampling.safe_sampler.SafeSampler`."""
@@ -111,12 +116,16 @@ class CBFProjectionMPPI(SafeMPPIController):
         if self.ccfg.project_applied:
             u, acted, cmin = self.project(xb, u)
         steps = b.v.shape[0] * self.cfg.n_samples
+        dt = time.perf_counter() - t0
+        rec = self.sample_recorder
+        samples = None if rec is None else rec.record(
+            x0=xb, v=b.v, crashed=b.crashed, weights=W.w, scene=self.scene)
         info = CBFProjectionInfo(
             free_energy=W.free_energy, ess=W.ess, n_crashed=int(b.crashed.sum()),
-            n_samples=self.cfg.n_samples, valid_weights=W.valid,
-            time_s=time.perf_counter() - t0, projected=float(b.projected.sum() / steps),
+            n_samples=self.cfg.n_samples, valid_weights=W.valid, time_s=dt,
+            projected=float(b.projected.sum() / steps),
             infeasible=float(b.infeasible.sum() / steps), applied_projected=acted,
-            applied_c_min=cmin)
+            applied_c_min=cmin, samples=samples)
         return SafeMPPIState(U=_shift(U, 1, self.cfg.tail)), u, info
 
 

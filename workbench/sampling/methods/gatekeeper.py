@@ -18,6 +18,9 @@ and every backup rollout ends at rest in free space, then once a proposal has pa
 a step that applies the backup follows a rollout verified earlier, so the state stays safe.
 Disturbances, and a backup that has not stopped by the end of the horizon, void that argument
 (the shield then only checks a finite horizon of the nominal model).
+
+``Gatekeeper.record_samples(k)`` switches the inner controller's recording on
+(:mod:`workbench.sampling.samples`); ``GatekeeperInfo.samples`` is the inner step's.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import numpy as np
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
 from workbench.sampling.controllers import physical_model
+from workbench.sampling.samples import Keep, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.validation import as_array, fail, integer, real
 
@@ -41,19 +45,23 @@ from workbench.validation import as_array, fail, integer, real
 # ceil(|v_i| / (5 * 0.02)) <= 50 steps from 5 m/s; a 60-step horizon (1.2 s) covers that stop
 # plus 10 steps at rest.
 DEFAULT_HORIZON = 60
+# the check is one fold over the horizon whose scene input is repeated per step (horizon x
+# n_scene symbolic entries): 10 000 steps (200 s at dt = 0.02 s) bound that allocation
+MAX_HORIZON = 10_000
 
 
 @dataclass(frozen=True)
 class GatekeeperConfig:
-    """Shield settings: ``horizon`` backup steps checked after x1 (default 60, an assumed
-    value: see :func:`braking_backup`), ``margin`` >= 0 that every h_i must exceed (in the
-    units of the model's margins; 0: plain safety h > 0)."""
+    """Shield settings: ``horizon`` backup steps checked after x1, in [1, 10 000]
+    (:data:`MAX_HORIZON`; default 60, an assumed value: see :func:`braking_backup`),
+    ``margin`` >= 0 that every h_i must exceed (in the units of the model's margins; 0: plain
+    safety h > 0)."""
 
     horizon: int = DEFAULT_HORIZON
     margin: float = 0.0
 
     def __post_init__(self) -> None:
-        integer("GatekeeperConfig.horizon", self.horizon, 1)
+        integer("GatekeeperConfig.horizon", self.horizon, 1, MAX_HORIZON)
         real("GatekeeperConfig.margin", self.margin, 0.0)
 
 
@@ -149,6 +157,11 @@ class GatekeeperInfo:
     time_s: float  # the whole step, the inner controller's included
 
     @property
+    def samples(self) -> SampleTrajectories | None:
+        """The inner step's sample trajectories (:meth:`Gatekeeper.record_samples`), or None."""
+        return getattr(self.inner, "samples", None)
+
+    @property
     def stats(self) -> StepStats:
         """The inner controller's stats with activity plus ``backup_used`` (0/1)."""
         s = getattr(self.inner, "stats", None)
@@ -205,6 +218,15 @@ class Gatekeeper:
         if set_inner is not None:
             set_inner(scene)
 
+    def record_samples(self, k: int = 64, keep: Keep = "spread") -> None:
+        """Record the inner controller's samples (its ``record_samples``; see
+        :mod:`workbench.sampling.samples`): ``info.samples`` is then the inner step's."""
+        rec = getattr(self.inner, "record_samples", None)
+        if rec is None:
+            raise fail("inner", type(self.inner).__name__,
+                       "has no record_samples: it does not sample, so there is nothing to show")
+        rec(k, keep)
+
     def backup_check(self, x1) -> tuple[float, np.ndarray]:
         """(min margin over x1 and the backup rollout from it, the rollout's last state)."""
         m, xT = self._check(as_array("x1", x1, (self.plant.nx,)), self._scene)
@@ -240,6 +262,6 @@ class Gatekeeper:
         return GatekeeperState(inner=inner_state), applied, ginfo
 
 
-__all__ = ["BackupPolicy", "Gatekeeper", "GatekeeperConfig", "GatekeeperInfo",
+__all__ = ["MAX_HORIZON", "BackupPolicy", "Gatekeeper", "GatekeeperConfig", "GatekeeperInfo",
            "GatekeeperState", "backup_check_function", "backup_from_expression",
            "braking_backup"]

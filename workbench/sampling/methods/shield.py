@@ -21,6 +21,9 @@ Robust MPC Method Using Control Barrier Functions", IEEE RA-L 2023, arXiv:2302.1
    clip). A constraint counts as met at c_i >= -INFEASIBLE_TOL (rounding,
    :data:`~workbench.sampling.kernels.safe.INFEASIBLE_TOL`). When steps run out the last
    iterate is applied and the step reports ``shield_failed``.
+
+``record_samples(k)`` (:mod:`workbench.sampling.samples`) hands out the last batch's samples
+(``nominal`` None; the weights include the DCBF cost).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from workbench.sampling.safe_sampler import (
     SafeMPPIState,
     SafeOptions,
 )
+from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.validation import fail, integer, real
 
@@ -53,14 +57,18 @@ from workbench.validation import fail, integer, real
 # i.e. 10-100 lambda (such samples get negligible weight) while staying far below the crash
 # cost 1e6 and comparable to the state-cost spread of the batch (~1e2-1e3).
 DEFAULT_W_DCBF = 1e3
+# each repair step is a Gauss-Newton step on the most violated constraint; a handful fixes
+# every case seen on the navigation map, so far more than this means a typo
+MAX_REPAIR_STEPS = 1000
 
 
 @dataclass(frozen=True)
 class ShieldConfig:
     """``gamma`` in (0, 1]: the discrete CBF's class-K rate (an assumed default, see
     :data:`~workbench.problem.dcbf.DEFAULT_GAMMA`); ``w_dcbf`` >= 0: the weight of the DCBF
-    violation in the sample costs (:data:`DEFAULT_W_DCBF`, assumed); ``repair_steps`` >= 1:
-    at most this many repair steps on the applied control."""
+    violation in the sample costs (:data:`DEFAULT_W_DCBF`, assumed); ``repair_steps`` in
+    [1, 1000] (:data:`MAX_REPAIR_STEPS`): at most this many repair steps on the applied
+    control."""
 
     gamma: float = DEFAULT_GAMMA
     w_dcbf: float = DEFAULT_W_DCBF
@@ -69,7 +77,7 @@ class ShieldConfig:
     def __post_init__(self) -> None:
         check_gamma("ShieldConfig.gamma", self.gamma)
         real("ShieldConfig.w_dcbf", self.w_dcbf, 0.0)
-        integer("ShieldConfig.repair_steps", self.repair_steps, 1)
+        integer("ShieldConfig.repair_steps", self.repair_steps, 1, MAX_REPAIR_STEPS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -90,6 +98,7 @@ class ShieldInfo:
     c_min_before: float
     c_min_after: float
     dcbf_active: float
+    samples: SampleTrajectories | None = None  # with record_samples, else None
 
     @property
     def shield_acted(self) -> bool:
@@ -118,7 +127,7 @@ class Repair:
     c_min_after: float
 
 
-class ShieldMPPI(SafeMPPIController):
+class ShieldMPPI(RecordsSamples, SafeMPPIController):
     """Shield-MPPI (see module docstring) on a sampling problem (physical or barrier-embedded).
     ``sampler`` is its :class:`~workbench.sampling.safe_sampler.SafeSampler`."""
 
@@ -159,13 +168,18 @@ class ShieldMPPI(SafeMPPIController):
         U, W, b = self.planner.plan(state, xb, rng)
         proposed = np.clip(U[0], self.sp.model.u_min, self.sp.model.u_max)
         r = self.repair(xb, proposed)
+        dt = time.perf_counter() - t0
+        rec = self.sample_recorder
+        samples = None if rec is None else rec.record(
+            x0=xb, v=b.v, crashed=b.crashed, weights=W.w, scene=self.scene)
         info = ShieldInfo(
             free_energy=W.free_energy, ess=W.ess, n_crashed=int(b.crashed.sum()),
-            n_samples=self.cfg.n_samples, valid_weights=W.valid,
-            time_s=time.perf_counter() - t0, proposed=proposed,
+            n_samples=self.cfg.n_samples, valid_weights=W.valid, time_s=dt, proposed=proposed,
             repair_iterations=r.iterations, c_min_before=r.c_min_before,
-            c_min_after=r.c_min_after, dcbf_active=float(np.mean(b.dcbf > 0)))
+            c_min_after=r.c_min_after, dcbf_active=float(np.mean(b.dcbf > 0)),
+            samples=samples)
         return SafeMPPIState(U=_shift(U, 1, self.cfg.tail)), r.u, info
 
 
-__all__ = ["DEFAULT_W_DCBF", "Repair", "ShieldConfig", "ShieldInfo", "ShieldMPPI"]
+__all__ = ["DEFAULT_W_DCBF", "MAX_REPAIR_STEPS", "Repair", "ShieldConfig", "ShieldInfo",
+           "ShieldMPPI"]

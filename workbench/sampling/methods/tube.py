@@ -13,6 +13,11 @@ plan U_n. The applied control tracks the nominal::
 with K the ancillary tracker's gains about the nominal trajectory (by default iLQG tracking
 gains, :class:`~workbench.sampling.feedback.ILQGFeedback`, on the physical model), and the
 nominal advances without noise, x_nom <- f(x_nom, clip(U_n[0])). The plans shift like MPPI's.
+
+``record_samples(k)`` (:mod:`workbench.sampling.samples`) hands out both batches of the last
+iteration, the same lanes (common random numbers): ``real`` the actual batch from the measured
+state, ``nominal`` the nominal batch (from the nominal state it started at, before any reset
+of that iteration); ``weights`` the nominal batch's, ``weights_real`` the actual batch's.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from workbench.sampling.controllers import (
 from workbench.sampling.feedback import FeedbackLaw, FeedbackWeights, Gains, ILQGFeedback
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.sampling.weights import importance_weights, weighted_controls
 from workbench.validation import as_array, fail, real
@@ -85,6 +91,7 @@ class TubeInfo:
     x_nom: np.ndarray  # the nominal state the control tracked this step (after any reset)
     feedback_fallback: str | None  # the feedback law's fallback reason, or None
     gains_activity: dict[str, float] = field(default_factory=dict)
+    samples: SampleTrajectories | None = None  # with TubeMPPI.record_samples, else None
 
     @property
     def stats(self) -> StepStats:
@@ -110,7 +117,7 @@ def default_tracker(sp: SamplingProblem, horizon: int) -> ILQGFeedback:
     return ILQGFeedback(m, horizon, sp.nx, w, name="ilqg")
 
 
-class TubeMPPI:
+class TubeMPPI(RecordsSamples):
     """Tube-MPPI on a sampling problem (physical or barrier-embedded).
 
     Weights: each batch gets the plain MPPI weights of its own costs, w_n proportional to
@@ -173,6 +180,7 @@ class TubeMPPI:
         x_nom = xb if state.x_nom is None else as_array("state.x_nom", state.x_nom, (sp.nx,))
         reset = last = False  # a reset in any iteration / in the last one
         for _ in range(cfg.iterations):
+            x_start = x_nom  # the nominal batch's start (before this iteration's reset)
             seed = int(rng.integers(0, 2**63))
             ba = self.sampler.mppi(xb, U_a, cfg.n_samples, c, seed)
             bn = self.sampler.mppi(x_nom, U_n, cfg.n_samples, c, seed)
@@ -191,12 +199,17 @@ class TubeMPPI:
         u = np.clip(U_n[0] + gains.K[0] @ (xb - x_nom), lo, hi)
         x_next = self._dyn(x_nom, np.clip(U_n[0], lo, hi), c.scene)[0]
         b, W = (ba, Wa) if last else (bn, Wn)
+        dt = time.perf_counter() - t0
+        rec = self.sample_recorder
+        samples = None if rec is None else rec.record(
+            x0=xb, v=ba.v, crashed=ba.crashed, weights=Wn.w, scene=c.scene, x0_nominal=x_start,
+            v_nominal=bn.v, crashed_nominal=bn.crashed, weights_real=Wa.w)
         info = TubeInfo(
             free_energy=W.free_energy, ess=W.ess, n_crashed=int(b.crashed.sum()),
-            n_samples=cfg.n_samples, time_s=time.perf_counter() - t0, nominal_reset=reset,
+            n_samples=cfg.n_samples, time_s=dt, nominal_reset=reset,
             baseline_actual=Wa.rho, baseline_nominal=Wn.rho, free_energy_actual=Wa.free_energy,
             free_energy_nominal=Wn.free_energy, x_nom=x_nom, feedback_fallback=gains.fallback,
-            gains_activity=dict(gains.activity))
+            gains_activity=dict(gains.activity), samples=samples)
         new = TubeState(U_a=_shift(U_a, 1, cfg.tail), U_n=_shift(U_n, 1, cfg.tail),
                         x_nom=x_next, gains=gains)
         return new, u, info
