@@ -7,14 +7,15 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from numbers import Integral
 from typing import Literal, Protocol
 
 import casadi as ca
 import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
-from workbench.problem.models import Model
-from workbench.validation import fail, integer, one_of, real
+from workbench.problem.models import Model, margin_violation
+from workbench.validation import MAX_STEPS, fail, integer, one_of, real
 
 DisturbanceModel = Literal["velocity_variance", "velocity_std", "white_noise", "kick",
                            "impulse", "step", "uniform", "periodic"]
@@ -81,6 +82,8 @@ class Disturbance:
     Fields other than level are read by some models only (start_step: impulse and step;
     duration, decay: impulse; low, high: uniform; frequency, phase: periodic); they are
     validated for every model and ignored by the others (a step has no duration: it lasts).
+    start_step and duration are at most :data:`~workbench.validation.MAX_STEPS` (an episode's
+    longest run).
 
     The disturbed states: ``states`` names them, by the plant's state names or by index
     (``Disturbance(1.0, states=("v",))``); ``velocity_index`` gives indices (the older
@@ -108,8 +111,8 @@ class Disturbance:
             real("Disturbance.level", self.level)
         else:
             real("Disturbance.level", self.level, 0.0)
-        integer("Disturbance.start_step", self.start_step, 0)
-        integer("Disturbance.duration", self.duration, 1)
+        integer("Disturbance.start_step", self.start_step, 0, MAX_STEPS)
+        integer("Disturbance.duration", self.duration, 1, MAX_STEPS)
         real("Disturbance.decay", self.decay, 0.0, strict=True, maximum=1.0)
         real("Disturbance.low", self.low)
         real("Disturbance.high", self.high)
@@ -132,10 +135,15 @@ class Disturbance:
             st = self.states
             allowed = ("must be a non-empty tuple of distinct state names (str) or indices "
                        "(int >= 0), e.g. states=(\"v\",) or states=(3,)")
-            if isinstance(st, str | int) and not isinstance(st, bool):
+            if isinstance(st, str | Integral) and not isinstance(st, bool | np.bool_):
                 st = (st,)  # one state: Disturbance(1.0, states="v")
+            if isinstance(st, np.ndarray) and st.ndim == 1:
+                st = tuple(st.tolist())
             if not isinstance(st, tuple | list) or not st:
                 raise fail("Disturbance.states", self.states, allowed)
+            if any(isinstance(s, str) and not s for s in st):
+                raise fail("Disturbance.states", self.states, "a state name must not be empty; "
+                           + allowed)
             st = tuple(s if isinstance(s, str) else integer("Disturbance.states", s, 0)
                        for s in st)
             if len(set(st)) != len(st):
@@ -226,6 +234,8 @@ class Disturbance:
         the states ``index`` (default: the named ones). The Gaussian readings draw
         ``rng.standard_normal(len(index))`` and uniform ``rng.uniform(low, high,
         len(index))`` once per call; impulse, step and periodic draw nothing."""
+        name = "index" if index is not None else (
+            "Disturbance.states" if self.states is not None else "Disturbance.velocity_index")
         if index is None and self.states is not None:
             if not all(isinstance(s, int) for s in self.states):
                 raise fail("Disturbance.states", self.states, "names need the plant: pass "
@@ -235,6 +245,15 @@ class Disturbance:
         if not idx:
             raise fail("Disturbance.velocity_index", self.velocity_index,
                        "give the disturbed state indices (closed_loop takes them from the plant)")
+        nx = integer("nx", nx, 1)
+        real("dt", dt, 0.0, strict=True)
+        for i in idx:
+            ok = isinstance(i, Integral) and not isinstance(i, bool | np.bool_) and 0 <= i < nx
+            if not ok:
+                raise fail(name, str(tuple(idx)), f"entry {i!r} is not a state index in "
+                           f"[0, {nx - 1}] (the state has nx = {nx} entries)")
+        if len(set(idx)) != len(idx):
+            raise fail(name, str(tuple(idx)), "names the same state twice")
         k = integer("k", k, 0)
         w = np.zeros(nx)
         model = self.model
@@ -388,15 +407,13 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
     margins = plant.margins if plant.nh else None
     set_scene = getattr(controller, "set_scene", None)
     s = scene_at(0)
+    min_h = _start_margin(plant, x0, x, s) if margins else np.inf  # before the controller
     if static is not None and set_scene is not None:
         set_scene(s)
     state = controller.initial_state(x)
     X, U, times, infos, stimes = [x.copy()], [], [], [], []
     scenes = [s] if moving else None
     crashed, crash_step = False, None
-    min_h = float(np.min(margins(x, s))) if margins else np.inf
-    if margins is not None and min_h <= 0:
-        raise fail("x0", x0, f"starts inside an obstacle of the scene (min h = {min_h:.4g})")
     for k in range(steps):
         t0 = time.perf_counter()
         if moving and set_scene is not None:
@@ -431,6 +448,17 @@ def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.ran
                    scene_time_s=np.array(stimes),
                    scenes=np.array(scenes) if moving else np.zeros((0, 0)),
                    reached_goal=reached, goal_step=goal_step)
+
+
+def _start_margin(plant: Model, x0, x: np.ndarray, scene: np.ndarray) -> float:
+    """min h at the start; a start on or inside an obstacle's boundary (min h <= 0, the
+    episode's crash rule) is refused, naming x0 and the obstacle."""
+    h = plant.margins(x, scene)
+    where = margin_violation(plant, h)
+    if where is None:
+        return float(np.min(h))
+    raise fail("x0", x0, f"{where} in the scene of step 0 (min h <= 0 is a crash); the start "
+               "must be strictly safe (every h > 0)")
 
 
 def _goal_position(plant: Model, controller, stop_at_goal, goal) -> np.ndarray:

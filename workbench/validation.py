@@ -23,9 +23,11 @@ _TINY = float(np.finfo(np.float64).tiny)  # the smallest normal float64, 2.2e-30
 
 
 def _show(value: object) -> str:
-    text = np.array2string(np.asarray(value), precision=6, threshold=12) if not isinstance(
-        value, str
-    ) else repr(value)
+    if isinstance(value, str) or (isinstance(value, tuple | list) and any(
+            isinstance(v, bool | np.bool_) for v in value)):
+        text = repr(value)  # as written: NumPy would show True as 1
+    else:
+        text = np.array2string(np.asarray(value), precision=6, threshold=12)
     return text if len(text) <= 120 else text[:117] + "..."
 
 

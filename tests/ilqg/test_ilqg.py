@@ -229,7 +229,8 @@ def test_compiled_outer_loop_reads_each_option(bas_tracking, scene, options):
 
 
 @pytest.mark.parametrize(("kw", "message"), [
-    ({"max_iter": True}, "ILQGOptions.max_iter = True is invalid: must be an integer >= 1"),
+    ({"max_iter": True},
+     "ILQGOptions.max_iter = True is invalid: must be an integer in [1, 1000000]"),
     ({"mu_init": True}, "ILQGOptions.mu_init = True is invalid: must be a finite number >= 0"),
     ({"alphas": (1.0, True)}, "ILQGOptions.alphas = True is invalid: must be a finite number"),
     ({"z_min": False}, "ILQGOptions.z_min = False is invalid: must be a finite number"),

@@ -35,6 +35,7 @@ from workbench.validation import fail, flag, integer, one_of, real
 Mode = Literal["soft", "hard"]
 RelativeDegree = Literal["auto", 1, 2]
 _USABLE = ("solved", "solved inaccurate")
+MAX_OSQP_ITER = 10**6  # OSQP iterations per filter step (default 4000)
 _ANSWERS = ("primal infeasible", "primal infeasible inaccurate")  # a valid verdict, not an error
 
 
@@ -56,6 +57,7 @@ class ECBFOptions:
     stay far below 1e3), and otherwise u is the least-violation control, as with rho -> inf.
     slack_tol: a step whose slack (the violation of a normalised row at the returned u) exceeds
     it is infeasible. eps_abs also bounds the violation the shortcut accepts (ECBFFilter).
+    max_iter: OSQP's iteration limit per step, in [1, :data:`MAX_OSQP_ITER`].
     """
 
     poles: tuple[float, float] = (5.0, 5.0)
@@ -72,9 +74,14 @@ class ECBFOptions:
     max_iter: int = 4000
 
     def __post_init__(self) -> None:
+        allowed = "need two finite poles p1, p2 > 0"
+        if isinstance(self.poles, str) or not hasattr(self.poles, "__len__"):
+            raise fail("ECBFOptions.poles", self.poles, allowed)
+        if any(isinstance(v, bool | np.bool_) for v in self.poles):
+            raise fail("ECBFOptions.poles", self.poles, allowed + " (numbers, not true/false)")
         p = np.asarray(self.poles, dtype=float)
         if p.shape != (2,) or not np.all(np.isfinite(p)) or np.any(p <= 0):
-            raise fail("ECBFOptions.poles", self.poles, "need two finite poles p1, p2 > 0")
+            raise fail("ECBFOptions.poles", self.poles, allowed)
         object.__setattr__(self, "poles", (float(p[0]), float(p[1])))
         real("ECBFOptions.gamma", self.gamma, 0.0, strict=True)
         if isinstance(self.relative_degree, str):
@@ -88,7 +95,7 @@ class ECBFOptions:
             real(f"ECBFOptions.{name}", getattr(self, name), 0.0, strict=True)
         flag("ECBFOptions.polish", self.polish)
         flag("ECBFOptions.warm_start", self.warm_start)
-        integer("ECBFOptions.max_iter", self.max_iter, 1)
+        integer("ECBFOptions.max_iter", self.max_iter, 1, MAX_OSQP_ITER)
 
     @property
     def k0(self) -> float:

@@ -14,16 +14,19 @@ from typing import Literal
 import numpy as np
 
 from workbench.ilqg.compiled import CompiledPasses, SolveOptions, problem_library
-from workbench.ilqg.reference import NumpyPasses
+from workbench.ilqg.reference import CRASH_MARGIN, NumpyPasses
+from workbench.problem.models import margin_violation
 from workbench.problem.problem import Problem
 from workbench.validation import fail, flag, integer, one_of, real
 
 Backend = Literal["auto", "compiled", "numpy"]
+MAX_ITERATIONS = 10**6  # outer iterations of one solve (the history holds one row each)
 
 
 @dataclass(frozen=True)
 class ILQGOptions:
-    """iLQG settings; defaults from SPEC 5 (DBaS-code / Tassa)."""
+    """iLQG settings; defaults from SPEC 5 (DBaS-code / Tassa). ``max_iter`` <=
+    :data:`MAX_ITERATIONS`."""
 
     max_iter: int = 300
     mu_init: float = 0.5
@@ -43,7 +46,7 @@ class ILQGOptions:
     outer_loop: Literal["compiled", "python"] = "compiled"  # compiled: wb_solve, when available
 
     def __post_init__(self) -> None:
-        integer("ILQGOptions.max_iter", self.max_iter, 1)
+        integer("ILQGOptions.max_iter", self.max_iter, 1, MAX_ITERATIONS)
         real("ILQGOptions.mu_init", self.mu_init, 0.0)
         real("ILQGOptions.mu_factor", self.mu_factor, 1.0, strict=True)
         real("ILQGOptions.mu_min", self.mu_min, 0.0)
@@ -121,6 +124,7 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
     t_start = time.perf_counter()
     scene_v = problem.scene_vector(scene)
     x0 = problem.check_initial_state(x0, scene_v)
+    _check_start_margin(problem, x0, scene_v)
     U = problem.check_controls(U0)
     T = U.shape[0]
     if T < 1:
@@ -144,7 +148,8 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
         replaced = True
         if not np.isfinite(fw.cost) or fw.cost >= 1e10:
             raise fail("U0", U0, "neither the initial guess nor zero controls give a safe, "
-                       "finite rollout")
+                       "finite rollout from x0 = " + np.array2string(x0, precision=6)
+                       + _zero_rollout_failure(problem, fw.X, scene_v))
     X, U, J = fw.X, fw.U, fw.cost
     if opts.outer_loop == "compiled" and hasattr(passes, "solve"):
         return _compiled_loop(passes, opts, x0, X, U, J, P, reg, boxed, t_start, replaced)
@@ -209,6 +214,39 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
         iterations=len(history), history=tuple(history), backend=passes.name,
         solve_time_s=time.perf_counter() - t_start, initial_guess_replaced=replaced,
     )
+
+
+def _check_start_margin(problem: Problem, x0: np.ndarray, scene: np.ndarray) -> None:
+    """The forward pass counts a margin below ``CRASH_MARGIN`` (1e-15) as a crash: a start on
+    an obstacle's boundary up to rounding (0 < h < 1e-15) is refused here, naming x0, rather
+    than later as a crashed rollout of the initial guess."""
+    if not problem.nh:
+        return
+    h = problem.model.margins(x0, scene)
+    if np.all(h >= CRASH_MARGIN):
+        return
+    where = margin_violation(problem.model, h, CRASH_MARGIN)
+    raise fail("x0", x0, f"{where}: on the boundary up to rounding (min h = 0), where the "
+               "solver's rollouts count a crash; the start must be strictly safe")
+
+
+def _zero_rollout_failure(problem: Problem, X: np.ndarray, scene: np.ndarray) -> str:
+    """Where the zero-control rollout X failed: its first non-finite state or the first state
+    whose margin is below the crash margin; empty when neither (its cost was too large)."""
+    bad = np.flatnonzero(~np.all(np.isfinite(X), axis=1))
+    if bad.size:
+        return f" (the zero-control rollout is not finite from step {int(bad[0])})"
+    if not problem.nh:
+        return ""
+    for k, x in enumerate(X[1:], start=1):
+        h = problem.model.margins(x, scene)
+        if not np.all(h >= CRASH_MARGIN):
+            i = int(np.argmin(h))
+            return (f" (the zero-control rollout crashes at step {k}: h[{i}] = {h[i]:.4g}); "
+                    "give an initial guess U0 that steers clear, or, if no control can, start "
+                    "farther from the obstacle (or moving away from it)")
+    return (" (the zero-control rollout stays safe but costs 1e10 or more, the crash penalty: "
+            "e.g. a barrier state close to its cap)")
 
 
 _STOPS = ("max_iter", "regularization_limit", "gradient", "cost_change", "line_search_failed")

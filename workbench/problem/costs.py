@@ -15,7 +15,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.models import Model
-from workbench.validation import as_array, fail, one_of, real
+from workbench.validation import MAX_STEPS, as_array, fail, integer, one_of, real
 
 BetaCost = Literal["relative", "absolute"]
 
@@ -41,8 +41,10 @@ class Cost:
     def params(self, T: int, **values) -> np.ndarray:
         """Stack named parameter blocks into a (T+1, n_p) array.
 
-        Each value is either one row (broadcast over time) or an array with T+1 rows.
+        Each value is either one row (broadcast over time) or an array with T+1 rows;
+        T is an integer in [0, :data:`~workbench.validation.MAX_STEPS`].
         """
+        T = integer("T", T, 0, MAX_STEPS)
         P = np.zeros((T + 1, self.n_p))
         col = 0
         names = {n for n, _ in self.param_layout}

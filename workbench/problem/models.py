@@ -30,10 +30,20 @@ from workbench.problem.obstacles import (
     scene_vector,
     slot_margins,
 )
-from workbench.validation import as_array, bounds, fail, flag, integer, one_of, real
+from workbench.validation import (
+    as_array,
+    bounds,
+    fail,
+    flag,
+    integer,
+    one_of,
+    real,
+    real_or_inf,
+)
 
 Integrator = Literal["euler", "zoh"]
 INTEGRATORS: tuple[str, ...] = ("euler", "zoh")
+MAX_SCENE_SLOTS = 10**4  # circle slots of one run-time scene (3 symbols each)
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,6 +75,9 @@ class Model:
     scene: ca.SX = field(default_factory=lambda: ca.SX(0, 1), repr=False)
     scene_value: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     scene_capacity: int = 0  # circle slots of the scene (0: no circle slots)
+
+    def __post_init__(self) -> None:
+        _check_sizes(self.x, self.u, "Model.")
 
     @property
     def nx(self) -> int:
@@ -135,6 +148,7 @@ class Model:
         for fname, sym in (("x", x), ("u", u)):
             if not isinstance(sym, ca.SX) or not sym.is_valid_input() or sym.size2() != 1:
                 raise fail(fname, str(sym), "must be a column vector of CasADi SX symbols")
+        _check_sizes(x, u)
         nx, nu = x.numel(), u.numel()
         x_next = ca.SX(x_next)
         if x_next.shape != (nx, 1):
@@ -215,6 +229,42 @@ class Model:
         return self._fast_margins(xa[: self.n_physical], self._scene_input(scene))[0]
 
 
+def margin_violation(model: Model, h: np.ndarray, eps: float = 0.0) -> str | None:
+    """Where the margins ``h`` of ``model`` at one state fail ``h > eps``, in words ("lies
+    inside obstacle 2 (h[2] = -0.31 < 0)", "lies on the boundary of obstacle 0 (h[0] = 0)",
+    "lies within 1e-06 of the boundary of ..."), naming the first failing margin; None when
+    every margin passes. Margins past the circle slots are other constraints (state limits)."""
+    h = np.asarray(h, dtype=float).ravel()
+    bad = np.flatnonzero(~(h > eps))
+    if not bad.size:
+        return None
+    i = int(bad[np.argmin(np.nan_to_num(h[bad], nan=-np.inf))])
+    what = (f"obstacle {i}" if i < (model.scene_capacity or len(model.obstacles))
+            else f"the safe set of margin {i} (a state limit or constraint)")
+    v = h[i]
+    if np.isnan(v):
+        return f"has an undefined margin h[{i}] = nan ({what})"
+    if v < 0:
+        return f"lies inside {what} (h[{i}] = {v:.4g} < 0)"
+    if v == 0:
+        return f"lies on the boundary of {what} (h[{i}] = 0)"
+    return f"lies within {eps:g} of the boundary of {what} (h[{i}] = {v:.4g} <= {eps:g})"
+
+
+def _check_sizes(x: ca.SX, u: ca.SX, prefix: str = "") -> None:
+    """A model needs at least one state and one control: every method here optimises over u
+    (iLQG, the samplers, the safety filters), and a model without states has nothing to
+    steer. A system without inputs is simulated, not controlled: give it a control that
+    does not enter x_next (and a zero control cost) if it must run through these tools."""
+    if x.numel() == 0:
+        raise fail(f"{prefix}x", f"SX of shape {x.shape}", "has no entries: a model needs at "
+                   "least one state (nx >= 1)")
+    if u.numel() == 0:
+        raise fail(f"{prefix}u", f"SX of shape {u.shape}", "has no entries: a model needs at "
+                   "least one control (nu >= 1); iLQG, the samplers and the safety filters all "
+                   "optimise over the controls")
+
+
 def double_integrator(
     *,
     dt: float = 0.02,
@@ -271,7 +321,8 @@ def circle_scene(p, obstacles, h_form: HForm = "squared", inflation: float = 0.0
                  scene_capacity: int | None = None, runtime_obstacles: bool = True) -> dict:
     """Keyword arguments of :meth:`Model.from_expressions` for circular obstacles around the
     position ``p`` (2 SX entries): ``h``, ``obstacles`` and, with run-time obstacles, the
-    ``scene`` symbol of ``scene_capacity`` slots (default: one per obstacle) and its value."""
+    ``scene`` symbol of ``scene_capacity`` slots (default: one per obstacle; at most
+    :data:`MAX_SCENE_SLOTS`) and its value."""
     obstacles = tuple(obstacles)
     flag("runtime_obstacles", runtime_obstacles)
     if not runtime_obstacles:
@@ -279,8 +330,11 @@ def circle_scene(p, obstacles, h_form: HForm = "squared", inflation: float = 0.0
             raise fail("scene_capacity", scene_capacity,
                        "baked obstacles (runtime_obstacles=False) have no scene slots")
         return {"h": circle_margins(p, obstacles, h_form, inflation), "obstacles": obstacles}
+    if len(obstacles) > MAX_SCENE_SLOTS:
+        raise fail("obstacles", f"{len(obstacles)} circles",
+                   f"at most {MAX_SCENE_SLOTS} circles fit a run-time scene")
     cap = len(obstacles) if scene_capacity is None else integer(
-        "scene_capacity", scene_capacity, len(obstacles))
+        "scene_capacity", scene_capacity, len(obstacles), MAX_SCENE_SLOTS)
     s = scene_symbol(cap)
     return {"h": slot_margins(p, s, h_form, inflation), "obstacles": obstacles, "scene": s,
             "scene_value": scene_vector(obstacles, cap), "scene_capacity": cap}
@@ -288,9 +342,10 @@ def circle_scene(p, obstacles, h_form: HForm = "squared", inflation: float = 0.0
 
 def _box(u_limit, nu: int) -> tuple[np.ndarray, np.ndarray]:
     if np.ndim(u_limit) == 0:
-        lim = float(u_limit)
+        v = u_limit.item() if isinstance(u_limit, np.ndarray) else u_limit  # 0-d array
+        lim = np.nan if isinstance(v, str) else real_or_inf("u_limit", v)
         if not lim > 0:  # np.inf is allowed: no control limits
-            raise fail("u_limit", u_limit, "must be > 0 (np.inf for no limits)")
+            raise fail("u_limit", u_limit, "must be a number > 0 (np.inf for no limits)")
         return -lim * np.ones(nu), lim * np.ones(nu)
     lo, hi = as_array("u_limit", u_limit, (2,), finite=False)
     return lo * np.ones(nu), hi * np.ones(nu)

@@ -34,7 +34,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.costs import Cost
-from workbench.problem.models import Model
+from workbench.problem.models import Model, margin_violation
 from workbench.validation import as_array, fail
 
 FUNCTION_NAMES = ("dyn", "dyn_jac", "dyn_hess", "stage", "stage_quad", "term", "term_quad",
@@ -148,12 +148,21 @@ class Problem:
         return x0
 
     def _check_safe(self, x0: np.ndarray, scene=None) -> None:
-        if self.nh:
-            h = self.model.margins(x0, scene)
-            if np.min(h) <= 0:
-                i = int(np.argmin(h))
-                raise fail("x0", x0, f"starts inside obstacle {i} (h[{i}] = {h[i]:.4g} <= 0); "
-                           "the start must be strictly safe")
+        """x0 must be strictly safe: every margin h > 0; on a barrier-embedded model h >
+        eps_h (the barrier options' crash margin: at h <= eps_h the barrier state is already
+        beta_max, a crash)."""
+        if not self.nh:
+            return
+        h = self.model.margins(x0, scene)
+        spec = self.model.barrier
+        eps = float(spec.options.eps_h) if spec is not None else 0.0
+        where = margin_violation(self.model, h, eps)
+        if where is None:
+            return
+        if eps > 0 and np.min(h) > 0:
+            raise fail("x0", x0, f"{where}: within BarrierOptions.eps_h of the boundary the "
+                       "barrier state counts as a crash; the start must have every h > eps_h")
+        raise fail("x0", x0, f"{where}; the start must be strictly safe (every h > 0)")
 
     def check_controls(self, U, T: int | None = None) -> np.ndarray:
         """Validate a control sequence (T, nu)."""

@@ -24,7 +24,7 @@ from typing import Literal, Protocol
 import casadi as ca
 import numpy as np
 
-from workbench.validation import fail, integer, one_of, real, real_or_inf
+from workbench.validation import MAX_STEPS, fail, integer, one_of, real, real_or_inf
 
 AlphaKind = Literal["progress", "quantile", "fixed", "start"]
 
@@ -32,7 +32,8 @@ AlphaKind = Literal["progress", "quantile", "fixed", "start"]
 @dataclass(frozen=True)
 class AlphaRule:
     """How alpha is chosen (defaults [A]: kappa = 0.1 chosen from an activation sweep on the
-    navigation map; the navigation study's alpha sweep repeats it)."""
+    navigation map; the navigation study's alpha sweep repeats it). ``calibration_steps`` in
+    [10, :data:`~workbench.validation.MAX_STEPS`]."""
 
     kind: AlphaKind = "progress"
     kappa: float = 0.1  # progress: alpha = (1 + kappa) F_und(d); 0.1 from the activation study
@@ -47,7 +48,7 @@ class AlphaRule:
             real(f"AlphaRule.{name}", getattr(self, name), 0.0)
         real("AlphaRule.quantile", self.quantile, 0.0, maximum=1.0)
         real_or_inf("AlphaRule.value", self.value)
-        integer("AlphaRule.calibration_steps", self.calibration_steps, 10)
+        integer("AlphaRule.calibration_steps", self.calibration_steps, 10, MAX_STEPS)
 
     @property
     def needs_calibration(self) -> bool:
@@ -117,7 +118,9 @@ def progress_distance(X: np.ndarray, goal: np.ndarray, position: tuple[int, ...]
 
 
 def progress_curve(d: np.ndarray, F: np.ndarray, bins: int = 40) -> tuple[np.ndarray, np.ndarray]:
-    """Median free energy per log-distance bin, made non-decreasing in distance."""
+    """Median free energy per log-distance bin (``bins`` in [1, 10^4]), made non-decreasing
+    in distance."""
+    bins = integer("bins", bins, 1, 10**4)
     d, F = np.asarray(d, float), np.asarray(F, float)
     ok = np.isfinite(F) & np.isfinite(d) & (d > 0)
     if ok.sum() < 2:

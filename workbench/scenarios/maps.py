@@ -54,6 +54,10 @@ WALL_SPACING = 1.5  # wall circles' centre spacing in radii: overlap, thinnest p
 WALL_JITTER = 0.15  # walls sit at (i + U(-j, j)) / (n_gates + 1) of the start-goal line
 MAX_DRAWS = 20_000  # rejection-sampling draws for random and moving circles
 MAX_MAPS = 60  # occupancy grids drawn before giving up on a connected one
+MAX_CIRCLES = 1000  # n_obstacles (and moving) of one map: each circle is a scene slot
+MAX_GRID = 100  # occupancy cells per side: cover_cells needs (occupied cells)^2 bits
+MAX_NODES = 2**20  # grid nodes of one difficulty evaluation: resolution 0.01 on [0, 10]^2 fits
+_CHUNK = 2**22  # float64 entries of one block of cover_cells' pairwise distances (32 MB)
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,9 @@ class MapFamily:
     iterations. start, goal: inside the box. endpoint_clearance: every circle's edge keeps
     this distance from start and goal. moving, speed: number of moving circles and their
     speed (m/s) (see :func:`generate`).
+
+    Counts are integers (never ``bool``) with upper limits: n_obstacles and moving <=
+    :data:`MAX_CIRCLES`, n_gates <= 20, grid in [4, :data:`MAX_GRID`], smoothing <= 100.
     """
 
     family: str = "spec"
@@ -102,9 +109,10 @@ class MapFamily:
             low = 2 if self.family == "spec" else 0
             what = " (it counts the two gate circles)" if low else ""
             try:
-                integer("map.n_obstacles", n, low)
+                integer("map.n_obstacles", n, low, MAX_CIRCLES)
             except ValueError as exc:
-                raise fail("map.n_obstacles", n, f"must be an integer >= {low}{what}") from exc
+                raise fail("map.n_obstacles", n, f"must be an integer in [{low}, {MAX_CIRCLES}]"
+                           f"{what}") from exc
         lo, hi = as_array("map.radius_range", self.radius_range, (2,))
         if not 0 < lo <= hi:
             raise fail("map.radius_range", self.radius_range,
@@ -114,7 +122,7 @@ class MapFamily:
         real("map.corridor_width", self.corridor_width, 0.0, strict=True)
         integer("map.n_gates", self.n_gates, 0, 20)
         real("map.fill", self.fill, 0.0, maximum=1.0)
-        integer("map.grid", self.grid, 4, 200)
+        integer("map.grid", self.grid, 4, MAX_GRID)
         integer("map.smoothing", self.smoothing, 0, 100)
         for name in ("start", "goal"):
             p = as_array(f"map.{name}", getattr(self, name), (2,))
@@ -125,7 +133,7 @@ class MapFamily:
         if np.hypot(self.goal[0] - self.start[0], self.goal[1] - self.start[1]) < 1e-9:
             raise fail("map.goal", self.goal, "must differ from map.start")
         real("map.endpoint_clearance", self.endpoint_clearance, 0.0)
-        integer("map.moving", self.moving, 0, 1000)
+        integer("map.moving", self.moving, 0, MAX_CIRCLES)
         real("map.speed", self.speed, 0.0)
 
     @property
@@ -226,12 +234,19 @@ def difficulty(circles, start, goal, *, resolution: float = 0.05,
     the lattice directions 0, 26.6, 45, 63.4, ... degrees, at most 2.7 % long in between).
     Without a path (or with start or goal inside a circle) the bottleneck is 0.0 and the
     length inf. straight_clearance is exact; coverage is the covered fraction of the grid's
-    cell centres.
+    cell centres. The grid has at most :data:`MAX_NODES` nodes (resolution 0.01 on the box
+    [0, 10]^2).
     """
     res = real("difficulty.resolution", resolution, 0.0, strict=True)
     b = as_array("difficulty.box", box, (2, 2))
     if not np.all(b[:, 1] > b[:, 0]):
         raise fail("difficulty.box", box, "must be ((x_lo, x_hi), (y_lo, y_hi)) with lo < hi")
+    with np.errstate(over="ignore"):
+        nodes = np.prod([max(1.0, np.rint((hi - lo) / res)) + 1 for lo, hi in b])
+    if not nodes <= MAX_NODES:
+        raise fail("difficulty.resolution", resolution,
+                   f"gives a grid of {nodes:.4g} nodes over the box {b.tolist()}, above the "
+                   f"limit {MAX_NODES}; use a coarser resolution")
     p0 = as_array("difficulty.start", start, (2,))
     p1 = as_array("difficulty.goal", goal, (2,))
     C = _circle_array(circles)
@@ -518,26 +533,39 @@ def cover_cells(occ: np.ndarray, h: float, origin=(0.0, 0.0)) -> np.ndarray:
     Candidates: for each occupied cell, the circle at its centre with radius the larger of
     h / sqrt(2) (its circumscribed circle) and the distance to the nearest free cell (outside
     the grid is free; that circle lies inside occupied cells). Greedy set cover (a cell counts
-    as covered when its four corners are) picks candidates, most newly covered cells first."""
+    as covered when its four corners are) picks candidates, most newly covered cells first.
+    Memory: n^2 bits for n occupied cells plus blocks of :data:`_CHUNK` distances."""
     idx = np.argwhere(occ)
     if not idx.size:
         return np.zeros((0, 3))
     P = np.asarray(origin) + (idx + 0.5) * h
     pad = np.pad(occ, 1, constant_values=False)
     F = np.asarray(origin) + (np.argwhere(~pad) - 1 + 0.5) * h
-    dx = np.maximum(np.abs(P[:, None, 0] - F[None, :, 0]) - h / 2, 0.0)
-    dy = np.maximum(np.abs(P[:, None, 1] - F[None, :, 1]) - h / 2, 0.0)
-    R = np.maximum(np.hypot(dx, dy).min(axis=1), h / np.sqrt(2))
+    n = P.shape[0]
+    R = np.empty(n)
+    step = max(1, _CHUNK // max(F.shape[0], 1))
+    for a in range(0, n, step):
+        Pa = P[a:a + step]
+        dx = np.maximum(np.abs(Pa[:, None, 0] - F[None, :, 0]) - h / 2, 0.0)
+        dy = np.maximum(np.abs(Pa[:, None, 1] - F[None, :, 1]) - h / 2, 0.0)
+        R[a:a + step] = np.maximum(np.hypot(dx, dy).min(axis=1), h / np.sqrt(2))
     corners = P[:, None, :] + h / 2 * np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]])
-    far = np.hypot(P[:, None, None, 0] - corners[None, :, :, 0],
-                   P[:, None, None, 1] - corners[None, :, :, 1]).max(axis=2)
-    M = far <= R[:, None] + 1e-9 * h  # M[c, q]: candidate c covers cell q
-    todo = np.ones(idx.shape[0], dtype=bool)
+    M = np.empty((n, n), dtype=bool)  # M[c, q]: candidate c covers cell q
+    step = max(1, _CHUNK // (4 * n))
+    for a in range(0, n, step):
+        Pa = P[a:a + step]
+        far = np.hypot(Pa[:, None, None, 0] - corners[None, :, :, 0],
+                       Pa[:, None, None, 1] - corners[None, :, :, 1]).max(axis=2)
+        M[a:a + step] = far <= R[a:a + step, None] + 1e-9 * h
+    todo = np.ones(n, dtype=bool)
+    gain = M.sum(axis=1)  # cells still to cover that each candidate covers
     chosen = []
     while todo.any():
-        c = int(np.argmax(M[:, todo].sum(axis=1)))
+        c = int(np.argmax(gain))
         chosen.append(c)
+        new = todo & M[c]
         todo &= ~M[c]
+        gain -= M[:, new].sum(axis=1)
     return np.column_stack([P[chosen], R[chosen]])
 
 

@@ -64,7 +64,7 @@ from workbench.sampling.methods.gatekeeper import (
 )
 from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
 from workbench.scenarios.scenes import CircleScene
-from workbench.validation import as_array, fail, one_of, real
+from workbench.validation import as_array, fail, one_of, real, scale
 
 # [A] SPEC 8.2 starts from sigma = 2, lambda = 1, q_beta = 1 and asks to tune the undisturbed
 # BaS-MPPI to reach the goal. With q_beta = 1 the robot stalls in a local minimum of this map at
@@ -90,6 +90,8 @@ class System:
     weights (:func:`~workbench.sampling.problem.goal_costs`: Q per physical state, S per
     physical state with barrier states weighted 1). ``sigma`` (one per control), ``lam``,
     ``q_beta``: the sampler's defaults. ``disturbed``: default disturbed state names.
+    ``sigma`` entries in [1.5e-154, 6.7e153] and ``lam`` in [2.2e-308, 4.5e307], as
+    :class:`~workbench.sampling.controllers.MPPIConfig` (:func:`~workbench.validation.scale`).
     ``scale``: map length scale. ``level_scale``: multiplies a disturbance level given in the
     double integrator's units (see the module docstring). ``backup(plant, gain)``: the
     gatekeeper's backup law (``gain``: MethodSettings.braking_gain, None for the system's
@@ -122,11 +124,16 @@ class System:
             if not callable(getattr(self, name)):
                 raise fail(f"System.{name}", getattr(self, name), "must be callable")
         for name in ("Q", "S", "sigma"):
-            w = as_array(f"System.{name}", getattr(self, name), (None,))
+            v = getattr(self, name)
+            if isinstance(v, tuple | list) and any(isinstance(e, bool | np.bool_) for e in v):
+                raise fail(f"System.{name}", v, "must be numbers, not true/false")
+            w = as_array(f"System.{name}", v, (None,))
             if np.any(w < 0) or (name == "sigma" and np.any(w <= 0)):
                 raise fail(f"System.{name}", w, "must be finite numbers >= 0 (sigma > 0)")
             object.__setattr__(self, name, tuple(float(v) for v in w))
-        real("System.lam", self.lam, 0.0, strict=True)
+        for i, s in enumerate(self.sigma):  # sigma^2 and 1/sigma^2 enter sampler and costs
+            scale(f"System.sigma[{i}]", s, power=2)
+        scale("System.lam", self.lam)  # 1/lambda scales the costs in the weights
         real("System.q_beta", self.q_beta, 0.0)
         real("System.scale", self.scale, 0.0, strict=True)
         real("System.level_scale", self.level_scale, 0.0, strict=True)

@@ -16,6 +16,8 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import enum
+import os
+import stat
 import tomllib
 import types
 import typing
@@ -26,22 +28,104 @@ from typing import Any
 
 import tomli_w
 
-__all__ = ["ConfigError", "dump", "keys", "load", "merge", "parse_sets", "read_toml", "to_dict"]
+__all__ = ["MAX_CONFIG_BYTES", "ConfigError", "dump", "keys", "load", "merge", "parse_sets",
+           "read_toml", "to_dict"]
 
 
 class ConfigError(ValueError):
     """A config key, type or value that is not allowed (the message says which and why)."""
 
 
+MAX_CONFIG_BYTES = 1 << 20  # a config file is a few kB; anything above 1 MiB is not one
+_KINDS = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
 def read_toml(path: Path | str) -> dict[str, Any]:
-    """A TOML file as a dict; a syntax error names the file and line."""
+    """A TOML file as a dict; every problem is a :class:`ConfigError` naming the path: it does
+    not exist, is a folder, is not a regular file (a FIFO, a device such as /dev/zero, a
+    socket: refused before opening, so reading never blocks), is larger than
+    :data:`MAX_CONFIG_BYTES`, is not UTF-8 text (the first bad byte and its offset), holds a
+    NUL byte (a binary file), or is not valid TOML (the line and column). A UTF-8 byte-order
+    mark at the start is skipped."""
     path = Path(path)
+    data = _read_capped(path)
     try:
-        return tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise ConfigError(f"config file {path} does not exist") from exc
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"config file {path} is not UTF-8 text (byte 0x{data[exc.start]:02x} "
+                          f"at offset {exc.start}); save it as UTF-8 TOML") from None
+    text = text.removeprefix("\ufeff")
+    nul = text.find("\x00")
+    if nul >= 0:
+        raise ConfigError(f"config file {path} is not text: it holds a NUL byte at offset "
+                          f"{data.find(0)} (a binary file?); give a TOML file")
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid TOML (arrays or inline tables nest too deeply)"
+                          ) from None
+
+
+def _read_capped(path: Path) -> bytes:
+    """The bytes of the regular file ``path`` (at most :data:`MAX_CONFIG_BYTES`), checked with
+    stat before opening and with fstat after (opened non-blocking, so a FIFO swapped in
+    between cannot block either)."""
+    limit = MAX_CONFIG_BYTES
+    try:
+        st = os.stat(path)
+        _check_kind(path, st, limit)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except ConfigError:
+        raise
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except NotADirectoryError:
+        raise ConfigError(f"config file {path} does not exist (a parent of it is a file, not "
+                          "a folder)") from None
+    except OSError as exc:
+        raise ConfigError(f"config file {path} cannot be read ({exc.strerror or exc})"
+                          ) from None
+    try:
+        _check_kind(path, os.fstat(fd), limit)
+        chunks, size = [], 0
+        while size <= limit:
+            chunk = os.read(fd, limit + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+    except ConfigError:
+        raise
+    except OSError as exc:
+        raise ConfigError(f"config file {path} cannot be read ({exc.strerror or exc})"
+                          ) from None
+    finally:
+        os.close(fd)
+    if size > limit:
+        raise ConfigError(f"config file {path} is larger than {_size(limit)} (it grew while "
+                          "being read); a config file is a small TOML file")
+    return b"".join(chunks)
+
+
+def _size(n: int) -> str:
+    return f"{n / (1 << 20):g} MB" if n >= 1 << 20 else f"{n} bytes"
+
+
+def _check_kind(path: Path, st: os.stat_result, limit: int) -> None:
+    mode = st.st_mode
+    if stat.S_ISDIR(mode):
+        raise ConfigError(f"config file {path} is a folder, not a file; give the path of a "
+                          "TOML file")
+    if not stat.S_ISREG(mode):
+        kind = next((name for test, name in _KINDS if test(mode)), "not a file")
+        raise ConfigError(f"config file {path} is not a regular file: it is {kind}; give a "
+                          "TOML file (write a generated config to a file first)")
+    if st.st_size > limit:
+        raise ConfigError(f"config file {path} is larger than {_size(limit)} ({st.st_size} "
+                          "bytes); a config file is a small TOML file")
 
 
 def parse_sets(items: Iterable[str], aliases: Mapping[str, str] | None = None) -> dict:

@@ -5,22 +5,20 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from numbers import Integral
 
 import numpy as np
 
-from workbench.validation import fail, integer
+from workbench.validation import fail, integer, real
 
 Z_95 = 1.959963984540054  # standard normal quantile 0.975
 
 
 def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion (95% by default), clipped to [0, 1]."""
-    if not isinstance(n, Integral) or n < 1:
-        raise fail("n", n, "must be an integer >= 1")
-    if not isinstance(successes, Integral) or not 0 <= successes <= n:
-        raise fail("successes", successes, f"must be an integer in [0, {n}]")
-    successes, n = int(successes), int(n)
+    """Wilson score interval for a binomial proportion (95% by default), clipped to [0, 1].
+    Counts are integers (never ``bool``); ``z`` > 0."""
+    n = integer("n", n, 1)
+    successes = integer("successes", successes, 0, n)
+    z = real("z", z, 0.0, strict=True)
     p = successes / n
     z2 = z * z
     denom = 1.0 + z2 / n
@@ -42,9 +40,7 @@ def paired_counts(first, second) -> tuple[int, int, int, int]:
 def mcnemar_exact(b: int, c: int) -> float:
     """Two-sided exact McNemar p-value from the discordant counts b (only the first method
     succeeded) and c (only the second): a binomial test of b in b + c trials at p = 1/2."""
-    for name, v in (("b", b), ("c", c)):
-        if not isinstance(v, Integral) or v < 0:
-            raise fail(name, v, "must be an integer >= 0")
+    b, c = integer("b", b, 0), integer("c", c, 0)
     if b + c == 0:
         return 1.0
     from scipy.stats import binomtest
@@ -59,9 +55,8 @@ def paired_difference_interval(a: int, b: int, c: int, d: int,
 
     Counts: a both succeed, b only the first, c only the second, d neither.
     """
-    for name, v in (("a", a), ("b", b), ("c", c), ("d", d)):
-        if not isinstance(v, Integral) or v < 0:
-            raise fail(name, v, "must be an integer >= 0")
+    a, b, c, d = (integer(name, v, 0) for name, v in (("a", a), ("b", b), ("c", c), ("d", d)))
+    z = real("z", z, 0.0, strict=True)
     n = a + b + c + d
     if n < 1:
         raise fail("a + b + c + d", n, "need at least one pair")

@@ -15,7 +15,11 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-from workbench.validation import fail, flag, integer, real
+from workbench.validation import MAX_TASKS, at_most, fail, flag, integer, real
+
+MAX_TRIALS = 10**5  # objective evaluations of one tuning run
+MAX_EPISODES = 10**5  # training episodes of one trial
+MAX_SEED = 2**32 - 1  # optuna's TPE sampler seeds a NumPy RandomState: [0, 2^32 - 1]
 
 
 @dataclass(frozen=True)
@@ -49,16 +53,19 @@ class Param:
 class TuningBudget:
     """The budget every tuned controller gets: ``trials`` objective evaluations (the first is
     the hand-tuned starting point), each over ``episodes`` training episodes; ``seed`` seeds the
-    search."""
+    search. Limits: trials <= :data:`MAX_TRIALS`, episodes <= :data:`MAX_EPISODES`, trials x
+    episodes <= :data:`~workbench.validation.MAX_TASKS`, seed in [0, 2^32 - 1]."""
 
     trials: int = 16
     episodes: int = 4
     seed: int = 0
 
     def __post_init__(self) -> None:
-        integer("tuning.trials", self.trials, 1, 10**5)
-        integer("tuning.episodes", self.episodes, 1, 10**5)
-        integer("tuning.seed", self.seed, 0)
+        integer("tuning.trials", self.trials, 1, MAX_TRIALS)
+        integer("tuning.episodes", self.episodes, 1, MAX_EPISODES)
+        at_most("tuning.episodes", self.episodes, int(self.trials) * int(self.episodes),
+                MAX_TASKS, "trials x episodes (training episodes of one tuned controller)")
+        integer("tuning.seed", self.seed, 0, MAX_SEED)
 
     @property
     def total_episodes(self) -> int:
