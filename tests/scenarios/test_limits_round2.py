@@ -124,3 +124,21 @@ def test_calibration_steps_and_curve_bins_are_bounded():
                        r"integer in \[1, 10000\]$"):
         progress_curve(d, F, bins=10**12)
     assert progress_curve(d, F, bins=5)[0].size == 5
+
+
+def test_a_start_on_a_circle_is_named_as_on_its_boundary():
+    from workbench.scenarios.scenes import CircleScene
+
+    with pytest.raises(ValueError, match=r"CircleScene\.start.*on the boundary of circle 0"):
+        CircleScene(circles=((1.0, 0.0, 0.5),), start=(0.5, 0.0), goal=(3.0, 0.0))
+
+
+def test_a_navigation_start_within_the_crash_margin_is_named():
+    """A start within the barrier's crash margin eps_h of an obstacle (h = 1e-9 > 0) is refused
+    when the set-up is built: the first step would count every sample as crashed."""
+    from workbench.scenarios.navigation import navigation_setup
+    from workbench.scenarios.scenes import CircleScene
+
+    scene = CircleScene(circles=((1.0, 0.0, 0.5),), start=(0.5 - 1e-9, 0.0), goal=(3.0, 0.0))
+    with pytest.raises(ValueError, match=r"scene\.start.*within 1e-06 of the boundary"):
+        navigation_setup(scene)

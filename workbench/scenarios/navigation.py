@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.barrier import BarrierOptions, embed_barrier
-from workbench.problem.models import Model
+from workbench.problem.models import Model, margin_violation
 from workbench.sampling.calibration import calibrate
 from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
@@ -141,15 +141,12 @@ def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
     d = goal - start
     heading = float(np.arctan2(d[1], d[0])) if np.any(d != 0) else 0.0
     states = {"start": sysm.state_at(start, heading), "goal": sysm.state_at(goal, heading)}
+    eps = (barrier or BarrierOptions()).eps_h  # the barrier state counts h <= eps_h as a crash
     for name, x in states.items():  # also for scenes that bring their own obstacles
-        h = plant.margins(x)
-        if h.size and h.min() <= 0:
-            i = int(np.argmin(h))
-            where = (f"lies inside obstacle {i}"
-                     if i < (plant.scene_capacity or len(plant.obstacles))
-                     else f"violates the plant's margin {i} (a state limit)")
+        where = margin_violation(plant, plant.margins(x), eps)
+        if where is not None:
             raise fail(f"scene.{name}", getattr(scene, name),
-                       f"{where}; start and goal must be in free space (h > 0)")
+                       f"{where}; start and goal must be in free space (h > {eps:g})")
     qb = sysm.q_beta if q_beta is None else q_beta
     problem = sysm.costs(embed_barrier(plant, barrier or BarrierOptions()), q_beta=qb)
     cfg = mppi or MPPIConfig(sigma=sysm.sigma, lam=sysm.lam)

@@ -242,10 +242,12 @@ class CircleScene:
             p = as_array(f"CircleScene.{name}", getattr(self, name), (2,))
             object.__setattr__(self, name, (float(p[0]), float(p[1])))
             for i, o in enumerate(circles):
-                if np.linalg.norm(p - np.array(o.center)) <= o.radius:
+                d = float(np.linalg.norm(p - np.array(o.center)))
+                if d <= o.radius:
+                    where = "on the boundary of" if d == o.radius else "inside"
                     raise fail(f"CircleScene.{name}", getattr(self, name),
-                               f"lies inside circle {i} (centre {o.center}, radius {o.radius:g})"
-                               "; start and goal must be in free space")
+                               f"lies {where} circle {i} (centre {o.center}, radius "
+                               f"{o.radius:g}); start and goal must be in free space")
         positive("CircleScene.dt", self.dt)
         positive("CircleScene.u_limit", self.u_limit)
 
