@@ -13,7 +13,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
 .PHONY: venv test study study-tracking-demo study-tracking study-navigation study-bound \
-	study-sampling-safety study-arena tune-arena reports bench lint clean-cache clean
+	study-sampling-safety study-arena tune-arena reports docs bench lint clean-cache clean
 
 venv: $(STAMP)
 
@@ -71,6 +71,11 @@ tune-arena: $(STAMP)
 # reports/index.html: every study's report, figures, tables and manifest, offline
 reports: $(STAMP)
 	$(WB) report
+
+# the documentation site (guides, executed tutorials, the API from the docstrings) into
+# reports/docs/, offline; warnings are errors (tests/test_docs_site.py builds it too)
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 # benchmarks live outside the library: python -m benchmarks [--out FILE] [--repeats N]
 bench: $(STAMP)

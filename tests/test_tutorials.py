@@ -1,0 +1,226 @@
+"""The three tutorials of the documentation site run as a reader runs them, and print what their
+pages show.
+
+Each page's ```python blocks run in order in one namespace (in a temporary directory), with
+their printed output captured per block. A block followed by ``<!-- output -->`` and a ```text
+block must print lines of that shape (numbers, booleans and spacing masked: they vary with the
+machine); the numbers themselves are parsed and checked against bounds here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import re
+import warnings
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[1]
+TUTORIALS = ROOT / "docs" / "tutorials"
+PAGES = ("own-model.md", "own-map-study.md", "moving-obstacle.md")
+BLOCK = re.compile(r"(<!-- output -->\s*)?```(\w+)\n(.*?)```", re.S)
+NUM = r"(-?[\d.]+)"
+MASK = re.compile(r"\b[0-9a-f]{8,}\b|-?\d+(?:\.\d+)?(?:e[-+]?\d+)?|\bTrue\b|\bFalse\b"
+                  r"|\bNone\b")
+
+
+def blocks(page: str) -> list[tuple[str, str]]:
+    """(python code, shown output or '') of each python block of a tutorial page, in order."""
+    out: list[tuple[str, str]] = []
+    for m in BLOCK.finditer((TUTORIALS / page).read_text()):
+        if m[1]:  # an output block: belongs to the python block before it
+            assert m[2] == "text" and out and out[-1][1] == "", f"{page}: stray output block"
+            out[-1] = (out[-1][0], m[3])
+        elif m[2] == "python":
+            out.append((m[3], ""))
+    return out
+
+
+def run_page(page: str, where: Path) -> list[tuple[str, str, str]]:
+    """Run a page's blocks in one namespace in ``where``: (code, printed, shown) per block.
+    Fails on any warning raised from the workbench (e.g. a fallback from compiled kernels)."""
+    scope: dict = {"__name__": "__tutorial__"}
+    results = []
+    cwd = os.getcwd()
+    os.chdir(where)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            for i, (code, shown) in enumerate(blocks(page)):
+                buffer = io.StringIO()
+                with contextlib.redirect_stdout(buffer):
+                    exec(compile(code, f"{page}:block{i}", "exec", dont_inherit=True), scope)
+                results.append((code, buffer.getvalue(), shown))
+    finally:
+        os.chdir(cwd)
+    ours = [str(w.message) for w in caught if f"{os.sep}workbench{os.sep}" in w.filename]
+    assert not ours, f"{page}: warnings from the workbench: {ours}"
+    return results
+
+
+def shape(text: str) -> list[str]:
+    return [" ".join(MASK.sub("#", line).split()) for line in text.strip().splitlines()]
+
+
+def printed(results) -> str:
+    """Everything a page's blocks printed."""
+    return "".join(p for _, p, _ in results)
+
+
+def check_shown_output(results, page: str) -> None:
+    shown = [(p, s) for _, p, s in results if s]
+    assert shown, f"{page}: no output block"
+    for got, want in shown:
+        assert shape(got) == shape(want), f"{page}: printed\n{got}\nthe page shows\n{want}"
+
+
+@pytest.fixture(scope="module")
+def own_model(tmp_path_factory):
+    return run_page("own-model.md", tmp_path_factory.mktemp("tutorial1"))
+
+
+def test_every_tutorial_page_has_python_blocks_and_outputs():
+    for page in PAGES:
+        found = blocks(page)
+        assert found and any(shown for _, shown in found), page
+
+
+def test_output_shapes_are_masked_consistently():
+    assert shape("a 1.5 m, crashed False,  12% of -3e-05") == ["a # m, crashed #, #% of #"]
+    assert shape("x 1 y") != shape("x 1 z")
+
+
+def test_tutorial_own_model(own_model):
+    check_shown_output(own_model, "own-model.md")
+    out = printed(own_model)
+    plans = dict(re.findall(r"^(iLQG|BaS-iLQG)\s+(converged .*)$", out, re.M))
+    pat = rf"converged (\w+), min h {NUM}, final error {NUM} m"
+    ilqg, bas = (re.match(pat, plans[k]) for k in ("iLQG", "BaS-iLQG"))
+    assert ilqg and bas, out
+    # plain iLQG stops on the first circle's boundary; BaS-iLQG keeps a margin and gets there
+    assert ilqg[1] == bas[1] == "True"
+    assert 0.0 <= float(ilqg[2]) < 0.01 and float(ilqg[3]) > 1.0
+    assert float(bas[2]) > 0.05 and float(bas[3]) < 0.05
+    drive = re.search(rf"BaS-MPPI undisturbed: crashed (\w+), min h {NUM}, final error {NUM} m, "
+                      r"compiled kernels (\w+)", out)
+    assert drive and drive[1] == "False" and float(drive[2]) > 0 and float(drive[3]) < 0.3, out
+    assert drive[4] == "True"  # the sampler ran on kernels generated from the page's model
+    rows = {m[0]: m[1:] for m in re.findall(
+        rf"^(BaS-MPPI|SA-RMPPI): (\d+) of (\d+) crashed, median final error {NUM} m, robust "
+        rf"part active on (\d+)% of the steps, {NUM} ms per step$", out, re.M)}
+    assert set(rows) == {"BaS-MPPI", "SA-RMPPI"}, out
+    for crashes, n, error, _, ms in rows.values():
+        assert int(n) == 10 and int(crashes) <= 5  # mostly safe under the mild disturbance
+        assert float(error) < 0.5 and float(ms) > 0  # the safe ones end near the goal
+    assert int(rows["BaS-MPPI"][3]) == 0  # no robust part
+    assert 2 <= int(rows["SA-RMPPI"][3]) <= 60  # the selection acts on some steps, not all
+    calibrations = [c for c, _, _ in own_model if "wb.calibrate(" in c]
+    assert len(calibrations) == 1  # one threshold, shared by every realisation
+
+
+@pytest.fixture(scope="module")
+def own_map(tmp_path_factory):
+    where = tmp_path_factory.mktemp("tutorial2")
+    return run_page("own-map-study.md", where), where
+
+
+def cli_command(page: str) -> list[str]:
+    """The page's ```sh block marked <!-- cli -->, as an argument list."""
+    import shlex
+
+    text = (TUTORIALS / page).read_text()
+    m = re.search(r"<!-- cli -->\s*```sh\n(.*?)```", text, re.S)
+    assert m, f"{page}: no command-line block"
+    return shlex.split(m[1].replace("\\\n", " "))
+
+
+def test_tutorial_own_map_study(own_map):
+    results, where = own_map
+    check_shown_output(results, "own-map-study.md")
+    out = printed(results)
+    assert re.search(r"^8 circles from \(0\.5, 0\.5\) to \(6\.0, 6\.0\)$", out, re.M), out
+    n_tasks = re.search(r"^(\d+) tasks, tasks hash ([0-9a-f]{12})$", out, re.M)
+    assert n_tasks and int(n_tasks[1]) == 20, out  # 2 controllers x 2 variances x 5
+    cells = re.findall(rf"^(SA-RMPPI|BaS-MPPI)\s+\S+\s+var\s+{NUM}\s+safety (\d+)% "
+                       rf"\[(\d+), (\d+)\]\s+RMSE {NUM}\s+{NUM} ms/step$", out, re.M)
+    assert len(cells) == 8, out  # four cells, printed after the run and after the resume
+    for name, var, safety, low, high, rmse, _ in cells:
+        assert int(low) <= int(safety) <= int(high) <= 100
+        if float(var) == 0:  # undisturbed, both controllers are safe on the map and at the goal
+            assert int(safety) == 100 and float(rmse) < 0.3, (name, var, safety, rmse)
+        else:
+            assert int(safety) >= 40 and float(rmse) < 1.0, (name, var, safety, rmse)
+    runs = re.findall(r"^computed (\d+), loaded (\d+)", out, re.M)
+    assert runs == [("20", "0"), ("0", "20")], out  # the second run resumed: nothing computed
+    assert "report my_map_run/report.md" in out
+    files = dict(re.findall(r"^(\S+\.\w+)\s+(True|False)$", out, re.M))
+    assert len(files) == 7 and set(files.values()) == {"True"}, out
+    assert (where / "my_map_run" / "episodes.parquet").is_file()
+    rows = re.findall(r"^(?:(bas_mppi|sa_rmppi)\s+)?\s*(0\.0|50\.0)\s+(\d+)\s+([\d.]+)\s+"
+                      r"([\d.]+)$", out, re.M)
+    assert len(rows) == 4, out
+    robust = [float(r[4]) for r in rows]
+    crashes = [int(r[2]) for r in rows]
+    assert robust[0] == robust[1] == 0.0  # BaS-MPPI has no robust part
+    assert 0 <= robust[2] < robust[3] <= 350  # SA-RMPPI's acts more under the disturbance
+    assert crashes[0] == crashes[2] == 0 and max(crashes) <= 3
+    signed = r"([-+]?[\d.]+)"
+    pairs = re.findall(r"^variance (\d+): only SA-RMPPI safe in (\d+), only BaS-MPPI safe in "
+                       rf"(\d+) of (\d+); difference {signed} \[{signed}, {signed}\], "
+                       rf"p = {NUM}$", out, re.M)
+    assert [p[0] for p in pairs] == ["0", "50"], out
+    for _, b, c, n, diff, low, high, p in pairs:
+        assert int(n) == 5 and int(b) + int(c) <= 5 and 0 <= float(p) <= 1
+        assert float(low) <= float(diff) <= float(high)
+        assert abs(float(diff) - (int(b) - int(c)) / 5) < 1e-9
+
+
+def test_tutorial_own_map_study_command_line_is_the_same_study(own_map, tmp_path):
+    """The page's command, with --dry-run, describes exactly the study the Python ran."""
+    import json
+    import subprocess
+    import sys
+
+    results, _ = own_map
+    scope_hash = re.search(r"tasks hash ([0-9a-f]{12})", printed(results))[1]
+    argv = cli_command("own-map-study.md")
+    assert argv[:3] == ["workbench", "run", "navigation"]
+    workbench = Path(sys.executable).with_name("workbench")
+    r = subprocess.run([str(workbench), *argv[1:], "--dry-run"], capture_output=True, text=True,
+                       timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    manifest = json.loads(r.stdout)
+    assert manifest["n_tasks"] == 20 and manifest["tasks_sha256"][:12] == scope_hash
+    assert not (tmp_path / "my_map_run").exists()  # a dry run writes nothing
+
+
+@pytest.fixture(scope="module")
+def moving(tmp_path_factory):
+    return run_page("moving-obstacle.md", tmp_path_factory.mktemp("tutorial3"))
+
+
+def test_tutorial_moving_obstacle(moving):
+    import json
+
+    check_shown_output(moving, "moving-obstacle.md")
+    out = printed(moving)
+    assert re.search(r"^4 circle slots; the moving circle starts at 2\.24, 1\.76$", out, re.M)
+    rows = {m[0]: m[1:] for m in re.findall(
+        rf"^(\w+)\s+crashed (\w+), (\d+) steps, min h {NUM}, final error {NUM} m$", out, re.M)}
+    assert set(rows) == {"bas_mppi", "sa_rmppi", "bas_mppi_blind"}, out
+    for name in ("bas_mppi", "sa_rmppi"):  # told that the circle moves: they pass it
+        crashed, steps, min_h, error = rows[name]
+        assert crashed == "False" and steps == "350" and float(min_h) > 0
+        assert float(error) < 0.5, (name, error)
+    crashed, steps, min_h, _ = rows["bas_mppi_blind"]  # never told: the crash check catches it
+    assert crashed == "True" and int(steps) < 350 and float(min_h) <= 0
+    built = re.search(rf"libraries built while driving: (\d+); a scene change takes {NUM} ms",
+                      out)
+    assert built and built[1] == "0" and float(built[2]) > 0, out  # no recompilation
+    active = re.search(r"robust part active on (\d+)% of the steps", out)
+    assert active and 0 < int(active[1]) < 100, out
+    last = json.loads(out.strip().splitlines()[-1])
+    assert last == {"bas_mppi": False, "sa_rmppi": False, "bas_mppi_blind": True}
