@@ -138,3 +138,18 @@ def test_the_command_line_reports_a_folder_config_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"config file {tmp_path} is a folder, not a file" in err
     assert "Traceback" not in err
+
+
+def test_a_nested_set_keeps_the_fields_own_defaults():
+    """``--set sampler.n_samples=256`` changes only n_samples: sigma and lambda stay the study's
+    own (the field's default instance), not the nested class's defaults."""
+    from workbench.sampling.controllers import MPPIConfig
+    from workbench.study.runner import resolve_config
+    from workbench.study.spec import registry
+
+    spec = registry()["navigation"]
+    base = resolve_config(spec, "tiny")
+    cfg = resolve_config(spec, "tiny", sets=["sampler.n_samples=256"])
+    assert cfg.sampler.n_samples == 256
+    assert (cfg.sampler.sigma, cfg.sampler.lam) == (base.sampler.sigma, base.sampler.lam)
+    assert (cfg.sampler.sigma, cfg.sampler.lam) != (MPPIConfig().sigma, MPPIConfig().lam)

@@ -195,7 +195,10 @@ def keys(cls: type, prefix: str = "") -> list[str]:
 def load(cls: type, data: Mapping[str, Any], *, path: str = "",
          aliases: Mapping[str, str] | None = None) -> Any:
     """An instance of the dataclass ``cls`` from ``data`` (missing keys take the defaults).
-    ``aliases`` (short key -> dotted key) are offered as suggestions for mistyped keys."""
+    A nested table that sets only some keys keeps the others from the field's own default
+    (``sampler = MPPIConfig(sigma=5)`` with ``sampler.n_samples = 256`` keeps sigma 5), not
+    from the nested class's defaults. ``aliases`` (short key -> dotted key) are offered as
+    suggestions for mistyped keys."""
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path or 'config'} = {data!r} is invalid: expected a table")
     fields = dict(_fields(cls))
@@ -206,7 +209,12 @@ def load(cls: type, data: Mapping[str, Any], *, path: str = "",
     kwargs = {}
     for f, hint in fields.items():
         if f.name in data:
-            kwargs[f.name] = _convert(hint, data[f.name], path + f.name)
+            value, sub = data[f.name], _dataclass_of(hint)
+            default = f.default_factory() if f.default_factory is not dataclasses.MISSING \
+                else f.default
+            if sub is not None and isinstance(value, Mapping) and isinstance(default, sub):
+                value = merge(to_dict(default), value)
+            kwargs[f.name] = _convert(hint, value, path + f.name)
     try:
         return cls(**kwargs)
     except ConfigError:
