@@ -7,13 +7,19 @@ the config dataclass's defaults <- the profile's TOML file (``--profile``; the s
 profile when neither --profile nor --config is given) <- ``--config FILE`` <- each
 ``--set key=value`` (dotted keys for nested fields, values as TOML literals).
 
-Every path argument (``--config``, ``--out``, ``--root``) has a leading ``~`` or ``~user``
-expanded when the command line is parsed, so the checks and the writes use the same path.
+Every path argument (``--config``, ``--out``, ``--root``, a report's FOLDER) has a leading ``~``
+or ``~user`` expanded when the command line is parsed, so the checks and the writes use the same
+path. The library's progress and status lines (loggers ``workbench.*``) are printed by a handler
+set up here: INFO and below to stdout, warnings and errors to stderr; ``-q`` keeps only the
+warnings and errors.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
+import logging
 import os
 import sys
 import textwrap
@@ -43,7 +49,9 @@ examples:
   workbench run tracking --profile full --scheduler tcp://host:8786
   workbench show-config tracking --profile paper > paper.toml   # edit, then:
   workbench run tracking --config paper.toml
+  workbench run navigation --profile paper --dry-run  # task count and estimated time
   workbench report                                    # reports/index.html
+  workbench report /tmp/bas5                          # /tmp/bas5/report.html (any run folder)
 """
 
 MODELS = {
@@ -71,6 +79,40 @@ def _entry(name: str):
         hint = f"; did you mean {close[0]!r}?" if close else ""
         raise ConfigError(f"unknown study {name!r}{hint} (studies: {', '.join(reg)})")
     return reg[name]
+
+
+# --------------------------------------------------------------------------------- logging
+class _MessageHandler(logging.Handler):
+    """Prints the bare message: INFO and below to the current stdout, warnings to stderr."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            stream = sys.stderr if record.levelno >= logging.WARNING else sys.stdout
+            print(self.format(record), file=stream, flush=True)
+        except Exception:  # logging must never raise
+            self.handleError(record)
+
+
+_HANDLER = _MessageHandler()
+_HANDLER.setFormatter(logging.Formatter("%(message)s"))
+
+
+@contextlib.contextmanager
+def terminal_logging(quiet: bool = False):
+    """While a command runs, show the library's log lines (loggers ``workbench.*``) on the
+    terminal: INFO and up, or only warnings and errors when ``quiet``. The logger's level and
+    handlers are restored afterwards (main() may be called from other code)."""
+    logger = logging.getLogger("workbench")
+    level, added = logger.level, _HANDLER not in logger.handlers
+    if added:
+        logger.addHandler(_HANDLER)
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+        if added:
+            logger.removeHandler(_HANDLER)
 
 
 # ----------------------------------------------------------------------------- subcommands
@@ -118,8 +160,11 @@ def cmd_run(args) -> int:
     if args.dry_run:
         from workbench.study.io import dumps_json
 
-        print(dumps_json({"profile": profile, **dry_manifest(entry, cfg)}, indent=1,
-                         sort_keys=True))
+        manifest = dry_manifest(entry, cfg)
+        print(dumps_json({"profile": profile, **manifest}, indent=1, sort_keys=True))
+        out = args.out or entry.default_out
+        print(estimate(entry, cfg, manifest["n_tasks"], out, args.workers, args.scheduler),
+              file=sys.stderr)
         return 0
     try:
         out = writable_dir("--out", args.out or entry.default_out)
@@ -130,22 +175,120 @@ def cmd_run(args) -> int:
 
     try:
         outcome = run(entry, cfg, out, workers=args.workers, scheduler=args.scheduler,
-                      profile=profile)
+                      profile=profile, progress=not getattr(args, "quiet", False))
     except StudyInterrupted:
         print("interrupted; rerun the same command to continue", file=sys.stderr)
         return 130
     print(f"wrote {outcome.report}")
+    from workbench.study.report_site import render_run
+
+    print(f"wrote {render_run(out)}")
     return 0
 
 
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def _record(d: Path, study: str) -> dict | None:
+    """run.json of a finished run of ``study`` in ``d`` with a usable time per task."""
+    try:
+        rec = json.loads((Path(d) / "run.json").read_text())
+        ok = (rec.get("study") == study and rec["tasks"]["computed"] > 0
+              and rec["wall_time_s"] > 0)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    return rec if ok else None
+
+
+def _stored(entry, cfg, out: Path) -> int:
+    """How many of the config's tasks ``out`` already holds a file for (read only: nothing is
+    created; a file that later proves corrupt is counted)."""
+    from workbench.study.runner import declare
+
+    tasks = Path(out) / "tasks"
+    if not tasks.is_dir():
+        return 0
+    present = {p.stem for p in tasks.glob("*.npz")}
+    return len(present.intersection(declare(entry, cfg)[0].task_ids()))
+
+
+def estimate(entry, cfg, n_tasks: int, out: Path, workers: int,
+             scheduler: str | None) -> str:
+    """One line for a dry run: the task count, how many are stored already, and the time the
+    rest would take, estimated from the last run's wall time per task (run.json in ``out`` or
+    in the study's default folder) scaled to ``workers``; "unknown" without such a record."""
+    stored = _stored(entry, cfg, out)
+    todo = n_tasks - stored
+    head = (f"dry run: {n_tasks} tasks" + (f" ({stored} already stored in {out}, {todo} to "
+                                            "compute)" if stored else ""))
+    for d in dict.fromkeys([Path(out), Path(entry.default_out)]):
+        rec = _record(d, entry.name)
+        if rec is None:
+            continue
+        computed, wall = rec["tasks"]["computed"], rec["wall_time_s"]
+        backend = str(rec.get("backend", ""))
+        then = int(backend.split()[0]) if backend.split()[:1] and backend.split()[0].isdigit() \
+            else None
+        now = None if scheduler else max(workers, 1)
+        per_task = wall / computed * (max(then, 1) if then is not None and now else 1)
+        total = todo * per_task / (now or 1)
+        where = f"{now} worker{'s' if now != 1 else ''}" if now else f"scheduler {scheduler}"
+        profile = rec.get("profile") or "a config file"
+        return (f"{head}; estimated {_duration(total)} on {where} (from {d / 'run.json'}: "
+                f"{wall:.0f} s for {computed} tasks on {backend or 'unknown back end'}, profile "
+                f"{profile}; rough: tasks of another config or a busier machine take longer)")
+    return (f"{head}; estimated time unknown (no finished run of {entry.name} in {out} or "
+            f"{entry.default_out} to time a task)")
+
+
+def _run_study(folder: Path, reg: dict):
+    """The study that wrote the run folder ``folder`` (from run.json, else manifest.json)."""
+    problems = []
+    for name, key in (("run.json", "name"), ("manifest.json", "store_name")):
+        path = folder / name
+        if not path.is_file():
+            continue
+        try:
+            data = json.loads(path.read_text())
+            study = data["study"] if isinstance(data, dict) else None
+        except (OSError, ValueError, KeyError) as exc:
+            problems.append(f"{path} is unreadable ({type(exc).__name__}: {exc}; truncated?)")
+            continue
+        found = [e for e in reg.values() if getattr(e, key) == study]
+        if found:
+            return found[0]
+        problems.append(f"{path} names the study {study!r}, which is not registered "
+                        f"(studies: {', '.join(reg)})")
+    raise ConfigError(f"{folder}: cannot tell which study wrote this folder: "
+                      + ("; ".join(problems) or "it holds no manifest.json")
+                      + f". Rerun it with `workbench run STUDY --out {folder}`")
+
+
 def cmd_report(args) -> int:
-    from workbench.study.report_site import build_site
+    from workbench.study.report_site import build_site, render_run
     from workbench.study.runner import rebuild_report
 
     reg = registry()
     root = Path(args.root)
-    if args.study:
-        entry = _entry(args.study)
+    target = args.study
+    if target is not None and not (isinstance(target, str) and target in reg):
+        folder = Path(os.path.expanduser(str(target)))
+        if not folder.is_dir():
+            raise ConfigError(f"{target!r} is neither a study ({', '.join(reg)}) nor a folder")
+        if not ((folder / "manifest.json").is_file() or (folder / "run.json").is_file()):
+            print(f"wrote {build_site(folder, reg)}")  # a reports root
+            return 0
+        entry = _run_study(folder, reg)
+        print(f"wrote {rebuild_report(entry, folder)}")
+        print(f"wrote {render_run(folder)}")
+        return 0
+    if target is not None:
+        entry = _entry(target)
         out = root / entry.default_out.name
         print(f"wrote {rebuild_report(entry, out)}")
     print(f"wrote {build_site(root, reg)}")
@@ -188,10 +331,19 @@ def _config_args(p: argparse.ArgumentParser) -> None:
                         "repeatable")
 
 
+def _quiet(p: argparse.ArgumentParser, default) -> None:
+    p.add_argument("-q", "--quiet", action="store_true", default=default,
+                   help="print only warnings and errors (no progress or status lines)")
+
+
 def parser() -> argparse.ArgumentParser:
+    from workbench import __version__
+
     ap = argparse.ArgumentParser(
         prog="workbench", description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--version", action="version", version=f"workbench {__version__}")
+    _quiet(ap, False)
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("list", help="studies, controllers and models",
@@ -214,7 +366,9 @@ def parser() -> argparse.ArgumentParser:
                    help="run directory (default: the study's, e.g. reports/tracking_comparison)")
     p.add_argument("--dry-run", action="store_true",
                    help="check the config and print the run's manifest (study, seed, config, "
-                        "fingerprint, task ids) without computing or writing anything")
+                        "fingerprint, task count) on stdout and the task count with an "
+                        "estimated time on stderr, without computing or writing anything")
+    _quiet(p, argparse.SUPPRESS)
     p.set_defaults(fn=cmd_run)
 
     p = sub.add_parser("show-config", help="print a study's fully resolved config as TOML",
@@ -223,15 +377,20 @@ def parser() -> argparse.ArgumentParser:
     _config_args(p)
     p.set_defaults(fn=cmd_show_config)
 
-    p = sub.add_parser("report", help="build reports/index.html (and rebuild a study's report)",
+    p = sub.add_parser("report", help="build reports/index.html, or one run folder's report",
                        description="Build ROOT/index.html: every study's report (as HTML), "
                                    "figures, summary tables, manifest and config, with the "
                                    "paper's numbers beside ours; readable offline. With STUDY, "
-                                   "first rebuild that study's report.md from its stored "
-                                   "results (nothing is computed).")
-    p.add_argument("study", nargs="?", default=None, help="study whose report to rebuild")
+                                   "first rebuild that study's report.md in ROOT from its "
+                                   "stored results (nothing is computed). With FOLDER, a run "
+                                   "folder anywhere (it holds manifest.json): rebuild its "
+                                   "report.md and write FOLDER/report.html; a FOLDER without "
+                                   "manifest.json is a reports root, as --root.")
+    p.add_argument("study", nargs="?", default=None, metavar="STUDY|FOLDER",
+                   help="a study whose report in ROOT to rebuild, or a run folder")
     p.add_argument("--root", type=user_path, default=Path("reports"),
                    help="reports directory (default: reports)")
+    _quiet(p, argparse.SUPPRESS)
     p.set_defaults(fn=cmd_report)
 
     return ap
@@ -240,11 +399,12 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     ap = parser()
     args = ap.parse_args(argv)
-    try:
-        return args.fn(args)
-    except ConfigError as exc:
-        print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    with terminal_logging(getattr(args, "quiet", False)):
+        try:
+            return args.fn(args)
+        except ConfigError as exc:
+            print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

@@ -181,7 +181,7 @@ def report(finished, summ) -> Path:
               "scales it by its own factor and applies it to its own default states.",
               "- The barrier-state weight q_beta is not tuned (it is compiled into the "
               "kernels).", "",
-              "## Every cell", "", '<div class="wide">', "", *cells_table(s), "", "</div>", ""]
+              "## Every cell", "", *cells_table(s), ""]
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path

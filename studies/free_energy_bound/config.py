@@ -16,7 +16,8 @@ from workbench.validation import (
     real,
 )
 
-# SPEC 11.3 tests as workbench.bound.checks names them (T2E: independent batch, "true-F" form)
+# the tests of assumptions §11.3 as workbench.bound.checks names them (T2E: independent batch,
+# "true-F" form)
 TESTS: tuple[str, ...] = ("T1", "T1s", "T2", "T2E", "T3", "T3b", "T3c", "T3d")
 STEP_TESTS = ("T1", "T1s", "T2", "T2E")
 CONSTANTS: tuple[str, ...] = ("local", "global")
@@ -28,9 +29,9 @@ MAX_GRID = 10**7  # points of the global-Lipschitz grid
 
 @dataclass(frozen=True)
 class StudyConfig:
-    """Everything a run depends on ([A] values; SPEC 11-12). Bad values raise ValueError naming
-    the field. ``episodes`` SA-RMPPI episodes of up to ``steps`` plant steps (an episode stops at
-    a crash) per velocity variance; the Lemma-1 checks at every step.
+    """Everything a run depends on ([A] values; assumptions §11-§12). Bad values raise
+    ValueError naming the field. ``episodes`` SA-RMPPI episodes of up to ``steps`` plant steps
+    (an episode stops at a crash) per velocity variance; the Lemma-1 checks at every step.
 
     kappa: the progress alpha rule's margin (AlphaRule(kind="progress", kappa)); n_samples,
     horizon: the SAIS batch (N, T); calibration_steps: the undisturbed alpha-calibration run;

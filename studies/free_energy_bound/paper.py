@@ -1,5 +1,6 @@
-"""Lemma 1 as printed [P], the reading this study uses (SPEC 11, 13 L1-L5 and the resolutions in
-workbench.bound), the [A] thresholds the findings use, and every assumed value of a run."""
+"""Lemma 1 as printed [P], the reading this study uses (assumptions §11, §13 L1-L5 and the
+resolutions in workbench.bound), the [A] thresholds the findings use, and every assumed value of
+a run."""
 
 from __future__ import annotations
 
@@ -34,13 +35,13 @@ READING = (
     "no $D_F$ factor (T3b). Both are tested.",
     "L3: $\\Delta\\mathcal{F}_{MC} = \\hat F_{real}(t+1) - \\hat F_{real}(t)$ over consecutive "
     "plant steps, each $\\hat F$ the log-sum-exp of the pure state costs plus the likelihood "
-    "ratio over the step's first SAIS batch (SPEC 11.2 item 3); $E_M^V$ = delta method, z = 3, "
-    "max over real and nominal and over t, t+1 (SPEC 11.2 item 4); $\\alpha$ = the threshold at "
-    "step t's chosen nominal state (T3d: at t+1).",
+    "ratio over the step's first SAIS batch (assumptions §11.2, item 3); $E_M^V$ = delta "
+    "method, z = 3, max over real and nominal and over t, t+1 (assumptions §11.2, item 4); "
+    "$\\alpha$ = the threshold at step t's chosen nominal state (T3d: at t+1).",
     "Norm: R, the Lipschitz constants and $D_F$ on the physical state (p, v); $q$ depends on "
     "$\\beta$, but on every sample $\\beta_k = B(h(p_k))$, so $q(\\bar x) = \\tilde q(x) = "
     "q(lift(x))$ and $\\nabla\\tilde q$ includes the barrier term "
-    "$2 q_\\beta (\\beta-\\beta_g) \\sum_i B'(h_i) \\nabla h_i$ (SPEC 11.2 items 5-6).",
+    "$2 q_\\beta (\\beta-\\beta_g) \\sum_i B'(h_i) \\nabla h_i$ (assumptions §11.2, items 5-6).",
     "L4: $n_q$ = T running terms (Algorithm 1 sums T; the lemma's T-1 does not follow from the "
     "tube argument with the sums as implemented). L5: D = the 99.9 % quantile of the "
     "disturbance's norm per step.",
@@ -68,10 +69,10 @@ def assumed_values(config: StudyConfig, shared: Shared) -> list[dict[str, str]]:
          "lambda = 10, q_beta = 0.01", "source": "[A] workbench.scenarios.navigation"},
         {"name": "episodes", "value": f"{c.episodes} per variance, up to {c.steps} steps "
          "(stop at a crash)", "source": "[A]"},
-        {"name": "E_M^V", "value": f"delta method, z = {c.z:g}", "source": "[A] SPEC 11.2"},
-        {"name": "n_q", "value": c.n_q, "source": "[A] SPEC 13 L4"},
-        {"name": "norm", "value": c.space, "source": "[A] SPEC 11.2 item 5"},
+        {"name": "E_M^V", "value": f"delta method, z = {c.z:g}", "source": "[A] assumptions §11.2"},
+        {"name": "n_q", "value": c.n_q, "source": "[A] assumptions §13 L4"},
+        {"name": "norm", "value": c.space, "source": "[A] assumptions §11.2, item 5"},
         {"name": "T2E", "value": "independent batch per step" if c.independent else "off",
-         "source": "SPEC 11.3"},
+         "source": "assumptions §11.3"},
         {"name": "global grid", "value": shared.grid, "source": "[A] workbench.bound"},
     ]

@@ -17,6 +17,7 @@ from studies.free_energy_bound.paper import LEMMA, READING
 from studies.free_energy_bound.summary import STRATA, BoundSummary
 from workbench.study import md_table, png_bytes, supported
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.report import num
 
 TITLES = {"holds": "Where each test holds", "safe_steps": "T1 where all real samples stayed safe",
           "looseness": "How tight: magnitudes of the local and global constants",
@@ -36,10 +37,13 @@ def slack_figure(df: pd.DataFrame, tests=("T2", "T3", "T3b")) -> bytes:
                     ax.plot(g["step"], g[f"{t}_{c}_slack"], ls, lw=0.8,
                             label=f"ep {e} {c}" if i == j == 0 else None)
             ax.set_yscale("symlog", linthresh=1.0)
-            ax.set_yticks([-1e4, -1e2, 0, 1e2, 1e4, 1e8, 1e12, 1e16])
+            lo, hi = ax.get_ylim()
+            ax.set_yticks([t for t in (-1e4, -1e2, 0, 1e2, 1e4, 1e8, 1e12, 1e16)
+                           if lo <= t <= hi])
             ax.axhline(0, color="k", lw=0.6)
             ax.set_title(f"{t} slack (RHS − LHS), variance {v:g}", fontsize=9)
-    axes[-1][0].set_xlabel("step")
+            ax.set_ylabel("slack [cost units] (symlog)", fontsize=8)
+            ax.set_xlabel("plant step (of 0.02 s)", fontsize=8)
     axes[0][0].legend(fontsize=6)
     return png_bytes(fig)
 
@@ -52,8 +56,8 @@ def rhs_figure(df: pd.DataFrame, test: str = "T2") -> bytes:
                   label=f"variance {v:g}")
     lim = ax.get_xlim()
     ax.plot(lim, lim, "k--", lw=0.8, label="global = local")
-    ax.set_xlabel(f"{test} right-hand side, local constants")
-    ax.set_ylabel(f"{test} right-hand side, global constants")
+    ax.set_xlabel(f"{test} right-hand side, local constants [cost units]")
+    ax.set_ylabel(f"{test} right-hand side, global constants [cost units]")
     ax.legend(fontsize=7)
     return png_bytes(fig)
 
@@ -65,8 +69,8 @@ def radius_figure(df: pd.DataFrame) -> bytes:
     ax.boxplot([d if d.size else [np.nan] for d in data], tick_labels=[f"{v:g}" for v in vs])
     ax.plot(range(1, len(vs) + 1), [df.loc[(df["variance"] == v) & (df["R"] > 0), "R99"].median()
                                     for v in vs], "rs", label="median R99 (same steps)")
-    ax.set_xlabel("velocity variance")
-    ax.set_ylabel("tube radius R (steps with R > 0)")
+    ax.set_xlabel("velocity-disturbance variance [m²/s⁴]")
+    ax.set_ylabel("tube radius R, norm of (p [m], v [m/s]) (steps with R > 0)", fontsize=8)
     ax.set_title("steps with R > 0: " + ", ".join(
         f"{(df.loc[df['variance'] == v, 'R'] > 0).sum()} of {(df['variance'] == v).sum()}"
         for v in vs), fontsize=8)
@@ -74,9 +78,20 @@ def radius_figure(df: pd.DataFrame) -> bytes:
     return png_bytes(fig)
 
 
+NO_R = "no step with R > 0"
+NO_RHS = "local right-hand side <= 0 at every step"
+NO_TERM = "R = 0 at every step: no Lipschitz term"
+
+
 def _pct(r) -> str:
     return "–" if r is None else (f"{100 * r.fraction_holding:.1f}% [{100 * r.interval[0]:.1f}, "
                                   f"{100 * r.interval[1]:.1f}] (n={r.n_steps})")
+
+
+def _spread(x) -> str:
+    if x.n == 0:
+        return f"n/a ({NO_R})"
+    return f"{num(x.median)} [{num(x.min)}, {num(x.max)}]"
 
 
 def tables(s: BoundSummary) -> list[str]:
@@ -86,13 +101,13 @@ def tables(s: BoundSummary) -> list[str]:
                     [[f"{v.variance:g}", f"{v.n_episodes} ({v.n_crashed})", v.n_steps,
                       v.n_nominal_differs, v.n_all_real_safe, v.n_fallback,
                       *(_pct(s.row(t, "local", v.variance)) for t in tests),
-                      f"{s.row('T2', 'local', v.variance).term_ratio:.3g}"
+                      num(s.row("T2", "local", v.variance).term_ratio, ".3g", NO_TERM)
                       if s.row("T2", "local", v.variance) else "–"] for v in s.variances])
     full = md_table(["variance", "test", "constants", "holds [95%]", "slack q05 / q50 / q95",
                      "global/local RHS", "global/local L-term"],
                     [[f"{r.variance:g}", r.test, r.constants, _pct(r),
-                      f"{r.slack_q05:.3g} / {r.slack_q50:.3g} / {r.slack_q95:.3g}",
-                      f"{r.rhs_ratio:.3g}", f"{r.term_ratio:.3g}"]
+                      f"{num(r.slack_q05)} / {num(r.slack_q50)} / {num(r.slack_q95)}",
+                      num(r.rhs_ratio, ".3g", NO_RHS), num(r.term_ratio, ".3g", NO_TERM)]
                      for r in s.rows if r.stratum == "all"])
     strata = md_table(["variance", "test (local)", *STRATA],
                       [[f"{v.variance:g}", t, *(_pct(s.row(t, "local", v.variance, k))
@@ -101,15 +116,15 @@ def tables(s: BoundSummary) -> list[str]:
     mags = md_table(["variance", "R median (max)", "R99 median", "local L_q median [min, max]",
                      "local L_phi median", "global L_q", "global L_phi", "δ local median",
                      "Ê median", "D_F median"],
-                    [[f"{v.variance:g}", f"{v.R.median:.3g} ({v.R.max:.3g})",
-                      f"{v.R99_median:.3g}", f"{v.L_q_local.median:.3g} [{v.L_q_local.min:.3g}, "
-                      f"{v.L_q_local.max:.3g}]", f"{v.L_phi_local.median:.3g}",
-                      f"{v.L_q_global:.3g}", f"{v.L_phi_global:.3g}",
-                      f"{v.delta_local.median:.3g}", f"{v.E_median:.3g}", f"{v.D_F_median:.3g}"]
+                    [[f"{v.variance:g}", f"{num(v.R.median)} ({num(v.R.max)})",
+                      num(v.R99_median), _spread(v.L_q_local), num(v.L_phi_local.median, why=NO_R),
+                      num(v.L_q_global), num(v.L_phi_global),
+                      num(v.delta_local.median, why=NO_R), num(v.E_median), num(v.D_F_median)]
                      for v in s.variances])
     return ["## Headline (stratum: all steps)", "", *head, "",
             "## Every test, local and global constants", "", *full, "",
-            "## Stratified (SPEC 11.3 (a), (b); nominal differs from real), local constants", "",
+            "## Stratified (assumptions §11.3 (a), (b); nominal differs from real), local "
+            "constants", "",
             *strata, "", "## Magnitudes", "", *mags, ""]
 
 
@@ -122,7 +137,7 @@ def write_report(s: BoundSummary, df: pd.DataFrame, out: Path, assumed, no_barri
     claims = all_claims(s, no_barrier_L_q)
     lines = ["# Free-energy bound (Lemma 1): numerical check on the navigation map", "",
              f"{run_line}", "",
-             "## Lemma 1 as printed", "", LEMMA, "", "## Reading used (SPEC 11, 13)", "",
+             "## Lemma 1 as printed", "", LEMMA, "", "## Reading used (assumptions §11, §13)", "",
              *(f"- {r}" for r in READING), "", "## Assumed values", "",
              *md_table(["what", "value", "source"],
                        [[a["name"], a["value"], a["source"]] for a in assumed]), "",

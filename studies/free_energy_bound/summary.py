@@ -1,7 +1,7 @@
 """Typed summary of a run, computed from the tidy tables ``steps`` (one row per control step)
 and ``episodes`` only: fractions holding with Wilson intervals, slack quantiles and
-global/local ratios per (variance, test, constants, stratum) (SPEC 11.3), per-variance facts,
-and the failures (:mod:`~studies.free_energy_bound.failures`)."""
+global/local ratios per (variance, test, constants, stratum) (assumptions §11.3), per-variance
+facts, and the failures (:mod:`~studies.free_energy_bound.failures`)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from workbench.bound import CheckSummary
 from workbench.study import Rate, Spread, to_jsonable
 from workbench.study.spec import Summary
 
-# SPEC 11.3 (a), (b) and the nominal-differs split; a transition check (t, t+1) belongs
+# assumptions §11.3 (a), (b) and the nominal-differs split; a transition check (t, t+1) belongs
 # to the strata of step t
 STRATA = {"all": None, "all_real_safe": ("all_real_safe", True),
           "some_real_crashed": ("all_real_safe", False), "admissible": ("fallback_used", False),

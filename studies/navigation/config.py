@@ -55,8 +55,8 @@ def _rules(name: str, rules) -> tuple[AlphaRule, ...]:
 
 @dataclass(frozen=True)
 class StudyConfig:
-    """Everything a run depends on (SPEC 12.2). Main cells: every controller at every variance,
-    robust controllers with ``rule``; alpha sweep: ``sweep_controller`` with each of
+    """Everything a run depends on (assumptions §12.2). Main cells: every controller at every
+    variance, robust controllers with ``rule``; alpha sweep: ``sweep_controller`` with each of
     ``sweep_rules`` at each of ``sweep_variances``. ``steps``: episode length (20 s = 1000
     steps of 0.02 s [A]); ``goal_radius``: "reached" radius [P, 1 m]; ``velocity_stride``: steps
     between rows of the velocity table; ``illustration``: run the Fig. 4 task (limits +-50,

@@ -8,6 +8,12 @@ from studies.navigation import paper
 from studies.navigation.findings import NAMES, _diff, _pct
 from studies.navigation.summary import NavigationSummary
 from workbench.study import Claim, fmt_rate
+from workbench.study.report import num, see
+
+
+def _m(x: float, why: str = "no safe episodes") -> str:
+    v = num(x, ".4f", why)
+    return v if v.startswith("n/a") else f"{v} m"
 
 
 def _reasons(x) -> str:
@@ -31,12 +37,12 @@ def internals_claims(s: NavigationSummary) -> list[Claim]:
                 f"{_pct(x.alpha_fallback_rate)}%, K_safe fallback {_pct(x.ksafe_fallback_rate)}%"
                 f"{_reasons(x)}, nominal rollout "
                 f"unsafe {_pct(x.nominal_unsafe_fraction)}%, mean ESS nominal "
-                f"{x.ess_nom_mean:.1f} / real {x.ess_real_mean:.1f}).", True))
+                f"{num(x.ess_nom_mean, '.1f')} / real {num(x.ess_real_mean, '.1f')}).", True))
             if x.variance >= 10 and acts < paper.RARELY_ACTS:
                 out.append(Claim(
                     f"At variance {x.variance:g} the robust part of {NAMES[c]} rarely acts "
-                    f"({_pct(acts)}% < {paper.RARELY_ACTS:.0%} of steps, SPEC 10.3's lower "
-                    "bound): it then mostly runs as BaS-MPPI from the real state.", True))
+                    f"({_pct(acts)}% < {paper.RARELY_ACTS:.0%} of steps, the lower bound of "
+                    f"{see('10.3')}): it then mostly runs as BaS-MPPI from the real state.", True))
     return out
 
 
@@ -70,14 +76,14 @@ def sweep_claims(s: NavigationSummary) -> list[Claim]:
             p = pairs.get(f"{x.controller}[{x.rule}]")
             vs = f"; minus BaS-MPPI: {_diff(p)}" if p else ""
             out.append(Claim(f"Alpha {x.rule}, variance {v:g}: safety {_pct(x.safety)}% "
-                             f"[{_pct(x.ci_low)}, {_pct(x.ci_high)}], RMSE {x.rmse:.4f} m, "
+                             f"[{_pct(x.ci_low)}, {_pct(x.ci_high)}], RMSE {_m(x.rmse)}, "
                              f"nominal differs on {_pct(x.nominal_differs_fraction)}% of steps"
                              f"{vs}.", True))
             if x.rule.startswith("start") and x.nominal_differs_fraction < 0.01:
                 out.append(Claim(f"The start-calibrated alpha ({x.rule}) never binds at "
                                  f"variance {v:g} (nominal differs on "
                                  f"{_pct(x.nominal_differs_fraction)}% of steps): SA-RMPPI is "
-                                 "then BaS-MPPI (SPEC 10.3).", True))
+                                 f"then BaS-MPPI ({see('10.3')}).", True))
         best = [p for p in pairs.values() if p.low > 0]
         if pairs:
             out.append(Claim(f"At variance {v:g} no swept alpha rule makes SA-RMPPI safer than "
@@ -96,13 +102,14 @@ def rmse_claims(s: NavigationSummary) -> list[Claim]:
             out.append(Claim(
                 f"{NAMES[x.controller]}, variance {x.variance:g}: {stalled} of {x.reached.n} "
                 f"safe runs ended more than {s.config['goal_radius']:g} m from the goal; over "
-                f"the safe runs that reached it the RMSE is {x.rmse_reached:.4f} m (vs "
-                f"{x.rmse:.4f} m over all safe runs).", True))
+                f"the safe runs that reached it the RMSE is "
+                f"{_m(x.rmse_reached, 'none reached it')} (vs {_m(x.rmse)} over all safe "
+                "runs).", True))
     return out
 
 
 def scale_claims(s: NavigationSummary) -> list[Claim]:
-    """SPEC 13 E4: the paper's "variance" may be a standard deviation."""
+    """The paper's "variance" may be a standard deviation (assumptions §13, E4)."""
     out = []
     for v in (5.0, 10.0):
         for c in ("bas_mppi", "sa_rmppi"):
@@ -115,7 +122,7 @@ def scale_claims(s: NavigationSummary) -> list[Claim]:
                 f"{NAMES[c]}: Table I's {100 * p:.0f}% at '{v:g}' lies inside our interval at "
                 f"variance {v * v:g} (= std {v:g}, {fmt_rate(sq.safe, 0)}) and is closer to it "
                 f"than to our variance-{v:g} cell ({fmt_rate(here.safe, 0)}): consistent "
-                "with the std reading of the disturbance level (SPEC 13 E4).", closer))
+                f"with the std reading of the disturbance level ({see('13')}, E4).", closer))
     return out
 
 

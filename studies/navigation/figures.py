@@ -19,14 +19,34 @@ COLORS = {"bas_mppi": "tab:blue", "sa_rmppi": "tab:red", "rmppi": "tab:orange",
           "mppi_crash": "tab:gray"}
 
 
-def draw_map(ax, circles: np.ndarray, start, goal) -> None:
+def limits(circles: np.ndarray, points: list[np.ndarray], margin: float = 0.3
+           ) -> tuple[tuple[float, float], tuple[float, float]]:
+    """x and y limits [m] that hold every circle and every point (arrays (..., 2)), with a
+    margin: nothing of the map or of a path is cut off."""
+    c = np.asarray(circles, float).reshape(-1, 3)
+    lo = [c[:, :2] - c[:, 2:]] if len(c) else []
+    hi = [c[:, :2] + c[:, 2:]] if len(c) else []
+    pts = [np.asarray(p, float).reshape(-1, 2) for p in points]
+    pts = [p[np.all(np.isfinite(p), axis=1)] for p in pts]
+    low = np.min(np.vstack(lo + pts), axis=0)
+    high = np.max(np.vstack(hi + pts), axis=0)
+    pad = margin + 0.02 * (high - low)
+    return (low[0] - pad[0], high[0] + pad[0]), (low[1] - pad[1], high[1] + pad[1])
+
+
+def draw_map(ax, circles: np.ndarray, start, goal, points: list[np.ndarray] = ()) -> None:
+    """The obstacles, start (square) and goal (x); limits that hold the map, start, goal and
+    ``points`` (the paths drawn on top); axes labelled in metres."""
     for cx, cy, r in circles:
         ax.add_patch(plt.Circle((cx, cy), r, color="0.7", zorder=0))
     ax.plot(*start, "s", color="tab:blue", ms=7, zorder=5)
     ax.plot(*goal, "x", color="tab:green", ms=9, mew=2.5, zorder=5)
-    ax.set_xlim(0, 10)
-    ax.set_ylim(0, 10)
+    xlim, ylim = limits(circles, [np.asarray(start), np.asarray(goal), *points])
+    ax.set_xlim(*xlim)
+    ax.set_ylim(*ylim)
     ax.set_aspect("equal")
+    ax.set_xlabel("x [m]", fontsize=8)
+    ax.set_ylabel("y [m]", fontsize=8)
     ax.tick_params(labelsize=7)
 
 
@@ -35,11 +55,12 @@ def paths_figure(panels: list[tuple[str, float, list[np.ndarray], list[bool]]],
     """Fig. 5: one panel per (controller, variance), every realisation's path, crashes x."""
     ctrls = list(dict.fromkeys(p[0] for p in panels))
     vs = list(dict.fromkeys(p[1] for p in panels))
-    fig, axes = plt.subplots(len(ctrls), len(vs), figsize=(3.0 * len(vs), 3.0 * len(ctrls)),
+    fig, axes = plt.subplots(len(ctrls), len(vs), figsize=(3.4 * len(vs), 3.4 * len(ctrls)),
                              squeeze=False)
+    every = [P for p in panels for P in p[2]]  # one scale for every panel
     for c, v, paths, crashed in panels:
         ax = axes[ctrls.index(c)][vs.index(v)]
-        draw_map(ax, circles, start, goal)
+        draw_map(ax, circles, start, goal, every)
         for P, bad in zip(paths, crashed, strict=True):
             ax.plot(P[:, 0], P[:, 1], color=COLORS[c], lw=0.6, alpha=0.5)
             if bad:
@@ -75,8 +96,9 @@ def samples_figure(a: dict[str, np.ndarray], meta: dict, circles: np.ndarray, st
                    goal) -> bytes:
     """Fig. 4: nominal (blue) and feedback (red) sample paths of one SAIS batch."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
+    shown = [a["path"], a["x_nom"], a["x_real"], *a["nominal_samples"], *a["feedback_samples"]]
     for k, ax in enumerate(axes):
-        draw_map(ax, circles, start, goal)
+        draw_map(ax, circles, start, goal, shown)
         for P in a["nominal_samples"]:
             ax.plot(P[:, 0], P[:, 1], color="tab:blue", lw=0.5, alpha=0.35)
         for P in a["feedback_samples"]:
@@ -89,6 +111,7 @@ def samples_figure(a: dict[str, np.ndarray], meta: dict, circles: np.ndarray, st
             span = max(0.6, 2.5 * float(np.linalg.norm(a["x_nom"] - a["x_real"])))
             ax.set_xlim(c[0] - span, c[0] + span)
             ax.set_ylim(c[1] - span, c[1] + span)
+            ax.set_gid("zoom")  # cut off on purpose: a zoom of the left panel
             ax.legend(fontsize=7, loc="upper left")
     axes[0].set_title(f"SAIS batch at step {meta['step']} (limits ±{meta['u_limit']:g}, "
                       f"velocity variance {meta['variance']:g})", fontsize=9)
@@ -104,7 +127,8 @@ def _errorbar(ax, x, cells, **kw) -> None:
 
 
 def safety_figure(s: NavigationSummary, table_i: dict) -> bytes:
-    """Safety vs variance, 95% intervals; controllers side by side at each variance."""
+    """Safety vs variance, 95% intervals; controllers side by side at each variance; Table I
+    dashed (``table_i``; empty: left out)."""
     vs = sorted({x.variance for x in s.cells if x.main} | set(table_i))
     pos = {v: i for i, v in enumerate(vs)}
     fig, ax = plt.subplots(figsize=(7, 4.2))
@@ -114,12 +138,12 @@ def safety_figure(s: NavigationSummary, table_i: dict) -> bytes:
         if cells:
             _errorbar(ax, [pos[x.variance] + 0.08 * (k - 1.5) for x in cells], cells,
                       color=COLORS[c], label=NAMES[c])
-    for c in ("sa_rmppi", "bas_mppi"):
+    for c in ("sa_rmppi", "bas_mppi") if table_i else ():  # empty: a custom run
         ref = sorted(table_i)
         ax.plot([pos[v] for v in ref], [table_i[v][c][0] for v in ref], "--", marker="s",
                 mfc="none", color=COLORS[c], alpha=0.7, label=f"{NAMES[c]} (Table I)")
     ax.set_xticks(range(len(vs)), [f"{v:g}" for v in vs])
-    ax.set_xlabel("disturbance variance (categorical axis)")
+    ax.set_xlabel("disturbance variance [m²/s⁴] (categorical axis)")
     ax.set_ylabel("safety [%] (95% Wilson)")
     ax.set_ylim(-3, 103)
     ax.legend(fontsize=7, loc="lower left")

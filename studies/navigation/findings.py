@@ -1,7 +1,7 @@
-"""The SPEC 14.4 claims, one by one, as sentences whose conditions are computed from the summary
-(numbers and 95% intervals), and the evidence sentences that explain a miss (ablations,
-internals, alpha sweep). The report prints each claim with its verdict, and only the evidence
-sentences that hold."""
+"""The paper's claims (assumptions §14.4), one by one, as sentences whose conditions are
+computed from the summary (numbers and 95% intervals), and the evidence sentences that explain
+a miss (ablations, internals, alpha sweep). The report prints each claim with its verdict, and
+only the evidence sentences that hold."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from itertools import pairwise
 from studies.navigation import paper
 from studies.navigation.summary import NavigationSummary
 from workbench.study import Claim, fmt_rate
+from workbench.study.report import num
 
 NAMES = {"bas_mppi": "BaS-MPPI", "sa_rmppi": "SA-RMPPI", "rmppi": "RMPPI (plain iLQG gains)",
          "mppi_crash": "MPPI (crash cost only)"}
@@ -19,9 +20,21 @@ def _pct(x: float) -> str:
     return f"{100 * x:.1f}"
 
 
+def _m(x: float) -> str:
+    """A distance in metres, or why there is none."""
+    v = num(x, ".4f", "no safe episodes")
+    return v if v.startswith("n/a") else f"{v} m"
+
+
+def _s(x: float) -> str:
+    """A time in seconds, or why there is none."""
+    v = num(x, ".2f", "none within the goal radius")
+    return v if v.startswith("n/a") else f"{v} s"
+
+
 def _diff(p) -> str:
     return (f"{_pct(p.difference)} points [{_pct(p.low)}, {_pct(p.high)}], McNemar p = "
-            f"{p.p_value:.3g} (b = {p.b}, c = {p.c}, n = {p.n})")
+            f"{num(p.p_value, '.3g')} (b = {p.b}, c = {p.c}, n = {p.n})")
 
 
 def safer_claims(s: NavigationSummary) -> list[Claim]:
@@ -50,8 +63,8 @@ def rmse_claims(s: NavigationSummary) -> list[Claim]:
         if a is None or b is None:
             continue
         ok = b.rmse < a.rmse
-        out.append(Claim(f"(ii) variance {v:g}: RMSE BaS-MPPI {b.rmse:.4f} m (n = {b.safe.k}) "
-                         f"{'<' if ok else '>='} SA-RMPPI {a.rmse:.4f} m (n = {a.safe.k}): "
+        out.append(Claim(f"(ii) variance {v:g}: RMSE BaS-MPPI {_m(b.rmse)} (n = {b.safe.k}) "
+                         f"{'<' if ok else '>='} SA-RMPPI {_m(a.rmse)} (n = {a.safe.k}): "
                          f"{'holds' if ok else 'does not hold'}.", ok))
     return out
 
@@ -87,8 +100,9 @@ def magnitude_claims(s: NavigationSummary) -> list[Claim]:
             out.append(Claim(
                 f"{NAMES[c]}, variance {v:g}: safety {fmt_rate(x.safe)} vs {safety}% "
                 f"({'within' if ok else 'outside'} 10 points; paper's value "
-                f"{'inside' if inside else 'outside'} our interval); RMSE {x.rmse:.4f} vs "
-                f"{rmse} m (ratio {f:.2g}, {'within' if rok else 'outside'} a factor of 2).",
+                f"{'inside' if inside else 'outside'} our interval); RMSE {_m(x.rmse)} vs "
+                f"{rmse} m (ratio {num(f, '.2g', 'no safe episodes')}, "
+                f"{'within' if rok else 'outside'} a factor of 2).",
                 ok and rok))
     return out
 
@@ -131,8 +145,8 @@ def velocity_claims(s: NavigationSummary) -> list[Claim]:
             f"(iv) variance {v:g}: mean speed BaS-MPPI {b.mean_speed.mean:.2f} ± "
             f"{b.mean_speed.std:.2f} vs SA-RMPPI {a.mean_speed.mean:.2f} ± "
             f"{a.mean_speed.std:.2f} m/s; median time to within {s.config['goal_radius']:g} m "
-            f"{b.time_to_goal_s.median:.2f} (n = {b.time_to_goal_s.n}) vs "
-            f"{a.time_to_goal_s.median:.2f} s (n = {a.time_to_goal_s.n}): "
+            f"{_s(b.time_to_goal_s.median)} (n = {b.time_to_goal_s.n}) vs "
+            f"{_s(a.time_to_goal_s.median)} (n = {a.time_to_goal_s.n}): "
             f"{'holds' if ok else 'does not hold'} (faster {faster}, wider spread {spread}, "
             f"sooner {sooner}).", ok))
     return out

@@ -1,4 +1,4 @@
-"""Per-episode measurements (SPEC 12.2), each defined once, as rows of the tidy tables.
+"""Per-episode measurements (assumptions §12.2), each defined once, as rows of the tidy tables.
 
 episodes (one row per realisation): crashed, crash step / point / obstacle, final position and
 error (a crashed run's final position is its crash point), time to goal (first time within

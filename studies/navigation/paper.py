@@ -1,5 +1,6 @@
-"""What the paper reports for the navigation study (Table I, SPEC 14.2), the reproduction
-criteria (SPEC 14.4) with the thresholds the findings use, and every assumed value of a run."""
+"""What the paper reports for the navigation study (Table I; assumptions §14.2), the
+reproduction criteria (assumptions §14.4) with the thresholds the findings use, every assumed
+value of a run, and whether a run's set-up is the paper's (:func:`comparison`)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 
 from studies.navigation.config import StudyConfig
 from workbench.scenarios.navigation import NavigationSetup
+from workbench.study.report import Provenance, run_provenance, see
 from workbench.study.spec import PaperRow
 
 # Table I [P]: safety % and RMSE [m] over 100 realisations per variance
@@ -18,16 +20,16 @@ TABLE_I = {
     50.0: {"sa_rmppi": (61, 0.3062), "bas_mppi": (47, 0.0536)},
     100.0: {"sa_rmppi": (49, 0.3634), "bas_mppi": (31, 0.0701)},
 }
-CLAIMED_GAIN = (0.15, 0.24)  # "15-24% improvement in safety" (table: 14-24 points, SPEC 13 E3)
+CLAIMED_GAIN = (0.15, 0.24)  # "15-24% improvement in safety" (Table I: 14-24 points)
 
-# SPEC 14.4 magnitude bands [A]
+# magnitude bands [A] (assumptions §14.4)
 SAFETY_POINTS = 0.10  # per-cell |ours - paper| <= 10 points
 RMSE_FACTOR = 2.0  # per-cell RMSE within a factor of 2
 # [A] thresholds of the qualitative claims
 GATE_SHARE = 0.25  # "crashes frequently in the central passage": >= 25% of crashes at the gates
 EARLY_SHARE = 0.5  # "... and in the first passageways": >= 50% of crashes before 1/3 progress
 REAL_TIME_MS = 20.0  # one control step within dt = 20 ms
-RARELY_ACTS = 0.10  # SPEC 10.3: the robust part should act on 10-90% of steps at variance >= 10
+RARELY_ACTS = 0.10  # the robust part should act on 10-90% of steps at variance >= 10 (§10.3)
 
 CLAIMS = {
     "safer": "(i) SA-RMPPI is safer than BaS-MPPI at every variance > 0 (paired, 95% interval "
@@ -51,37 +53,37 @@ def assumed_values(config: StudyConfig, nav: NavigationSetup) -> list[dict[str, 
     fb, rc = config.feedback, config.robust
     rows = [
         ("map", f"{len(sc.circle_array())} circles; " + (
-            "user-given" if sc.circles else f"SPEC 3.2 generator, seed {sc.seed}: central "
-            "corridor of two gate circles (radius 1, width 0.8) + 28 random circles"),
-         "A (SPEC 3.2)"),
-        ("start, goal", f"{sc.start} -> {sc.goal}, at rest", "A (SPEC 3.2)"),
+            "user-given" if sc.circles else f"the paper's map generator, seed {sc.seed}: "
+            "central corridor of two gate circles (radius 1, width 0.8) + 28 random circles"),
+         f"A ({see('3.2')})"),
+        ("start, goal", f"{sc.start} -> {sc.goal}, at rest", f"A ({see('3.2')})"),
         ("model", f"planar double integrator, Euler, dt = {nav.plant.dt} s; limits "
          f"±{sc.u_limit:g}", "A / P (limits)"),
         ("episode", f"{config.steps} steps ({config.steps * nav.plant.dt:g} s) from rest, stop "
-         "at the first crash (min h <= 0 on the true plant)", "A (SPEC 12.2)"),
+         "at the first crash (min h <= 0 on the true plant)", f"A ({see('12.2')})"),
         ("disturbance", "w = dt [0, 0, xi], xi ~ N(0, variance I) on the velocity after each "
-         "step (SPEC 2.3 velocity_variance)", "X / A (SPEC 13 E4)"),
+         f"step ({see('2.3')}: velocity variance)", f"X / A ({see('13')} E4)"),
         ("sampling", f"N = {m.n_samples}, T = {m.horizon}, {m.iterations} iteration; sigma = "
          f"{m.sigma}, lambda = {m.lam:g}, q_beta = {nav.problem.weights.get('q_beta', '?')}; "
          "tuned because the paper's starting values stall undisturbed", "A"),
         ("barrier", "inverse barrier, one summed state, gamma = 0, crash cost "
-         f"{m.crash_cost:g}", "X / A (SPEC 4, 13 E8)"),
+         f"{m.crash_cost:g}", f"X / A ({see('4')}, {see('13')} E8)"),
         ("candidates", f"{rc.n_candidates} candidates x {rc.candidate_samples} samples, "
          f"fallback {rc.fallback!r}, applied {rc.applied!r}", "X (MPPI-G) / A"),
         ("K_safe", f"BaS-iLQG tracking gains Q = {fb.Q}, R = {fb.R}, q_beta = {fb.q_beta}, "
          "about the nominal trajectory; RMPPI ablation: plain iLQG gains on the physical model",
-         "A (SPEC 10.2)"),
+         f"A ({see('10.2')})"),
         ("alpha (main)", f"{config.rule.label()}, calibrated on an undisturbed run of each "
          f"robust controller ({config.rule.calibration_steps} steps, seed "
          f"{config.calibration_seed}), once per run",
-         "A (SPEC 10.3)"),
+         f"A ({see('10.3')})"),
         ("alpha sweep", f"{config.sweep_controller} with "
          + ", ".join(r.label() for r in config.sweep_rules)
          + f" at variances {config.sweep_variances}", "A"),
         ("mppi_crash", "MPPI on the plant without barrier state, crash cost only", "A"),
-        ("safety", "% of realisations without a crash", "SPEC 13 E1"),
+        ("safety", "% of realisations without a crash", f"{see('13')} E1"),
         ("RMSE", "final position over safe realisations (also logged: all realisations, "
-         "time-averaged)", "A (SPEC 12.2, 13 E2)"),
+         "time-averaged)", f"A ({see('12.2')}, {see('13')} E2)"),
         ("reached / time to goal", f"final distance <= {config.goal_radius:g} m / first time "
          f"within {config.goal_radius:g} m", "P / A"),
         ("randomness", f"root seed {config.seed}; realisation j at variance v: controller "
@@ -95,20 +97,49 @@ def assumed_values(config: StudyConfig, nav: NavigationSetup) -> list[dict[str, 
     return [{"name": n, "value": v, "source": src} for n, v, src in rows]
 
 
+# keys whose change keeps Table I comparable: counts, seeds, which cells and sweeps run
+SIZES = ("controllers", "variances", "realisations", "seed", "sweep_controller",
+         "sweep_variances", "sweep_rules", "sweep_realisations", "velocity_stride",
+         "illustration", "illustration_steps", "calibration_seed")
+NOT_COMPARABLE = "the paper's Table I"
+
+
+def comparison(config: StudyConfig, out: Path | None = None) -> Provenance:
+    """Whether a run's set-up is the paper's (the ``paper`` profile up to :data:`SIZES`): a
+    user map or a changed parameter makes it a custom run, not compared with Table I."""
+    from studies.navigation import STUDY
+    from workbench.study.report import provenance
+
+    return provenance(STUDY, config, out, SIZES)
+
+
 def paper_rows(out: Path) -> list[PaperRow]:
-    """Table I beside this run's cells, for the report site."""
+    """Table I beside this run's main cells (one row per controller and variance, with its
+    alpha rule), for the report site; one row saying so for a custom run."""
     import json
 
+    from studies.navigation import STUDY
+    from studies.navigation.findings import NAMES
+
+    prov = run_provenance(STUDY, out, SIZES)
+    if prov is None or not prov.comparable:
+        why = ("its config.toml is unreadable" if prov is None else
+               "; ".join(prov.changes[:3]) + ("; ..." if len(prov.changes) > 3 else ""))
+        return [PaperRow("this run", "Table I", "not compared",
+                         f"custom run: not comparable with {NOT_COMPARABLE} ({why})")]
     cells = json.loads((Path(out) / "summary.json").read_text())["cells"]
     rows = []
     for c in cells:
         paper = TABLE_I.get(float(c["variance"]), {}).get(c["controller"])
-        if paper is None:
+        if paper is None or not c.get("main", True):
             continue
+        rule = f", alpha rule {c['rule']}" if c.get("rule") not in (None, "", "-") else ""
+        safety = ("n/a (no episodes)" if c["safety"] is None else
+                  f"{100 * c['safety']:.0f}% [{100 * c['ci_low']:.0f}, "
+                  f"{100 * c['ci_high']:.0f}], n = {c['n']}")
+        rmse = "n/a (no safe episodes)" if c["rmse"] is None else f"{c['rmse']:.3f} m"
         rows.append(PaperRow(
-            f"{c['controller']} safety, variance {c['variance']:g}", f"{paper[0]}%",
-            f"{100 * c['safety']:.0f}% [{100 * c['ci_low']:.0f}, {100 * c['ci_high']:.0f}], "
-            f"n = {c['n']}",
-            f"RMSE paper {paper[1]:g} m, ours "
-            f"{'-' if c['rmse'] is None else format(c['rmse'], '.3f')} m"))
+            f"{NAMES.get(c['controller'], c['controller'])} safety, variance "
+            f"{c['variance']:g}{rule}", f"{paper[0]}%", safety,
+            f"RMSE: paper {paper[1]:g} m, ours {rmse}"))
     return rows

@@ -5,55 +5,73 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from studies.navigation import figures, paper
 from studies.navigation.evidence import all_evidence
 from studies.navigation.findings import NAMES, all_claims
 from studies.navigation.summary import NavigationSummary
 from workbench.study import RunStore, fmt_rate, md_table, supported
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.report import num, see
 
 HEADINGS = {"safer": "SA-RMPPI safer than BaS-MPPI (paired)", "rmse": "BaS-MPPI lower RMSE",
             "monotone": "Safety decreases with the variance",
             "crash_sites": "Where BaS-MPPI crashes", "velocity": "Velocities and time to goal",
             "reached": "Reaching the goal, real time",
-            "magnitude": "Magnitudes (SPEC 14.4: 10 points, factor 2)"}
+            "magnitude": f"Magnitudes ({see('14.4')}: 10 points, factor 2)"}
+NO_SAFE = "no safe episodes"
 
 
-def _r(x: float, d: int = 4) -> str:
-    return "–" if not np.isfinite(x) else f"{x:.{d}f}"
+def _list(values) -> str:
+    return ", ".join(f"{v:g}" for v in values) or "none"
 
 
-def table_i(s: NavigationSummary) -> list[str]:
+def _r(x: float, d: int = 4, why: str = NO_SAFE) -> str:
+    return num(x, f".{d}f", why)
+
+
+def table_i(s: NavigationSummary, with_paper: bool = True) -> list[str]:
+    """SA-RMPPI and BaS-MPPI per variance, with Table I's numbers beside ours (``with_paper``)
+    or ours alone."""
     rows = []
     for v in s.config["variances"]:
         a, b, p = s.cell("sa_rmppi", v), s.cell("bas_mppi", v), s.pair("sa_rmppi", "bas_mppi", v)
         ref = paper.TABLE_I.get(v)
+
+        def theirs(c: str, i: int, ref=ref) -> list[str]:
+            return [f"{ref[c][i]}" if ref else "–"] if with_paper else []
+
         rows.append([f"{v:g}",
-                     fmt_rate(a.safe, 0) if a else "–", f"{ref['sa_rmppi'][0]}" if ref else "–",
-                     fmt_rate(b.safe, 0) if b else "–", f"{ref['bas_mppi'][0]}" if ref else "–",
-                     _r(a.rmse) if a else "–", f"{ref['sa_rmppi'][1]}" if ref else "–",
-                     _r(b.rmse) if b else "–", f"{ref['bas_mppi'][1]}" if ref else "–",
+                     fmt_rate(a.safe, 0) if a else "–", *theirs("sa_rmppi", 0),
+                     fmt_rate(b.safe, 0) if b else "–", *theirs("bas_mppi", 0),
+                     _r(a.rmse) if a else "–", *theirs("sa_rmppi", 1),
+                     _r(b.rmse) if b else "–", *theirs("bas_mppi", 1),
                      f"{100 * p.difference:+.0f} [{100 * p.low:+.0f}, {100 * p.high:+.0f}], "
-                     f"p = {p.p_value:.2g}" if p else "–"])
-    return md_table(["variance", "SA-RMPPI safety % (ours)", "Table I", "BaS-MPPI safety % "
-                     "(ours)", "Table I", "SA-RMPPI RMSE (ours)", "Table I", "BaS-MPPI RMSE "
-                     "(ours)", "Table I", "SA − BaS, points [95%], McNemar"], rows)
+                     f"p = {num(p.p_value, '.2g')}" if p else "–"])
+    ref = ["Table I"] if with_paper else []
+    return md_table(["variance", "SA-RMPPI safety % (ours)", *ref, "BaS-MPPI safety % "
+                     "(ours)", *ref, "SA-RMPPI RMSE [m] (ours)", *ref, "BaS-MPPI RMSE [m] "
+                     "(ours)", *ref, "SA − BaS, points [95%], McNemar"], rows)
 
 
 def cells_table(s: NavigationSummary) -> list[str]:
-    rows = [[NAMES[c.controller], c.rule, f"{c.variance:g}", "main" if c.main else "sweep",
-             c.n, fmt_rate(c.safe, 0), _r(c.rmse), _r(c.rmse_all), _r(c.rmse_time),
-             fmt_rate(c.reached, 0) if c.reached.n else "–",
-             _r(c.time_to_goal_s.median, 2), f"{c.mean_speed.mean:.2f}",
-             f"{c.mean_step_ms:.1f}", f"{100 * c.nominal_differs_fraction:.1f}",
+    """Every cell; the alpha rule column tells apart the cells of one controller and
+    variance."""
+    robust = ("sa_rmppi", "rmppi")
+    rows = [[NAMES[c.controller], c.rule if c.controller in robust else "none (not robust)",
+             f"{c.variance:g}", "main" if c.main else "alpha sweep",
+             c.n, fmt_rate(c.safe, 0), _r(c.rmse), _r(c.rmse_all, why="no episodes"),
+             _r(c.rmse_time), fmt_rate(c.reached, 0) if c.reached.n else f"n/a ({NO_SAFE})",
+             _r(c.time_to_goal_s.median, 2, "never within the goal radius"),
+             _r(c.mean_speed.mean, 2, "no episodes"),
+             _r(c.mean_step_ms, 1, "no timing"), f"{100 * c.nominal_differs_fraction:.1f}",
              f"{100 * c.alpha_fallback_rate:.1f}", f"{100 * c.ksafe_fallback_rate:.2f}",
-             f"{c.ess_nom_mean:.1f} / {_r(c.ess_real_mean, 1)}"]
+             f"{_r(c.ess_nom_mean, 1, 'no samples')} / "
+             f"{_r(c.ess_real_mean, 1, 'no feedback samples')}"]
             for c in s.cells]
     return md_table(["controller", "alpha rule", "variance", "part", "n", "safety %",
-                     "RMSE safe [m]", "RMSE all", "RMSE time-avg", "reached (safe)",
-                     "median time to 1 m [s]", "mean speed", "ms/step", "nominal ≠ real %",
+                     "RMSE safe [m]", "RMSE all [m]", "RMSE time-avg [m]", "reached (safe)",
+                     "median time to 1 m [s]", "mean speed [m/s]", "ms/step",
+                     "nominal ≠ real %",
                      "alpha fallback %", "K_safe fallback %", "ESS nom / real"], rows)
 
 
@@ -71,7 +89,7 @@ def _illustration(s: NavigationSummary) -> list[str]:
 
 
 def write_figures(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
-                  crashed_by_task: dict) -> list[str]:
+                  crashed_by_task: dict, with_paper: bool = True) -> list[str]:
     out, circles = store.root, scene.circle_array()
     panels = []
     for (c, v), ts in plan.main.items():
@@ -93,7 +111,8 @@ def write_figures(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
         atomic_write_bytes(out / "fig4_samples.png", figures.samples_figure(
             store.arrays(tid), store.meta(tid), circles, scene.start, scene.goal))
         names.append("fig4_samples.png")
-    atomic_write_bytes(out / "safety.png", figures.safety_figure(s, paper.TABLE_I))
+    atomic_write_bytes(out / "safety.png",
+                       figures.safety_figure(s, paper.TABLE_I if with_paper else {}))
     names.append("safety.png")
     if s.config["sweep_variances"]:
         atomic_write_bytes(out / "alpha_tradeoff.png", figures.alpha_figure(s))
@@ -102,25 +121,36 @@ def write_figures(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
 
 
 def write_report(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
-                 assumed: list[dict], run_line: str) -> Path:
+                 assumed: list[dict], run_line: str, comparison=None) -> Path:
+    """report.md and its figures. ``comparison`` (a :class:`~workbench.study.report.Provenance`
+    from :func:`studies.navigation.paper.comparison`): for a custom run (a user map, changed
+    parameters) the report says so and leaves out every comparison with Table I."""
     ep = store.table("episodes")
     crashed = dict(zip(ep["task_id"], ep["crashed"], strict=True))
-    figs = write_figures(s, store, plan, ids, scene, crashed)
+    with_paper = comparison is None or comparison.comparable
+    figs = write_figures(s, store, plan, ids, scene, crashed, with_paper)
     cfg, claims, evidence = s.config, all_claims(s), all_evidence(s)
+    if not with_paper:
+        claims.pop("magnitude", None)
+        evidence.pop("disturbance scale", None)
+    if scene.circles:  # the gates and passageways are the generated map's
+        claims.pop("crash_sites", None)
+    banner = [] if comparison is None else comparison.banner(paper.NOT_COMPARABLE)
+    table = (["## Table I beside ours", "", *table_i(s), ""] if with_paper else
+             ["## SA-RMPPI and BaS-MPPI in this run", "", *table_i(s, False), ""])
     lines = [
         "# Navigation study: SA-RMPPI vs BaS-MPPI (paper Table I, Figs. 4-6)", "",
-        f"Variances {cfg['variances']}, {cfg['realisations']} "
+        f"Velocity-disturbance variances {_list(cfg['variances'])} m²/s⁴, {cfg['realisations']} "
         f"realisations per cell, {cfg['steps']} steps per episode, controllers "
         f"{', '.join(NAMES[c] for c in cfg['controllers'])}; alpha sweep of "
-        f"{NAMES[cfg['sweep_controller']]} at variances {cfg['sweep_variances']} "
+        f"{NAMES[cfg['sweep_controller']]} at variances {_list(cfg['sweep_variances'])} "
         f"({cfg['sweep_realisations']} realisations). Realisation j uses the same disturbance "
         f"and controller random streams for every controller (common random numbers), so "
-        f"controllers are compared paired. {run_line}", "",
-        "## Table I beside ours", "", *table_i(s), "",
+        f"controllers are compared paired. {run_line}", "", *banner, *table,
         "Safety: % of realisations without a crash (95% Wilson interval). RMSE: final distance "
-        "to the goal over safe realisations (SPEC 12.2). Last column: paired difference on the "
-        "same realisations (Newcombe interval, exact McNemar test).", "",
-        "## The paper's claims (SPEC 14.4), one by one", "",
+        f"to the goal over safe realisations ({see('12.2')}). Last column: paired difference "
+        "on the same realisations (Newcombe interval, exact McNemar test).", "",
+        f"## The paper's claims ({see('14.4')}), one by one", "",
         "Every sentence is generated from this run's numbers; the verdict is computed "
         "(`studies/navigation/findings.py`).", ""]
     for key, cs in claims.items():
@@ -137,7 +167,8 @@ def write_report(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
               "Fig. 5: every realisation's path per cell, crash points marked x. Fig. 6: mean "
               "± std of vx, vy over the realisations still running at each time. Fig. 4: one "
               "SAIS batch (nominal samples blue, feedback samples red). Safety vs variance "
-              "with 95% intervals (Table I dashed). Alpha trade-off: safety vs RMSE per rule.",
+              "with 95% intervals" + (" (Table I dashed)" if with_paper else "") + ". Alpha "
+              "trade-off: safety vs RMSE per rule.",
               "", *_illustration(s), "## Assumed and sourced values", "",
               *md_table(["quantity", "value", "source"],
                         [[a["name"], a["value"], a["source"]] for a in assumed]), "",
@@ -153,4 +184,5 @@ def write_report(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
 def report(finished, summary) -> Path:
     """The framework's report step: figures and report.md from a finished run."""
     return write_report(summary.value, finished.store, finished.plan, finished.ids,
-                        finished.config.scene, summary.data["assumed"], finished.run_line)
+                        finished.config.scene, summary.data["assumed"], finished.run_line,
+                        paper.comparison(finished.config, finished.out))

@@ -14,8 +14,8 @@ from workbench.validation import fail
 
 @dataclass(frozen=True)
 class MapSpec:
-    """Start, goal and map. ``circles`` empty: the SPEC 3.2 generator with ``seed``; otherwise
-    ((cx, cy, r), ...) is the map. ``u_limit``: control box [P: 5]."""
+    """Start, goal and map. ``circles`` empty: the paper's map generator (assumptions §3.2)
+    with ``seed``; otherwise ((cx, cy, r), ...) is the map. ``u_limit``: control box [P: 5]."""
 
     start: tuple[float, float] = (0.5, 0.5)
     goal: tuple[float, float] = (9.5, 9.5)

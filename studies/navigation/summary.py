@@ -1,6 +1,6 @@
 """Typed summary of a run, from the tidy tables ``episodes`` and ``timing``.
 
-Metrics, each defined once here: safe = no crash in the episode; RMSE (SPEC 12.2) =
+Metrics, each defined once here: safe = no crash in the episode; RMSE (assumptions §12.2) =
 sqrt(mean over SAFE realisations of the squared final distance to the goal); rmse_all = the same
 over all realisations (a crashed run's final position is its crash point); rmse_time =
 sqrt(mean over safe realisations of the time-averaged squared distance); rmse_reached = over

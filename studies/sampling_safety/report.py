@@ -62,6 +62,7 @@ def samples_figure(s: SamplingSafetySummary) -> bytes:
                capsize=2, label=f"variance {v:g}")
     ax.set_xticks(np.arange(len(ctrls)), [NAMES[c] for c in ctrls], rotation=30, ha="right",
                   fontsize=8)
+    ax.set_xlabel("controller")
     ax.set_ylabel("collision-free samples per step [%]")
     ax.set_ylim(0, 105)
     ax.legend(fontsize=8)

@@ -148,8 +148,9 @@ def summarise(config, store: RunStore) -> SamplingSafetySummary:
 
 
 def summary(finished) -> Summary:
-    """summary.json: the cells (with the fields the issue names), paired tests, the verdicts
-    on the paper's claim (1), and one console line per cell."""
+    """summary.json: the cells (safety, collision-free samples, ESS, time per step and
+    mechanism activity, with intervals), paired tests, the verdicts on the paper's claim (1),
+    and one console line per cell."""
     from studies.sampling_safety.findings import verdicts
     from workbench.scenarios.methods import NAMES
 

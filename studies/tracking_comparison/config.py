@@ -26,12 +26,12 @@ def _values(name: str, values, *, strict: bool = True) -> tuple[float, ...]:
 
 @dataclass(frozen=True)
 class Variant:
-    """The [A] values a run depends on (SPEC 15), swept by the sensitivity study.
+    """The [A] values a run depends on (assumptions §15), swept by the sensitivity study.
 
     q_beta: BaS barrier-state weight; pole: ECBF poles p1 = p2 = pole; q_scale: factor on the
     tracking weight Q = diag(10, 10, 1, 1) (R and S unchanged); ecbf_noise: whether the control
-    noise enters before the ECBF filter (SPEC 6.3 default) or after it (SPEC 13 E7); noise_std:
-    control-noise standard deviation (paper [P]: 10).
+    noise enters before the ECBF filter (the default, assumptions §6.3) or after it
+    (assumptions §13 E7); noise_std: control-noise standard deviation (paper [P]: 10).
     """
 
     q_beta: float = 1e-2

@@ -59,10 +59,11 @@ def ecbf_claims(s: TrackingSummary) -> list[Claim]:
     if a and b and a.get("ecbf") and b.get("ecbf"):
         ua, ub = a.get("ecbf").unsafe, b.get("ecbf").unsafe
         out.append(Claim(
-            f"With the noise after the filter (SPEC 13 E7) ECBF is unsafe in {fmt_rate(ua)} of "
-            f"rollouts against {fmt_rate(ub)} with the noise before it: where the noise enters "
-            "decides whether ECBF loses safety, and the paper's remark that the filter 'is unable "
-            "to maintain safety with large control deviations' fits the noise-after placement.",
+            f"With the noise after the filter (assumptions §13 E7) ECBF is unsafe in "
+            f"{fmt_rate(ua)} of rollouts against {fmt_rate(ub)} with the noise before it: where "
+            "the noise enters decides whether ECBF loses safety, and the paper's remark that the "
+            "filter 'is unable to maintain safety with large control deviations' fits the "
+            "noise-after placement.",
             ua.above(ub), "disjoint 95% intervals"))
     main = [p for p in s.radius if p.source == "main" and p.method == "ecbf"]
     if len(main) >= 2:

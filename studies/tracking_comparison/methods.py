@@ -1,4 +1,5 @@
-"""The three controllers' nominal solutions (SPEC 6.1-6.3) on the tracking scene (SPEC 3.3)."""
+"""The three controllers' nominal solutions (assumptions §6.1-§6.3) on the tracking scene
+(assumptions §3.3)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from workbench.validation import one_of
 
 @dataclass(frozen=True)
 class Setup:
-    """Values held fixed across the sweep (each [A] unless the SPEC says otherwise)."""
+    """Values held fixed across the sweep (each [A] unless the paper says otherwise)."""
 
     scene: TrackingScene = field(default_factory=TrackingScene)
     weights: TrackingWeights = field(default_factory=TrackingWeights)
@@ -29,7 +30,7 @@ class Setup:
     ilqg: ILQGOptions = field(default_factory=ILQGOptions)
 
     def model(self, *, obstacle: bool = True) -> Model:
-        """Euler double integrator (SPEC 2.2) with the scene's obstacle, or with none."""
+        """Euler double integrator (assumptions §2.2) with the scene's obstacle, or with none."""
         obstacles = (self.scene.obstacle,) if obstacle else ()
         return double_integrator(dt=self.scene.dt, obstacles=obstacles,
                                  u_limit=self.scene.u_limit)
@@ -87,6 +88,6 @@ def solve_nominal(method: str, variant: Variant, setup: Setup) -> Nominal:
     h, lfh = (float(np.asarray(v).ravel()[0]) for v in lie(x0, model.scene_value)[:2])
     info = {"cost": res.cost, "converged": res.converged, "iterations": res.iterations,
             "solve_time_s": res.solve_time_s,
-            # SPEC 7.1 initial-condition requirement: h(x0) >= 0 and dh(x0) + p1 h(x0) >= 0
+            # initial-condition requirement (assumptions §7.1): h(x0) >= 0, dh(x0) + p1 h(x0) >= 0
             "ecbf_initial_condition_ok": bool(h >= 0 and lfh + variant.pole * h >= 0)}
     return Nominal(method, res.X, res.U, res.K, info)

@@ -19,13 +19,18 @@ from studies.tracking_comparison.findings import (
     all_claims,
     drivers,
 )
-from studies.tracking_comparison.paper import PAPER_BY_METHOD
+from studies.tracking_comparison.paper import NOT_COMPARABLE, PAPER_BY_METHOD, comparison
 from studies.tracking_comparison.summary import Outcome, TrackingSummary
 from workbench.scenarios.scenes import TrackingScene
 from workbench.study import RunStore, fmt_rate, md_table, png_bytes, supported
 from workbench.study.io import atomic_write_bytes, atomic_write_text
 
 COLORS = {"ecbf": "tab:blue", "al": "tab:red", "bas": "tab:green"}
+# the swept parameters as axis labels, with their units
+AXIS_NAMES = {"q_beta": "q_beta, BaS barrier weight (dimensionless)",
+              "pole": "ECBF poles p1 = p2 [1/s]", "q_scale": "factor on Q (dimensionless)",
+              "ecbf_noise": "control noise enters the ECBF filter",
+              "noise_std": "control-noise std [m/s²]"}
 
 
 def _fmt(v) -> str:
@@ -73,7 +78,7 @@ def histogram_figure(rows: pd.DataFrame, column: str, xlabel: str, line: float) 
         ax.axvline(line, color="k", lw=1, ls="--")
         ax.set_title(NAMES[m])
         ax.set_xlabel(xlabel)
-    axes[0][0].set_ylabel("rollouts")
+        ax.set_ylabel("rollouts (count)")
     return png_bytes(fig, dpi=110)
 
 
@@ -103,7 +108,7 @@ def sweep_figure(s: TrackingSummary) -> bytes:
                 _errorbar(ax, np.arange(len(pts)), [getattr(o, metric) for o in outs],
                           color=COLORS[m], label=NAMES[m])
             ax.set_xticks(np.arange(len(pts)), [_fmt(p.value) for p in pts])
-            ax.set_xlabel(PARAM_NAMES.get(name, name))
+            ax.set_xlabel(AXIS_NAMES.get(name, PARAM_NAMES.get(name, name)))
             ax.set_ylabel(f"{metric} rate [%]")
             ax.set_ylim(-3, 103)
     axes[0][0].legend(fontsize=8)
@@ -141,7 +146,7 @@ def radius_figure(s: TrackingSummary) -> bytes:
                       "failure")
             _errorbar(ax, x, [o.unsafe for o in outs], color=COLORS[m], ls="--", mfc="none",
                       label=f"{NAMES[m]} unsafe")
-        ax.set_xlabel("control noise std")
+        ax.set_xlabel(AXIS_NAMES["noise_std"])
         ax.set_ylabel("rate [%]")
         ax.set_ylim(-3, 103)
         ax.legend(fontsize=7)
@@ -163,7 +168,7 @@ def _comparison(s: TrackingSummary) -> list[str]:
                      f"{p.metric} {100 * p.band[0]:g}-{100 * p.band[1]:g}%",
                      "yes" if p.band[0] <= ours.value <= p.band[1] else "NO"])
     return md_table(["method", "unsafe % [95% CI]", "paper unsafe", "failure % [95% CI]",
-                     "paper failure", "SPEC 14.4 band", "in band"], rows)
+                     "paper failure", "band (assumptions §14.4)", "in band"], rows)
 
 
 def _sensitivity(s: TrackingSummary) -> list[str]:
@@ -233,9 +238,18 @@ def _sweep_table(s: TrackingSummary) -> list[str]:
                     + ["order by failure"], rows)
 
 
+def _ours(s: TrackingSummary) -> list[str]:
+    return md_table(["method", "unsafe % [95% CI]", "failure % [95% CI]"],
+                    [[NAMES[o.method], fmt_rate(o.unsafe), fmt_rate(o.failure)]
+                     for o in s.methods])
+
+
 def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene: TrackingScene,
-                 assumed: list[dict], run_line: str) -> Path:
-    """Write the figures and report.md into the run directory."""
+                 assumed: list[dict], run_line: str, provenance=None) -> Path:
+    """Write the figures and report.md into the run directory. ``provenance`` (from
+    :func:`studies.tracking_comparison.paper.comparison`): a custom run is labelled as such and
+    its rates are not set beside the paper's."""
+    with_paper = provenance is None or provenance.comparable
     out = store.root
     for m, tid in s.mc_paths.items():
         nominal = store.arrays(next(n.path_task for n in s.nominal if n.method == m))["path"]
@@ -254,17 +268,22 @@ def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene:
         "# Tracking comparison: ECBF-filtered iLQG, AL-iLQG, BaS-iLQG (paper Sec. III)", "",
         f"{cfg['n_seeds']} seeds x {cfg['n_rollouts']} Monte Carlo "
         f"rollouts per method, control noise std {cfg['base']['noise_std']:g}, limits ±15, one "
-        "obstacle on the reference (SPEC 3.3, 6, 7, 12.1). Rates are pooled over seeds with 95% "
-        f"Wilson intervals. {run_line}", "",
-        "## Paper vs this run", "", *_comparison(s), "",
+        "obstacle on the reference (assumptions §3.3, §6, §7, §12.1). Rates are pooled over seeds "
+        f"with 95% Wilson intervals. {run_line}", "",
+        *([] if provenance is None else provenance.banner(NOT_COMPARABLE)),
+        *(["## Paper vs this run", "", *_comparison(s), ""] if with_paper else
+          ["## This run's rates", "", *_ours(s), ""]),
         "Unsafe: min over steps k = 0..N of h(x_k) < 0. Failure: unsafe, or the final position "
         f"more than {cfg['target_radius']:g} m (assumed) from the target. The paper gives a "
-        "failure rate for ECBF and unsafe rates for AL and BaS (SPEC 13 E7); both rates are "
-        "shown for every method and each is compared with the paper's number of the same kind.",
+        "failure rate for ECBF and unsafe rates for AL and BaS (assumptions §13 E7); both rates "
+        "are shown for every method"
+        + (" and each is compared with the paper's number of the same kind." if with_paper
+           else "."),
         "", "## Findings", "",
         "Each sentence below is printed only if this run's numbers support it (conditions in "
         "`studies/tracking_comparison/findings.py`).", "",
-        *supported(claims["ecbf"] + claims["al"] + claims["bas"] + claims["ranking"]), "",
+        *supported(c for c in claims["ecbf"] + claims["al"] + claims["bas"] + claims["ranking"]
+                   if with_paper or "paper's ≈" not in c.text), "",
         "## Success radius and noise level", "",
         "Failure rate against the assumed success radius (same rollouts), beside the rates "
         "against the control-noise level:", "", *_radius_table(s), "", "![radius](radius.png)",
@@ -300,4 +319,5 @@ def report(finished, summary) -> Path:
     main_ids = {finished.ids[t] for ts in finished.plan.main.values() for t in ts}
     table = finished.store.table("rollouts")
     return write_report(s, finished.store, table[table["task_id"].isin(main_ids)],
-                        Setup().scene, summary.data["assumed"], finished.run_line)
+                        Setup().scene, summary.data["assumed"], finished.run_line,
+                        comparison(finished.config, finished.out))

@@ -1,4 +1,5 @@
-"""Monte Carlo closed loops, vectorised over rollouts (SPEC 5.6, 6.3, 6.4), and their metrics.
+"""Monte Carlo closed loops, vectorised over rollouts (assumptions §5.6, §6.3, §6.4), and their
+metrics.
 
 Shapes: noise (N, T, nu), states (N, T+1, nx). The plant is the model's own discrete map; for a
 linear model (the double integrator) it runs in NumPy as x' = A x + B u + c, with A, B, c read
@@ -89,7 +90,7 @@ def lift_function(embedded: Model) -> ca.Function:
 def feedback_rollouts(dyn: LinearDynamics, x0, Xbar, Ubar, K, noise, u_min, u_max,
                       lift: ca.Function | None = None) -> np.ndarray:
     """u_k = clip(ubar_k + K_k (xact_k - xbar_k) + eps_k); xact includes the actual barrier
-    state when ``lift`` is given (BaS, SPEC 5.6). Returns physical states (N, T+1, n)."""
+    state when ``lift`` is given (BaS, assumptions §5.6). Returns physical states (N, T+1, n)."""
     N, T, _ = noise.shape
     n = dyn.A.shape[0]
     X = np.empty((N, T + 1, n))
@@ -115,7 +116,7 @@ class ECBFRollouts:
 
 def ecbf_rollouts(dyn: LinearDynamics, x0, Xbar, Ubar, K, noise, filt: ECBFFilter,
                   noise_after: bool = False) -> ECBFRollouts:
-    """u_ref = ubar + K (x - xbar) + eps (noise before the filter, SPEC 6.3), u = ECBF-QP;
+    """u_ref = ubar + K (x - xbar) + eps (noise before the filter, assumptions §6.3), u = ECBF-QP;
     with ``noise_after`` the plant gets clip(ECBF-QP(ubar + K (x - xbar)) + eps) instead."""
     N, T, _ = noise.shape
     X = np.empty((N, T + 1, dyn.A.shape[0]))

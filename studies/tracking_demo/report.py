@@ -77,7 +77,7 @@ def _figure(scene, ref, trajs) -> bytes:
 
 def _report(rows: list[dict], times: dict, assumed: dict, run_line: str) -> str:
     lines = [
-        "# BaS-iLQG on the tracking scene (SPEC 3.3, 6.1)", "",
+        "# BaS-iLQG on the tracking scene (assumptions §3.3, §6.1)", "",
         "The paper reports (Sec. III) that BaS-iLQG tracks the unsafe reference safely and "
         "reaches the target; it gives no cost figures. Our measured numbers below; the full "
         f"Monte Carlo comparison (ECBF, AL, BaS) is the tracking-comparison study. {run_line}",
