@@ -1,4 +1,4 @@
-"""Lemma 1 (free-energy bound) estimators and checks, SPEC 11.2-11.3.
+"""Lemma 1 (free-energy bound) estimators and checks, assumptions §11.2-§11.3.
 
 * :mod:`.free_energy` — F̂ by log-sum-exp, Ê by the delta method / MPPI-G / bootstrap;
 * :mod:`.tube` — tube radius R (pairwise, quantile, position-only, about the mean nominal);

@@ -1,16 +1,17 @@
-"""The inequalities of SPEC 11.3 for one step (T1, T2) and consecutive steps t, t+1 (T3-T3d).
+"""The inequalities of assumptions §11.3 for one step (T1, T2) and consecutive steps t, t+1
+(T3-T3d).
 
 Each check reports ``holds`` (LHS <= RHS), ``slack`` = RHS − LHS, both sides, and the
 Lipschitz-dependent term of the RHS (δ or δ D_F), for local or global constants. Free energies
-are the pure-state-cost estimates of SPEC 11.2 item 3 (``estimate="code"``: from S_real and
-S_nom as Algorithm 1 computes them). Readings (SPEC 13, L2-L3):
+are the pure-state-cost estimates of assumptions §11.2 item 3 (``estimate="code"``: from S_real and
+S_nom as Algorithm 1 computes them). Readings (assumptions §13, L2-L3):
 
 * T1  max_n (Sx_n − Sx*_n) <= δ_t                       (per sample, all n)
 * T1s T1 over the samples whose real and nominal rollouts both stayed safe (a diagnostic, not
-      in SPEC: a crashed real sample carries β_max, so T1 can only fail through it)
+      in assumptions §11.3: a crashed real sample carries β_max, so T1 can only fail through it)
 * T2  F̂_real(t) <= F̂_nom(t) + δ_t
 * T2E F̂_real(t) <= F̂'_nom(t) + δ_t + 2 max(Ê, Ê') with F̂' from an independent batch of the
-      same step (SPEC's "true-F version"; only when the step has one)
+      same step (the "true-F version" of assumptions §11.3; only when the step has one)
 * T3  F̂_real(t+1) − F̂_real(t) <= α_t − F̂_nom(t) + 2Ê + R_t (L_φ + n_q L_q) D̂_F(t)   (as printed)
 * T3b as T3 with δ_t in place of δ_t D̂_F(t) (the proof's δ)
 * T3c as T3 with F̂_nom(t+1) in place of F̂_nom(t)

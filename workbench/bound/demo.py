@@ -8,7 +8,7 @@ rule's default 1.0: at variance 10 the default never rejects the real state (mea
 300 steps), so the nominal equals the real state, R = 0 and every check is trivial.
 
 Prints, per test and set of Lipschitz constants, the fraction of steps where it holds and the
-median slack; the strata of SPEC 11.3; the steps where T1 fails and why; and the cost of the
+median slack; the strata of assumptions §11.3; the steps where T1 fails and why; and the cost of the
 diagnostics per step (each step also runs without them on a copy of the generator: same
 control, timed alternately).
 """

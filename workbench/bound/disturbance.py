@@ -1,9 +1,9 @@
-"""Disturbance bound D and D_F of Lemma 1 (SPEC 11.2 items 7-8).
+"""Disturbance bound D and D_F of Lemma 1 (assumptions §11.2 items 7-8).
 
 The plant disturbance is Gaussian, so ‖w‖ < D holds only with a probability: D is the
 ``prob`` quantile of ‖w‖. For w = c ξ on the two velocities, ξ ~ N(0, I₂), ‖w‖² / c² is χ²₂, so
 D = c √(χ²_{2,prob}); with prob = 0.999, √(χ²_{2,0.999}) = √(−2 ln 0.001) = 3.717. For the
-default model (velocity variance σ², c = Δt σ) this is SPEC's D = 3.717 Δt σ.
+default model (velocity variance σ², c = Δt σ) this is the D = 3.717 Δt σ.
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ def disturbance_bound(disturbance: Disturbance, dt: float, prob: float = 0.999,
 
 
 def d_f(x, x_next_model, x_nom0, D: float, physical: int) -> float:
-    """D̂_F = ‖F(x_t, u_t) − x_t‖ + ‖x*_0 − x_t‖ + D̂ on the physical state (SPEC 11.2 item 8);
+    """D̂_F = ‖F(x_t, u_t) − x_t‖ + ‖x*_0 − x_t‖ + D̂ on the physical state (assumptions §11.2 item
+    8);
     ``x_next_model`` = F(x_t, u_t), the model step without disturbance; the norm uses the
     ``physical`` leading coordinates (nx for the augmented reading)."""
     integer("physical", physical, 1)

@@ -1,4 +1,4 @@
-"""Monte Carlo free energy and its uncertainty E_M^V (SPEC 11.2 items 3-4).
+"""Monte Carlo free energy and its uncertainty E_M^V (assumptions §11.2 items 3-4).
 
 F̂ = -λ log (1/N Σ_n exp(-S_n/λ)), by log-sum-exp with the max-shift ρ = min_n S_n.
 

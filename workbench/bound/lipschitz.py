@@ -1,4 +1,4 @@
-"""Lipschitz constants of the state costs q and φ (SPEC 11.2 item 6, 11.3 baseline).
+"""Lipschitz constants of the state costs q and φ (assumptions §11.2 item 6, 11.3 baseline).
 
 Space. The costs are functions of the barrier-embedded state x̄ = [x; β], but on every sample
 β_k = B(h(p_k)) exactly (γ = 0; the real start is lifted, the nominal start is a candidate whose
@@ -6,7 +6,7 @@ Space. The costs are functions of the barrier-embedded state x̄ = [x; β], but 
 function of the physical state x = (p, v), and Lemma 1's step |q(x̄) − q(x̄*)| ≤ L_q ‖x − x*‖
 holds with L_q = sup ‖∇q̃‖ in the physical norm — the norm of the tube radius R
 (:mod:`workbench.bound.tube`). ∇q̃ carries the β-cost term 2 q_β (β − β_g) Σ B'(h_i) ∇h_i of
-SPEC 11.2, which is what makes L_q large near obstacles and small away from them.
+assumptions §11.2, which is what makes L_q large near obstacles and small away from them.
 
 * Local (per step): max ‖∇q̃‖ at x*ⁿ_k + s (xⁿ_k − x*ⁿ_k), s ∈ {0, ¼, ½, ¾, 1}, over all n and
   k = 1..T (the steps whose q is summed), and ‖∇φ̃‖ likewise at k = T; points with min h ≤ 0
@@ -15,7 +15,7 @@ SPEC 11.2, which is what makes L_q large near obstacles and small away from them
   between the points (never for a quadratic cost: ‖∇q̃‖ is then convex along the segment).
 * Global: the same maxima over a dense, documented grid (:class:`LipschitzGrid`).
 
-``space="augmented"`` is SPEC 11.2 item 5's other reading: β is a coordinate, points are
+``space="augmented"`` is assumptions §11.2 item 5's other reading: β is a coordinate, points are
 x̄* + s (x̄ − x̄*) in the full state, norms (and so the tube radius) include β; ∇q has no barrier
 term, but R then carries the β differences, which are large near obstacles.
 
@@ -59,13 +59,13 @@ class Lipschitz:
 
     @property
     def secant_ok(self) -> bool:
-        """The secant check of SPEC 11.2: secants never exceed the gradient estimates."""
+        """The secant check of assumptions §11.2: secants never exceed the gradient estimates."""
         return self.secant_q <= self.L_q and self.secant_phi <= self.L_phi
 
 
 @dataclass(frozen=True)
 class LipschitzGrid:
-    """Points for the global constant (defaults [A], the SPEC 3.2 map in [0, 10]²).
+    """Points for the global constant (defaults [A], the assumptions §3.2 map in [0, 10]²).
 
     Positions: a regular grid over ``x_range`` × ``y_range`` with ``spacing``, plus, for every
     obstacle, ``n_rings`` rings of ``ring_angles`` points at margins h (the model's

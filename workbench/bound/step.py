@@ -1,4 +1,4 @@
-"""Per-step Lemma-1 record (SPEC 11.2) from the first SAIS batch of an SA-RMPPI step.
+"""Per-step Lemma-1 record (assumptions §11.2) from the first SAIS batch of an SA-RMPPI step.
 
 Use::
 
@@ -42,7 +42,7 @@ Constants = Literal["local", "global"]
 
 @dataclass(frozen=True)
 class BoundConfig:
-    """Estimator settings (SPEC 11.2; defaults [A])."""
+    """Estimator settings (assumptions §11.2; defaults [A])."""
 
     z: float = 3.0  # E = z sd + bias
     method: Method = "delta"  # or "mppig" (MPPI-G computeFreeEnergy)
@@ -72,7 +72,7 @@ class BoundStep:
 
     lam: float
     alpha: float  # threshold at the chosen nominal state (the SAIS clamp's alpha)
-    F_real: FreeEnergy  # from pure state costs + LR (SPEC 11.2 item 3)
+    F_real: FreeEnergy  # from pure state costs + LR (assumptions §11.2 item 3)
     F_nom: FreeEnergy
     F_real_code: float  # from S_real (Alg. 1 line 9)
     F_nom_code: float  # from S_nom (line 12)

@@ -1,10 +1,10 @@
 """Aggregation of the checks over steps: fraction holding (Wilson 95 % interval), slack
-quantiles and the global/local ratio, per test, set of constants and stratum (SPEC 11.3).
+quantiles and the global/local ratio, per test, set of constants and stratum (assumptions §11.3).
 
 A transition check (t, t+1) belongs to the strata of step t. Strata:
-``all``; ``all_real_safe`` / ``some_real_crashed`` (SPEC 11.3 (a)); ``admissible`` /
-``fallback`` (SPEC 11.3 (b): a candidate was below alpha, or none was); ``nominal_differs`` /
-``nominal_is_real``.
+``all``; ``all_real_safe`` / ``some_real_crashed`` (assumptions §11.3 (a)); ``admissible`` /
+``fallback`` (assumptions §11.3 (b): a candidate was below alpha, or none was); ``nominal_differs``
+/ ``nominal_is_real``.
 """
 
 from __future__ import annotations

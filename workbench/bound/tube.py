@@ -1,4 +1,4 @@
-"""Tube radius R of the real samples about the nominal ones (SPEC 11.2 item 5).
+"""Tube radius R of the real samples about the nominal ones (assumptions §11.2 item 5).
 
 Trajectories are lane-major (T+1, nx, N), k = 0..T, as :class:`SAISDiagBatch` holds them. Norms
 are Euclidean on the physical state (p, v) — the state whose norm the Lipschitz constants of

@@ -1,12 +1,12 @@
-"""Exponential control barrier function (ECBF) safety filter, SPEC 7.
+"""Exponential control barrier function (ECBF) safety filter, assumptions §7.
 
 The discrete model is read as the continuous-time control-affine system
 ``f(x) + g(x) u = (F(x, u) - x) / dt`` (exact for Euler; validated affine in u). For every margin
 h_i the filter uses exact Lie derivatives from CasADi:
 
-* relative degree 1:  L_f h + L_g h u >= -gamma h                                   (SPEC 7.3)
+* relative degree 1:  L_f h + L_g h u >= -gamma h                      (assumptions §7.3)
 * relative degree 2:  L_f^2 h + (L_g L_f h + k1 L_g h) u + k1 L_f h + k0 h >= 0
-  with s^2 + k1 s + k0 = (s + p1)(s + p2)                                           (SPEC 7.1)
+  with s^2 + k1 s + k0 = (s + p1)(s + p2)                              (assumptions §7.1)
 
 The relative degree of each margin is read from the discrete model (:func:`relative_degrees`):
 a zero-order-hold double integrator is degree 2 although u enters its first difference at
@@ -41,7 +41,8 @@ _ANSWERS = ("primal infeasible", "primal infeasible inaccurate")  # a valid verd
 
 @dataclass(frozen=True)
 class ECBFOptions:
-    """ECBF filter settings; defaults SPEC 7 ([A]: poles, gamma; solver settings from SPEC 7.2).
+    """ECBF filter settings; defaults assumptions §7 ([A]: poles, gamma; solver settings from
+    assumptions §7.2).
 
     poles: (p1, p2) > 0 for relative degree 2, so k1 = p1 + p2 and k0 = p1 p2 ([A] 5, 5).
     gamma: class-K gain for relative degree 1 ([A] 5).
@@ -49,7 +50,8 @@ class ECBFOptions:
     or 1 / 2 for every margin (checked against the detected degree).
     mode: "soft" (slacks delta >= 0) or "hard" (fall back to clip(u_ref) when OSQP fails).
     slack_linear, slack_quadratic: soft-mode slack cost sum(slack_linear delta + slack_quadratic
-    delta^2), on rows normalised to ||a_i|| = 1 (delta in control units). [A], not SPEC 7.2's
+    delta^2), on rows normalised to ||a_i|| = 1 (delta in control units). [A], not
+    assumptions §7.2's
     rho = 1e6 * delta^2: with that weight OSQP (first-order ADMM) hit its iteration limit on
     about half of realistic infeasible instances, and the quadratic term alone leaves
     delta = y / (2 rho) > 0 on every active step, flagging feasible steps as infeasible. The

@@ -1,4 +1,4 @@
-"""AL-iLQG (SPEC 6.2): a PHR augmented-Lagrangian outer loop around the same iLQG core.
+"""AL-iLQG (assumptions §6.2): a PHR augmented-Lagrangian outer loop around the same iLQG core.
 
 Constraints c_{i,k}(x_k) = -h_i(x_k) <= 0 for k = 1..T. The inner problem is iLQG on the model
 *without* margins (so the line search does not treat h < 0 as a crash) with the cost
@@ -32,9 +32,10 @@ from workbench.validation import fail, integer, one_of, real
 
 @dataclass(frozen=True)
 class ALOptions:
-    """Outer-loop settings; defaults SPEC 6.2 [A] / ALTRO (phi, tau, individual mu update).
+    """Outer-loop settings; defaults assumptions §6.2 [A] / ALTRO (phi, tau, individual mu update).
 
-    inner: the iLQG options of each inner solve (tol_rel 1e-6 [A]; with SPEC's 1e-4 the tracking
+    inner: the iLQG options of each inner solve (tol_rel 1e-6 [A]; with the 1e-4 of assumptions
+    §6.2 the tracking
     scene ended 1.9e-3 above the IPOPT cost, outside the 1e-3 acceptance).
     """
 

@@ -1,4 +1,5 @@
-"""Tracking problems of SPEC 6 and BaS-iLQG (SPEC 6.1): iLQG on the barrier-embedded problem."""
+"""Tracking problems of assumptions §6 and BaS-iLQG (assumptions §6.1): iLQG on the
+barrier-embedded problem."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from workbench.validation import as_array, fail, real
 
 @dataclass(frozen=True)
 class TrackingWeights:
-    """Tracking weights (diagonals). Defaults SPEC 6 [A]: Q=diag(10,10,1,1), R=1e-3 I,
+    """Tracking weights (diagonals). Defaults assumptions §6 [A]: Q=diag(10,10,1,1), R=1e-3 I,
     S=diag(1e3,1e3,1e2,1e2); barrier weights q_beta=1e-2 (swept 1e-3..1) and s_beta=0.05."""
 
     Q: tuple[float, ...] = (10.0, 10.0, 1.0, 1.0)
@@ -47,7 +48,7 @@ def tracking_problem(model: Model, weights: TrackingWeights = TrackingWeights(),
 
 def tracking_params(problem: Problem, x_ref, target) -> np.ndarray:
     """Parameters (T+1, n_p): x_ref for stages, the target for the terminal row, and the
-    barrier value of the target as beta_ref (SPEC 4.5: beta_f = sum_i B(h_i(x_f)))."""
+    barrier value of the target as beta_ref (assumptions §4.5: beta_f = sum_i B(h_i(x_f)))."""
     model = problem.model
     x_ref = as_array("x_ref", x_ref, (None, model.n_physical))
     target = as_array("target", target, (model.n_physical,))

@@ -25,7 +25,8 @@ CRASH_MARGIN = 1e-15
 def step_function(problem: Problem) -> ca.Function:
     """One forward-pass step (x, u, p, scene) -> (x_next, l + crash penalty), fused for speed.
 
-    The penalty (SPEC 4.6, line search) is 1e10 when any margin of x_next is below 1e-15 or NaN.
+    The penalty (assumptions §4.6, line search) is 1e10 when any margin of x_next is below 1e-15 or
+    NaN.
     """
     f = problem.functions
     x, u, p, s = (ca.SX.sym(n, m) for n, m in (("x", problem.nx), ("u", problem.nu),

@@ -1,4 +1,5 @@
-"""iLQG (SPEC 5): Gauss-Newton DDP with Tassa's regularisation schedule, an expected-decrease
+"""iLQG (assumptions §5): Gauss-Newton DDP with Tassa's regularisation schedule, an
+expected-decrease
 line search, control limits through a box QP in the backward pass, and termination rules.
 
 ``ilqg(problem, x0, U0, P, options)`` runs the same outer loop over one of two pass backends:
@@ -25,7 +26,7 @@ MAX_ITERATIONS = 10**6  # outer iterations of one solve (the history holds one r
 
 @dataclass(frozen=True)
 class ILQGOptions:
-    """iLQG settings; defaults from SPEC 5 (DBaS-code / Tassa). ``max_iter`` <=
+    """iLQG settings; defaults from assumptions §5 (DBaS-code / Tassa). ``max_iter`` <=
     :data:`MAX_ITERATIONS`."""
 
     max_iter: int = 300
@@ -115,7 +116,7 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
     """Solve min_U sum_k l(x_k,u_k,p_k) + l_T(x_T,p_T) s.t. x_{k+1} = F(x_k,u_k), u in the box.
 
     x0 may be a physical state (it is lifted for barrier-embedded models). U0 (T,nu) is the
-    initial guess; if its rollout crashes or is not finite, zeros are used (SPEC 6.1) and
+    initial guess; if its rollout crashes or is not finite, zeros are used (assumptions §6.1) and
     ``initial_guess_replaced`` is set. ``scene``: the obstacles (see
     :meth:`~workbench.problem.Model.scene_vector`; default the model's own), held fixed over
     the horizon.

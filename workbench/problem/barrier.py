@@ -1,8 +1,9 @@
-"""Discrete barrier states (DBaS, SPEC 4): embed safety margins into the dynamics.
+"""Discrete barrier states (DBaS, assumptions §4): embed safety margins into the dynamics.
 
 beta_{k+1} = sum_{i in g} B(h_i(F(x_k,u_k))) - gamma (beta_k - sum_{i in g} B(h_i(x_k)))
 
-Crash handling (SPEC 4.6): when any margin of a group is <= eps_h the state is set to beta_max,
+Crash handling (assumptions §4.6): when any margin of a group is <= eps_h the state is set to
+beta_max,
 and beta is capped at beta_max everywhere, so penetration is never rewarded by the negative
 values the inverse barrier takes inside an obstacle.
 """
@@ -26,7 +27,8 @@ BARRIER_KINDS: tuple[str, ...] = ("inverse", "log", "exp")
 class BarrierOptions:
     """How margins become barrier states.
 
-    kind: inverse 1/h (default, [DBaS-code]); log -log(h/(1+h)); exp exp(-kappa h) (SPEC B1: the
+    kind: inverse 1/h (default, [DBaS-code]); log -log(h/(1+h)); exp exp(-kappa h) (assumptions
+    §13 B1: the
     paper's "exponential" barrier, which does not blow up at h=0 — flagged, not the default).
     grouping: "sum" (one summed state, default), "per_obstacle", or a tuple of index groups.
     """
@@ -113,7 +115,7 @@ def _barrier_values(h: ca.SX, opts: BarrierOptions, groups) -> ca.SX:
 
 
 def embed_barrier(model: Model, options: BarrierOptions | None = None) -> Model:
-    """The safety-embedded model x_bar = [x; beta] (SPEC 4.4), exact CasADi expressions.
+    """The safety-embedded model x_bar = [x; beta] (assumptions §4.4), exact CasADi expressions.
 
     beta is recomputed from the margins in the model's scene symbol, so the embedded dynamics
     take the current scene as an input like the margins do."""

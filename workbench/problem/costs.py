@@ -1,4 +1,4 @@
-"""Costs as CasADi expressions with per-step parameters (SPEC 4.5, 6, 10.2).
+"""Costs as CasADi expressions with per-step parameters (assumptions §4.5, 6, 10.2).
 
 A :class:`Cost` holds the stage cost l(x, u, p_k) for k < T and the terminal cost l_T(x, p_T).
 Values that change between solves (references, targets, AL multipliers) live in the parameter
@@ -30,7 +30,7 @@ class Cost:
     param_layout: tuple[tuple[str, int], ...] = field(default=())
     description: str = ""
     # Optional replacements of the exact state Hessians (e.g. Gauss-Newton for AL penalties,
-    # SPEC 6.2); expressions in (x, u, p) and (x, p), shape (nx, nx). None = exact Hessian.
+    # assumptions §6.2); expressions in (x, u, p) and (x, p), shape (nx, nx). None = exact Hessian.
     stage_hessian_x: ca.SX | None = None
     terminal_hessian_x: ca.SX | None = None
 
@@ -83,7 +83,7 @@ def quadratic_tracking(
     """½|x-x_ref|²_Q + ½|u-u_ref|²_R [+ ½ q_beta |beta-beta_ref|²]; terminal ½|x-x_ref|²_S.
 
     Q, S act on the physical state; on an embedded model q_beta and s_beta weigh the barrier
-    states about beta_ref (SPEC B3: relative by default, "absolute" fixes beta_ref = 0).
+    states about beta_ref (assumptions §13 B3: relative by default, "absolute" fixes beta_ref = 0).
     Parameter blocks: x_ref (n_physical), u_ref (nu) and, for embedded models, beta_ref (n_beta).
     """
     one_of("beta_cost", beta_cost, ("relative", "absolute"))

@@ -1,4 +1,5 @@
-"""System models as CasADi SX expressions (SPEC 2): x_{k+1} = F(x_k, u_k), safety margins h(x).
+"""System models as CasADi SX expressions (assumptions §2): x_{k+1} = F(x_k, u_k), safety margins
+h(x).
 
 A :class:`Model` is a description, not a solver object: symbols, the one-step map, control box,
 safety margins (h >= 0 is safe) and names. Users bring their own system with
@@ -276,7 +277,7 @@ def double_integrator(
     scene_capacity: int | None = None,
     runtime_obstacles: bool = True,
 ) -> Model:
-    """Planar double integrator x = [px, py, vx, vy], u = [ax, ay] (SPEC 2.1-2.2).
+    """Planar double integrator x = [px, py, vx, vy], u = [ax, ay] (assumptions §2.1-§2.2).
 
     The obstacles are the default scene of ``scene_capacity`` circle slots (default: one per
     obstacle); ``runtime_obstacles=False`` bakes them in as constants."""
@@ -305,7 +306,7 @@ def single_integrator(
     scene_capacity: int | None = None,
     runtime_obstacles: bool = True,
 ) -> Model:
-    """Planar single integrator x = [px, py], u = [vx, vy] (SPEC 2.4); obstacles as in
+    """Planar single integrator x = [px, py], u = [vx, vy] (assumptions §2.4); obstacles as in
     :func:`double_integrator`."""
     x = ca.SX.sym("x", 2)
     u = ca.SX.sym("u", 2)

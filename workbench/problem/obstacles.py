@@ -1,4 +1,4 @@
-"""Circular obstacles and their safety margins h_i(p) (h >= 0 is safe), SPEC 3.1."""
+"""Circular obstacles and their safety margins h_i(p) (h >= 0 is safe), assumptions §3.1."""
 
 from __future__ import annotations
 

@@ -1,9 +1,10 @@
 """Receding-horizon controllers with explicit state: ``state, u, info = ctrl.step(state, x, rng)``.
 
-* :class:`MPPI` — MPPI (SPEC 8.1); BaS-MPPI is MPPI on a barrier-embedded problem (SPEC 8.2).
+* :class:`MPPI` — MPPI (assumptions §8.1); BaS-MPPI is MPPI on a barrier-embedded problem
+  (assumptions §8.2).
 * :class:`RobustMPPI` — Robust MPPI with the SAIS sampler of Algorithm 1 and a feedback law
-  (:mod:`workbench.sampling.feedback`): K_safe from BaS-iLQG gives SA-RMPPI (SPEC 10.3), plain
-  iLQG tracking gains give RMPPI (SPEC 9.4). The selection threshold alpha comes from
+  (:mod:`workbench.sampling.feedback`): K_safe from BaS-iLQG gives SA-RMPPI (assumptions §10.3),
+  plain iLQG tracking gains give RMPPI (assumptions §9.4). The selection threshold alpha comes from
   :mod:`workbench.sampling.threshold`.
 
 Controllers hold only immutable configuration and external workspaces (compiled kernels, iLQG
@@ -67,7 +68,7 @@ def savgol_matrix(T: int, window: int, order: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class MPPIConfig:
-    """Sampling settings (SPEC 8.2, 15 defaults [A]).
+    """Sampling settings (assumptions §8.2, 15 defaults [A]).
 
     Bounds checked here: every ``sigma`` in [1.5e-154, 6.7e153] and ``lam`` in
     [2.2e-308, 4.5e307] (their squares, resp. values, and reciprocals are normal float64
@@ -81,7 +82,8 @@ class MPPIConfig:
     iterations: int = 1
     crash_cost: float = 1e6
     tail: Literal["hold", "zero"] = "hold"
-    smoothing: tuple[int, int] | None = None  # Savitzky-Golay (window, order), SPEC 8.1 [A] (9, 2)
+    # Savitzky-Golay (window, order), assumptions §8.1 [A] (9, 2)
+    smoothing: tuple[int, int] | None = None
     backend: Backend = "auto"
 
     def __post_init__(self) -> None:
@@ -253,7 +255,7 @@ class MPPI(RecordsSamples):
 
 @dataclass(frozen=True)
 class RMPPIConfig:
-    """Robust MPPI settings (SPEC 9, 10; defaults [A] from SPEC 15).
+    """Robust MPPI settings (assumptions §9, §10; defaults [A] from assumptions §15).
 
     ``alpha`` is a fixed selection threshold, used when no calibrated
     :class:`~workbench.sampling.threshold.Threshold` is given to :class:`RobustMPPI` (the
@@ -270,8 +272,8 @@ class RMPPIConfig:
     candidate_samples: int = 64
     fallback: Literal["propagated", "keep_previous"] = "propagated"
     applied: Literal["nominal_feedback", "real"] = "nominal_feedback"
-    clip_in_cost: bool = True  # SPEC 10.1: clipped noise/feedback in the SAIS costs
-    # SPEC 11.2: hand out the first SAIS batch of each step with trajectories and pure state
+    clip_in_cost: bool = True  # assumptions §10.1: clipped noise/feedback in the SAIS costs
+    # assumptions §11.2: hand out the first SAIS batch of each step with trajectories and pure state
     # costs (RMPPIInfo.batch, a SAISDiagBatch); same costs and controls, so the same behaviour
     diagnostics: bool = False
 
@@ -301,7 +303,7 @@ class RMPPIState:
 
 @dataclass(frozen=True, kw_only=True)
 class Selection:
-    """Outcome of the nominal-state selection (SPEC 9.3)."""
+    """Outcome of the nominal-state selection (assumptions §9.3)."""
 
     x_nom: np.ndarray  # chosen nominal state x*_0 (full)
     U: np.ndarray  # nominal controls slid by the chosen stride
@@ -360,14 +362,14 @@ class RMPPIInfo:
 
 
 def strides(n_candidates: int, s: int = 1) -> np.ndarray:
-    """Candidate strides round(W_i1 s + W_i2 s), rounding half away from zero (SPEC 9.3)."""
+    """Candidate strides round(W_i1 s + W_i2 s), rounding half away from zero (assumptions §9.3)."""
     hc = n_candidates // 2
     w = np.array([i / hc for i in range(hc + 1)] + [1.0] * hc) * s
     return np.floor(w + 0.5).astype(int)
 
 
 def candidate_weights(n_candidates: int) -> np.ndarray:
-    """(n_candidates, 3) weights on (old nominal, propagated nominal, real) (SPEC 9.3)."""
+    """(n_candidates, 3) weights on (old nominal, propagated nominal, real) (assumptions §9.3)."""
     hc = n_candidates // 2
     W = [(1 - i / hc, i / hc, 0.0) for i in range(hc + 1)]
     W += [(0.0, 1 - i / hc, i / hc) for i in range(1, hc + 1)]
@@ -432,7 +434,7 @@ class RobustMPPI(RecordsSamples):
         return RMPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)), x_nom=None, index=0)
 
     def select_nominal(self, state: RMPPIState, xb, rng) -> Selection:
-        """Nominal-state selection (SPEC 9.3) with s = 1 plant step since the last call."""
+        """Nominal-state selection (assumptions §9.3) with s = 1 plant step since the last call."""
         nc = self.rcfg.n_candidates
         if state.x_nom is None:
             n = self.sp.model.n_physical
@@ -444,7 +446,7 @@ class RobustMPPI(RecordsSamples):
         a1 = self._dyn(a0, state.U[0], self.consts.scene)[0]
         n = sp.model.n_physical
         mixed = self._W @ np.stack([a0, a1, xb])
-        # beta of an interpolated state is recomputed from its position (SPEC 4.4)
+        # beta of an interpolated state is recomputed from its position (assumptions §4.4)
         starts = self._lift_all(mixed[:, :n], self.consts.scene)[0].reshape(nc, sp.nx)
         starts[-1] = xb  # the real candidate is the measured state itself
         M = r.candidate_samples
@@ -452,7 +454,8 @@ class RobustMPPI(RecordsSamples):
         S = self.sampler.candidates(np.repeat(starts, M, axis=0), state.U,
                                     np.repeat(self._strides.astype(float), M), self.consts,
                                     int(rng.integers(0, 2**63)))
-        # per-candidate free energy; the shift (SPEC 9.3: min over all samples) cancels exactly,
+        # per-candidate free energy; the shift (assumptions §9.3: min over all samples) cancels
+        # exactly,
         # a per-candidate shift only avoids underflow
         F = np.array([free_energy(S_i, cfg.lam) for S_i in S.reshape(nc, M)])
         alpha = self.threshold(starts[:, :n])

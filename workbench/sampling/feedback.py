@@ -1,11 +1,12 @@
 """Feedback laws for Robust MPPI: gains K_k (T, nu, nx) about the nominal trajectory.
 
 A :class:`FeedbackLaw` turns the nominal state x*_0 and the nominal control sequence u* into
-gains for the SAIS dual rollout (SPEC 9.2, 10.1) and for the applied control (SPEC 9.5):
+gains for the SAIS dual rollout (assumptions §9.2, §10.1) and for the applied
+control (assumptions §9.5):
 
-* :class:`ILQGFeedback` on the barrier-embedded model — K_safe of SA-RMPPI (SPEC 10.2);
+* :class:`ILQGFeedback` on the barrier-embedded model — K_safe of SA-RMPPI (assumptions §10.2);
 * :class:`ILQGFeedback` on the physical model — the plain iLQG tracking feedback of RMPPI
-  (SPEC 9.4); its gains on the barrier state are zero;
+  (assumptions §9.4); its gains on the barrier state are zero;
 * :class:`NoFeedback` — K = 0 (SAIS then reduces to MPPI sampling).
 
 The gains are one derivative evaluation and one backward pass along the nominal trajectory the
@@ -13,7 +14,7 @@ sampler actually uses (the clipped open-loop rollout of u* from x*_0) with the t
 ½|x-x*|²_Q + ½ q_beta β² + ½|u-u*|²_R. They are the unconstrained (no box QP) gains: the kernels
 clip every control, so a gain on a saturated input still acts once the input leaves the limit.
 A nominal rollout that leaves the safe set needs no special case: the barrier's crash rule
-(β = β_max, SPEC 4.6) keeps the derivatives finite. When the backward pass fails at every
+(β = β_max, assumptions §4.6) keeps the derivatives finite. When the backward pass fails at every
 regularisation level, or the derivatives are not finite, the previous gains shifted by the
 stride are used and the reason is reported — the gains are never silently set to zero.
 """
@@ -38,7 +39,7 @@ FALLBACK_REASONS = ("backward_failed", "nonfinite_derivatives", "nonfinite_gains
 
 @dataclass(frozen=True)
 class FeedbackWeights:
-    """Tracking weights of the feedback law (SPEC 9.4, 10.2 [A]); sized to the model."""
+    """Tracking weights of the feedback law (assumptions §9.4, §10.2 [A]); sized to the model."""
 
     Q: tuple[float, ...] = (500.0, 500.0, 100.0, 100.0)
     R: tuple[float, ...] = (1.0, 1.0)

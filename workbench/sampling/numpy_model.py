@@ -1,5 +1,5 @@
 """A plain-NumPy twin of the built-in navigation problem (planar double integrator, circular
-obstacles, discrete barrier states, SPEC 8.2 costs), for the NumPy reference sampler.
+obstacles, discrete barrier states, assumptions §8.2 costs), for the NumPy reference sampler.
 
 It shares no code with the CasADi expressions: :func:`numpy_navigation_twin` builds it from the
 model's obstacle list and barrier options and checks it against the CasADi model at random

@@ -1,8 +1,10 @@
 """The sampling problem: model, state costs and crash rule shared by MPPI, RMPPI and SA-RMPPI.
 
-Costs (SPEC 8.2): running state cost q(x, p) evaluated on post-step states k = 1..T, terminal
+Costs (assumptions §8.2): running state cost q(x, p) evaluated on post-step states k = 1..T,
+terminal
 phi(x_T, p), plus the crash cost C_crash at every step from a sample's first crash on
-(min_i h_i(p) <= eps_h, SPEC 4.6). ``p`` holds run-time values (the goal); crash cost, sampling
+(min_i h_i(p) <= eps_h, assumptions §4.6). ``p`` holds run-time values (the goal); crash cost,
+sampling
 std, temperature and limits are run-time inputs of the kernels. eps_h is compiled in: it is the
 barrier's own crash margin, so the kernel's crash test and the barrier state's share one
 computation.
@@ -54,7 +56,7 @@ class SamplingProblem:
 
     @property
     def eps_h(self) -> float:
-        """Crash margin: the barrier's eps_h for embedded models, else 1e-6 (SPEC 4.6)."""
+        """Crash margin: the barrier's eps_h for embedded models, else 1e-6 (assumptions §4.6)."""
         spec = self.model.barrier
         return float(spec.options.eps_h) if spec is not None else 1e-6
 
@@ -89,7 +91,7 @@ class SamplingProblem:
 
 def navigation_costs(model: Model, *, Qp=(1.0, 1.0), Qv=(0.1, 0.1), q_beta: float = 1.0,
                      S=(10.0, 10.0, 1.0, 1.0, 1.0)) -> SamplingProblem:
-    """SPEC 8.2 [A]: q = |p-p_g|²_Qp + |v|²_Qv + q_beta |beta-beta_g|², phi = |x-x_g|²_S.
+    """assumptions §8.2 [A]: q = |p-p_g|²_Qp + |v|²_Qv + q_beta |beta-beta_g|², phi = |x-x_g|²_S.
 
     Parameter p = the goal's full state x_g (physical goal lifted, so beta_g = B(h(p_g))).
     """
@@ -111,7 +113,7 @@ def navigation_costs(model: Model, *, Qp=(1.0, 1.0), Qv=(0.1, 0.1), q_beta: floa
     e = x - g
     weights = {"Qp": Qp, "Qv": Qv, "q_beta": float(q_beta), "S": S}
     return SamplingProblem.from_costs(model, q, ca.dot(S * e, e), g,
-                                      description="navigation (SPEC 8.2)", weights=weights)
+                                      description="navigation (assumptions §8.2)", weights=weights)
 
 
 ANGLE_STATES = ("theta", "heading", "psi", "yaw")  # names goal_costs wraps by default

@@ -1,9 +1,10 @@
-"""The free-energy threshold alpha of RMPPI's nominal-state selection (SPEC 9.3, 10.3).
+"""The free-energy threshold alpha of RMPPI's nominal-state selection (assumptions §9.3, §10.3).
 
 A candidate nominal state c is admissible when its free energy F(c) is below alpha(c). The rule
 must bind: the free energy falls by three orders of magnitude from the start to the goal on the
 paper's map (≈ 15000 → ≈ 21 for undisturbed BaS-MPPI), so any constant calibrated at the start
-(SPEC 10.3's first rule, ``kind="start"``) is never reached later and SA-RMPPI degenerates to
+(assumptions §10.3's first rule, ``kind="start"``) is never reached later and SA-RMPPI degenerates
+to
 BaS-MPPI. Rules (:class:`AlphaRule`):
 
 * ``"progress"`` (default) — alpha(x) = (1 + kappa) F_und(d(x)): F_und(d) is the free energy an

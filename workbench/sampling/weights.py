@@ -1,4 +1,4 @@
-"""Importance weights, free energy and effective sample size (SPEC 8.1, 11.2).
+"""Importance weights, free energy and effective sample size (assumptions §8.1, §11.2).
 
 Non-finite costs (NaN or inf) are treated as +inf: they get zero weight and never reach the
 normalisation. All computations shift by the minimum finite cost (the max-shift).
@@ -50,7 +50,8 @@ def importance_weights(S, lam: float) -> Weights:
 
 
 def free_energy(S, lam: float) -> float:
-    """Monte Carlo free-energy estimate of a batch of costs (SPEC eq. free energy)."""
+    """Monte Carlo free-energy estimate of a batch of costs (the paper's free-energy definition,
+    assumptions §11.2)."""
     return importance_weights(S, lam).free_energy
 
 

@@ -1,4 +1,4 @@
-"""Scenes of the paper's studies, with every assumed value marked [A] (SPEC 3.3)."""
+"""Scenes of the paper's studies, with every assumed value marked [A] (assumptions §3.3)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from workbench.validation import as_array, fail, positive
 
 @dataclass(frozen=True)
 class TrackingScene:
-    """SPEC 3.3: one obstacle on a straight, unsafe reference from start to target."""
+    """assumptions §3.3: one obstacle on a straight, unsafe reference from start to target."""
 
     start: tuple[float, ...] = (-5.0, 0.0, 0.0, 0.0)  # [A]
     target: tuple[float, ...] = (5.0, 0.0, 0.0, 0.0)  # [A]
@@ -46,7 +46,7 @@ class TrackingScene:
 
 @dataclass(frozen=True)
 class NavigationScene:
-    """SPEC 3.2 [A]: 30 circles in [0,10]^2 with a central vertical corridor, fixed seed.
+    """assumptions §3.2 [A]: 30 circles in [0,10]^2 with a central vertical corridor, fixed seed.
 
     ``n_obstacles`` counts every circle, the two gate circles of the corridor included.
     """

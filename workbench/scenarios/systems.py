@@ -66,7 +66,8 @@ from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_c
 from workbench.scenarios.scenes import CircleScene
 from workbench.validation import as_array, fail, one_of, real, scale
 
-# [A] SPEC 8.2 starts from sigma = 2, lambda = 1, q_beta = 1 and asks to tune the undisturbed
+# [A] assumptions §8.2 starts from sigma = 2, lambda = 1, q_beta = 1 and asks to tune the
+# undisturbed
 # BaS-MPPI to reach the goal. With q_beta = 1 the robot stalls in a local minimum of this map at
 # (3.8, 2.2); the values below reach the goal (final error ~0.01 m in 20 s); the grid that
 # chose them is documented with the navigation study.
