@@ -1,31 +1,45 @@
 """``python -m benchmarks --out reports/bench/bench.json`` (``make bench``), also writes
-``report.md`` beside it.
+``report.md`` beside it, and the growth curves ``growth.json`` / ``growth.png``.
+
+Flags: ``--quick`` (fewer repeats, no growth curves, no jit-compiled NLP baselines),
+``--growth`` (only the growth curves; ``report.md`` is re-rendered with the records already in
+``bench.json``), ``--max-circles`` (largest circle count of the growth curves).
 
 Each record: name, value, unit, baseline, baseline_value, ratio (= baseline_value / value),
 params. Times are medians of repeats; every ratio compares two things measured in this process,
 so noisy machines still give comparable figures. Baselines: a vectorised NumPy implementation
 (sampler kernels), IPOPT and FATROP on the same multiple-shooting NLP (iLQG variants), a fresh
 qpsolvers call (ECBF step), pytorch_mppi (optional ``bench`` extra), the NumPy iLQG twin (per
-iteration). A record without a measured baseline has ratio None.
+iteration), the hand-written C floor of the sampler rollouts (``benchmarks/floor``; the
+split of each batch into noise, rollout, Python call, weights and update is a ratio to it). A
+record without a measured baseline has ratio None.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
+import json
+import logging
 import os
 import statistics
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.floor import cpu_flags, cpu_model
+from benchmarks.report import report_markdown
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.ilqg.bas import TrackingWeights, tracking_params, tracking_problem
 from workbench.problem.barrier import BarrierOptions
 from workbench.problem.models import double_integrator
 from workbench.scenarios.scenes import TrackingScene
 from workbench.study.io import atomic_write_json, manifest
+
+log = logging.getLogger("benchmarks")
 
 
 def _median_time(fn, repeats: int) -> tuple[float, object]:
@@ -63,71 +77,101 @@ def bench_ilqg_iteration(repeats: int) -> dict:
                              "outer loop", "goal_ms": 1.0})
 
 
+def optional_records(repeats: int) -> list[dict]:
+    """Records of the optional benchmark modules (precision, threads) when they exist; a module
+    that fails leaves a record naming the error (and its traceback on stderr)."""
+    out = []
+    for module, fn in (("benchmarks.precision", "bench_precision"),
+                       ("benchmarks.threads", "bench_threads")):
+        if importlib.util.find_spec(module) is None:
+            print(f"{module}: not present, skipped")
+            continue
+        try:
+            out += list(getattr(importlib.import_module(module), fn)(repeats))
+        except Exception as exc:  # one failing module must not lose the other records
+            traceback.print_exc()
+            out.append({"name": module, "value": None, "unit": "", "baseline": None,
+                        "baseline_value": None, "ratio": None, "params": {},
+                        "skipped": f"failed: {type(exc).__name__}: {exc}"})
+    return out
+
+
 def _fmt(v, spec: str = ".3g") -> str:
     return "—" if v is None else format(v, spec)
 
 
-def report_markdown(records: list[dict], man: dict) -> str:
-    """The benchmark table: every ratio is baseline_value / value, both measured in this run."""
-    lines = ["# Benchmarks (`make bench`)", "",
-             "Medians of repeats in one process; every ratio = baseline / value, both measured "
-             "in this run (alternating where both are timed in a loop). Machine: "
-             f"{man.get('platform', '?')}, {os.cpu_count()} CPUs; "
-             f"git {str(man.get('git_revision', '?'))[:10]}.", "",
-             "| benchmark | value | unit | baseline | baseline value | ratio | notes |",
-             "|---|---:|---|---|---:|---:|---|"]
-    for r in records:
-        p = r.get("params", {})
-        notes = []
-        if r.get("skipped"):
-            notes.append(f"skipped: {r['skipped']}")
-        for key in ("goal_ratio", "goal_ms"):
-            if p.get(key) is not None:
-                notes.append(f"{key} {p[key]}")
-        if isinstance(p.get("iterations"), dict):
-            notes.append("iterations " + ", ".join(f"{k} {v}" for k, v in p["iterations"].items()))
-        if p.get("threads") is not None:
-            notes.append(f"threads {p['threads']}")
-        if "max_rel_cost_difference" in p:
-            notes.append(f"objectives agree to {p['max_rel_cost_difference']:.1e}")
-        if "max_rel_err_vs_kernel_on_kernel_noise" in p:
-            notes.append(f"baseline = kernel to {p['max_rel_err_vs_kernel_on_kernel_noise']:.0e}")
-        if "nlp_max_rel_cost_difference" in p:
-            notes.append(f"IPOPT/FATROP objectives agree to {p['nlp_max_rel_cost_difference']:.1e}")
-        if "slowdown_vs_di" in p:
-            notes.append(f"slowdown {p['slowdown_vs_di']:.2f}x (goal <= {p['goal_slowdown']}x"
-                         f"{', met' if p['goal_met'] else ', not met'}); same kernel with cubic "
-                         f"polynomials for sin/cos: {p['floor_polynomial_unicycle_vs_di']:.2f}x")
-        if "vector_vs_scalar_max_rel_diff" in p and "slowdown_vs_di" not in p:
-            notes.append(f"{p['vector_math']}, <= {p['max_ulp_tested']} ulp; vector = scalar to "
-                         f"{p['vector_vs_scalar_max_rel_diff']:.0e}")
-        if "al_rel_cost_gap_vs_fatrop" in p:
-            notes.append(f"AL cost gap {p['al_rel_cost_gap_vs_fatrop']:.1e}")
-        lines.append(f"| {r['name']} | {_fmt(r['value'])} | {r['unit']} | "
-                     f"{r['baseline'] or '—'} | {_fmt(r['baseline_value'])} | "
-                     f"{_fmt(r['ratio'], '.1f')} | {'; '.join(notes)} |")
-    return "\n".join(lines) + "\n"
+def _growth_markdown(out_dir: Path) -> str | None:
+    from benchmarks.growth import markdown
+
+    try:
+        return markdown(json.loads((out_dir / "growth.json").read_text()))
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _run_growth(args, out_dir: Path) -> None:
+    from benchmarks.growth import GrowthConfig, growth
+
+    cfg = GrowthConfig(circles=tuple(n for n in GrowthConfig().circles if n <= args.max_circles)
+                       or (args.max_circles,))
+    growth(cfg, out_dir)
+    print(f"wrote {out_dir / 'growth.json'} and {out_dir / 'growth.png'}")
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=Path("reports/bench/bench.json"))
-    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--repeats", type=int, default=None,
+                    help="repeats per timing (default 7; 3 with --quick)")
+    ap.add_argument("--quick", action="store_true",
+                    help="fewer repeats, no growth curves, no jit-compiled NLP baselines")
+    ap.add_argument("--growth", action="store_true",
+                    help="only the growth curves (report.md re-rendered with bench.json)")
+    ap.add_argument("--max-circles", type=int, default=1000,
+                    help="largest circle count of the growth curves (default 1000; the first "
+                    "build of the 1000-slot kernels takes about a minute)")
     args = ap.parse_args(argv)
+    if args.quick and args.growth:
+        ap.error("--quick and --growth exclude each other")
+    if args.repeats is not None and args.repeats < 1:
+        ap.error(f"--repeats {args.repeats}: must be at least 1")
+    if args.max_circles < 1:
+        ap.error(f"--max-circles {args.max_circles}: must be at least 1")
+    repeats = args.repeats or (3 if args.quick else 7)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    out_dir = args.out.parent
+    if args.growth:
+        _run_growth(args, out_dir)
+        try:
+            data = json.loads(args.out.read_text())
+            records, man = data["records"], data["manifest"]
+        except (OSError, ValueError, KeyError):
+            records, man = [], manifest()
+        report = out_dir / "report.md"
+        report.write_text(report_markdown(records, man, _growth_markdown(out_dir)))
+        print(f"wrote {report}")
+        return
     records = []
-    for module in ("benchmarks.tracking", "benchmarks.sampling", "benchmarks.trig",
+    records += importlib.import_module("benchmarks.tracking").records(repeats,
+                                                                      jit=not args.quick)
+    for module in ("benchmarks.split", "benchmarks.sampling", "benchmarks.trig",
                    "benchmarks.torch_mppi"):
-        records += importlib.import_module(module).records(args.repeats)
-    records.append(bench_ilqg_iteration(args.repeats))
+        records += importlib.import_module(module).records(repeats)
+    records.append(bench_ilqg_iteration(repeats))
+    records += optional_records(repeats)
     for r in records:
-        print(f"{r['name']:44s} {_fmt(r['value'], '10.4f')} {r['unit']:12s} baseline "
+        print(f"{r['name']:52s} {_fmt(r['value'], '10.4f')} {r['unit']:12s} baseline "
               f"{r['baseline']} = {_fmt(r['baseline_value'], '.4f')}  ratio "
               f"{_fmt(r['ratio'], '.1f')}x" + (f"  [skipped: {r['skipped']}]"
                                              if r.get("skipped") else ""))
     man = manifest()
+    man["machine"] = {"cpu": cpu_model(), "cpu_flags": cpu_flags(), "cpus": os.cpu_count()}
     atomic_write_json(args.out, {"records": records, "manifest": man})
-    report = args.out.with_name("report.md")
-    report.write_text(report_markdown(records, man))
+    if not args.quick:
+        _run_growth(args, out_dir)
+    report = out_dir / "report.md"
+    report.write_text(report_markdown(records, man, _growth_markdown(out_dir)))
     print(f"wrote {args.out} and {report}")
 
 

@@ -1,9 +1,11 @@
 """Sampler benchmarks: one SAIS and one MPPI iteration, compiled kernel vs a well-vectorised NumPy
 implementation (benchmarks/numpy_sampling.py), each checked equal to the kernel on the kernel's
-noise before it is timed; the SA-RMPPI control step (no baseline: a goal, not a measurement)."""
+noise before it is timed (the SA-RMPPI control step is in benchmarks/split.py, against the C
+floor)."""
 
 from __future__ import annotations
 
+import contextlib
 import statistics
 import time
 from dataclasses import replace
@@ -11,11 +13,11 @@ from dataclasses import replace
 import numpy as np
 
 from benchmarks.numpy_sampling import VectorisedNavigation, mppi_numpy, sais_numpy
+from benchmarks.timing import pinned_threads
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.sampler import Sampler
 from workbench.sampling.weights import importance_weights, weighted_controls
 from workbench.scenarios.navigation import navigation_setup
-from workbench.sim import Disturbance, closed_loop
 
 RTOL = 1e-10  # as tests/test_sampler_kernels.py: |a - b| <= RTOL * max(|a|, |b|, 1)
 
@@ -99,26 +101,23 @@ def sais_batch_records(repeats: int) -> list[dict]:
     T = U.shape[0]
     out = []
     for N, threads in ((256, None), (1024, None), (4096, None), (1024, 1)):
-        if threads is not None:  # one thread: robust to other processes on the machine
-            default_threads = sampler.lib.cdll.wb_get_threads()
-            sampler.lib.set_threads(threads)
-        # exactness first: the vectorised baseline on the kernel's noise equals the kernel
-        b = sampler.sais(x0, x0, U, K, N, c, 1)
-        r = sais_numpy(vec, x0, x0, U, K, sampler.lib.normals(N, T, sp.nu, 1), c)
-        err = max(_rel_err(getattr(b, n), r[n])
-                  for n in ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "v_nom", "v_real"))
-        if not (np.array_equal(b.crashed_real, r["crashed_real"])
-                and np.array_equal(b.crashed_nom, r["crashed_nom"])):
-            err = np.inf
-        if err > RTOL:
-            raise AssertionError(f"vectorised NumPy SAIS differs from the kernel: {err:.2e}")
-        t_fast, t_slow = _interleaved(
-            lambda i, N=N: _sais_compiled(sampler, x0, U, K, N, c, i),
-            lambda i, N=N: _sais_vectorised(vec, x0, U, K, N, c, i),
-            max(repeats, 5) * 4, max(3, repeats // 2), block=5)
-        used = sampler.lib.cdll.wb_get_threads()
-        if threads is not None:
-            sampler.lib.set_threads(default_threads)
+        # one thread (pinned, the library's adaptive policy off): robust to other processes
+        with pinned_threads(threads) if threads else contextlib.nullcontext():
+            # exactness first: the vectorised baseline on the kernel's noise equals the kernel
+            b = sampler.sais(x0, x0, U, K, N, c, 1)
+            r = sais_numpy(vec, x0, x0, U, K, sampler.lib.normals(N, T, sp.nu, 1), c)
+            err = max(_rel_err(getattr(b, n), r[n]) for n in (
+                "S_nom", "S_real", "S_state_nom", "S_hat", "LR", "v_nom", "v_real"))
+            if not (np.array_equal(b.crashed_real, r["crashed_real"])
+                    and np.array_equal(b.crashed_nom, r["crashed_nom"])):
+                err = np.inf
+            if err > RTOL:
+                raise AssertionError(f"vectorised NumPy SAIS differs from the kernel: {err:.2e}")
+            t_fast, t_slow = _interleaved(
+                lambda i, N=N: _sais_compiled(sampler, x0, U, K, N, c, i),
+                lambda i, N=N: _sais_vectorised(vec, x0, U, K, N, c, i),
+                max(repeats, 5) * 4, max(3, repeats // 2), block=5)
+            used = threads or sampler.lib.cdll.wb_get_threads()
         out.append(_record(
             f"sais_batch_N{N}_T100" + ("_1thread" if threads else ""), 1e3 * t_fast, "ms",
             "vectorised_numpy_sais_ms",
@@ -166,22 +165,6 @@ def mppi_batch_records(repeats: int) -> list[dict]:
     return out
 
 
-def sa_rmppi_step_record(steps: int = 80) -> dict:
-    nav = navigation_setup()
-    ctrl = nav.controller("sa_rmppi")  # default calibrated alpha rule
-    closed_loop(ctrl, nav.plant, nav.x0, 5, np.random.default_rng(0), np.random.default_rng(1))
-    ep = closed_loop(ctrl, nav.plant, nav.x0, steps, np.random.default_rng(2),
-                     np.random.default_rng(3), Disturbance(10.0))
-    split = {k: 1e3 * statistics.median(i.timing[k] for i in ep.infos)
-             for k in ep.infos[0].timing}
-    return _record("sa_rmppi_step_N1024_T100", 1e3 * statistics.median(ep.step_time_s), "ms",
-                   None, None, {"split_median_ms": split, "steps": steps, "N": 1024, "T": 100,
-                                "candidates": "9 x 64", "goal_ms": 4.0,
-                                "K_safe": "one derivative evaluation + one backward pass",
-                                "disturbance_variance": 10.0,
-                                "baseline": "none measured (issue 13 item 3 owns this step)"})
-
-
 def scene_input_records(repeats: int) -> list[dict]:
     """SAIS and BaS-MPPI batches (N = 1024, T = 100, the 30-circle map) with the obstacles as
     a run-time kernel input against the same kernels with the circles baked in as constants.
@@ -220,5 +203,6 @@ def scene_input_records(repeats: int) -> list[dict]:
 
 
 def records(repeats: int) -> list[dict]:
+    # the SA-RMPPI step record moved to benchmarks/split.py (with its ratio to the C floor)
     return [*sais_batch_records(repeats), *mppi_batch_records(repeats),
-            *scene_input_records(repeats), sa_rmppi_step_record()]
+            *scene_input_records(repeats)]
