@@ -30,9 +30,9 @@ from scipy.signal import savgol_filter
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
 from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
-from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.kernels.constants import SamplerConstants, scale32
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.sampler import Backend, SAISBatch, Sampler
+from workbench.sampling.sampler import Backend, Precision, SAISBatch, Sampler
 from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.sampling.threshold import ConstantThreshold, Threshold
@@ -51,6 +51,7 @@ from workbench.validation import (
 )
 
 MAX_ITERATIONS = 1000  # MPPI iterations per step
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 MAX_CANDIDATES = 1001  # RMPPI candidate nominal states
 MAX_CANDIDATE_ROLLOUTS = 2**24  # RMPPI candidate rollouts per step
 
@@ -85,6 +86,9 @@ class MPPIConfig:
     # Savitzky-Golay (window, order), assumptions §8.1 [A] (9, 2)
     smoothing: tuple[int, int] | None = None
     backend: Backend = "auto"
+    # sampler kernels: "float32" = twice the SIMD lanes; samples near the crash margin and
+    # batches without a crash-free sample are recomputed in float64 (workbench.sampling.sampler)
+    precision: Precision = "float64"
 
     def __post_init__(self) -> None:
         for name in ("n_samples", "horizon"):  # the kernels take them as a C int
@@ -116,6 +120,16 @@ class MPPIConfig:
             if not ok:
                 raise fail("MPPIConfig.smoothing", self.smoothing,
                            "need (window, order) with an odd window <= horizon and order < window")
+        one_of("MPPIConfig.precision", self.precision, ("float64", "float32"))
+        if self.precision == "float32":  # sigma^2, lambda, lambda (1 - nu_mix) normal in float32
+            for i, v in enumerate(self.sigma):
+                scale32(f"MPPIConfig.sigma[{i}]", v, power=2)
+            scale32("MPPIConfig.lam", self.lam)
+            if self.nu_mix > 0:
+                scale32("MPPIConfig.lam * (1 - nu_mix)", self.lam * (1.0 - self.nu_mix))
+            if self.crash_cost > FLOAT32_MAX:
+                raise fail("MPPIConfig.crash_cost", self.crash_cost,
+                           f"must be at most {FLOAT32_MAX:.4g} for precision 'float32'")
 
     def smooth(self, U: np.ndarray) -> np.ndarray:
         """Savitzky-Golay smoothing of a control sequence along time (or U unchanged): one
@@ -213,7 +227,7 @@ class MPPI(RecordsSamples):
         if len(config.sigma) != sp.nu:
             raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
         self.sp, self.cfg = sp, config
-        self.sampler = Sampler(sp, config.backend)
+        self.sampler = Sampler(sp, config.backend, config.precision)
         self.consts, self._goal = plan_constants(sp, goal, config)
 
     @property

@@ -4,6 +4,29 @@ Every call takes an explicit seed drawn from the caller's ``numpy.random.Generat
 compiled backend draws its noise inside the kernel from that seed; the NumPy backend draws it
 with ``numpy.random.default_rng(seed)`` (the two backends therefore differ in noise, not in
 algorithm; tests feed both the same noise). Sample outputs are lane-major: v (T, nu, N).
+
+Precision (``Sampler(sp, precision="float32")``): the rollouts run in float32 kernels (twice
+the SIMD lanes) on the float64 kernels' noise rounded to float, with the cost sums in double;
+results are returned as float64 and weighted in float64. Where float32 is unsafe:
+
+* **near the crash margin** — the crash test min_i h_i <= eps_h and the barrier 1/h are
+  sensitive to rounding when h is small. A sample whose smallest margin comes within
+  ``SamplerConstants.guard_band`` (default 2.5e-4, ten times the float32 drift of the margins
+  measured on the navigation map) of eps_h at its crash step or before it is recomputed by the
+  float64 kernel on its own noise: its costs, crash flags and controls are exactly float64's,
+  and every other sample's crash flag and crash step are float64's too. Costs of samples that
+  pass close to an obstacle without entering the band keep a relative error of about
+  1e-6 / h_min (h_min their smallest margin, m^2: 2e-5 at 0.05); such samples carry large
+  barrier costs and little weight. A crashed sample's cost after its crash step is float32's.
+* **no crash-free sample** — when every sample (MPPI), every real or every nominal sample
+  (SAIS) crashed, the weights compare crashed costs of order beta_max^2, which float32 cannot
+  resolve: the whole batch is recomputed in float64 (the same batch a float64 sampler draws).
+  Candidate batches skip this (their free energies are only compared with the threshold).
+* **constants** — sigma^2, lambda and lambda (1 - nu_mix) must be normal float32 numbers and
+  every other constant finite in float32 (:meth:`SamplerConstants.check_float32`).
+
+:attr:`Sampler.guard` counts how often the guards acted. Diagnostics batches (``sais(...,
+diagnostics=True)``) are always float64. The NumPy backend computes in float64.
 """
 
 from __future__ import annotations
@@ -13,15 +36,33 @@ from typing import Literal
 
 import numpy as np
 
-from workbench.sampling.kernels.build import sampler_library
+from workbench.sampling.kernels.build import SamplerLibrary, sampler_library
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.diagnostics import diagnostics_library
-from workbench.sampling.kernels.emit import LANES
+from workbench.sampling.kernels.emit import LANES, PRECISIONS
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import mppi_reference, sais_reference
 from workbench.validation import as_array, fail, integer, one_of
 
 Backend = Literal["auto", "compiled", "numpy"]
+Precision = Literal["float64", "float32"]
+
+
+@dataclass
+class GuardCounts:
+    """How often the float32 guards acted (all zero for float64): ``batches`` and ``samples``
+    computed by float32 kernels, ``rechecked`` samples recomputed in float64 (near the crash
+    margin), ``reruns`` whole batches recomputed in float64 (no crash-free sample)."""
+
+    batches: int = 0
+    samples: int = 0
+    rechecked: int = 0
+    reruns: int = 0
+
+    def fractions(self) -> dict[str, float]:
+        """rechecked / samples and reruns / batches (0 when nothing ran)."""
+        return {"rechecked": self.rechecked / self.samples if self.samples else 0.0,
+                "reruns": self.reruns / self.batches if self.batches else 0.0}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -62,10 +103,16 @@ class SAISDiagBatch(SAISBatch):
 
 
 class Sampler:
-    """MPPI, SAIS and candidate batches for one sampling problem."""
+    """MPPI, SAIS and candidate batches for one sampling problem.
 
-    def __init__(self, sp: SamplingProblem, backend: Backend = "auto"):
+    ``precision`` ``"float64"`` (default) or ``"float32"`` (module docstring): ``lib`` is the
+    float64 library (noise, thread count, guard recomputations), ``lib32`` the float32 one
+    (None unless float32 kernels run), ``precision`` the precision that runs."""
+
+    def __init__(self, sp: SamplingProblem, backend: Backend = "auto",
+                 precision: Precision = "float64"):
         one_of("backend", backend, ("auto", "compiled", "numpy"))
+        one_of("precision", precision, PRECISIONS)
         self.sp = sp
         self.lib = None if backend == "numpy" else sampler_library(sp)
         if backend == "compiled" and self.lib is None:
@@ -73,30 +120,70 @@ class Sampler:
                        "or an operation the C back end cannot compile: see the warning); use "
                        "'numpy' or 'auto'")
         self.backend = "compiled" if self.lib is not None else "numpy"
+        self.lib32: SamplerLibrary | None = (
+            sampler_library(sp, "float32") if precision == "float32" and self.lib is not None
+            else None)
+        self.precision: Precision = "float32" if self.lib32 is not None else "float64"
+        self.guard = GuardCounts()
 
     def _noise(self, N: int, T: int, seed: int) -> np.ndarray:
         return np.random.default_rng(seed).standard_normal((N, T, self.sp.nu))
 
     def _check(self, N: int, U, c: SamplerConstants) -> tuple[np.ndarray, SamplerConstants]:
-        return check_batch(self.sp, N, U, c)
+        U, c = check_batch(self.sp, N, U, c)
+        if self.lib32 is not None:
+            c.check_float32()
+        return U, c
+
+    def _run(self, name: str, N: int, carry: dict, rows: tuple[str, ...], time_in: dict,
+             c: SamplerConstants, seed: int, float32: bool):
+        """(results by field, lane outputs) of kernel ``name``: float64, or float32 with the
+        samples near the crash margin recomputed in float64 on their own noise. ``rows``: the
+        carry fields given per sample (N rows)."""
+        k = getattr(self.lib, name)
+        consts = c.kernel_consts()
+        if not float32:
+            out = k(k.carry.pack(N, **carry), consts=consts, time_in=time_in, seed=seed)
+            return k.result.unpack(out.result), out.lane_out
+        k32 = getattr(self.lib32, name)
+        out = k32(k32.carry.pack(N, **carry), consts=consts, time_in=time_in, seed=seed)
+        r = k32.result.unpack(out.result)
+        idx = np.flatnonzero(r["guard"] > 0)
+        g = self.guard
+        g.batches, g.samples, g.rechecked = g.batches + 1, g.samples + N, g.rechecked + idx.size
+        if idx.size:
+            T = next(iter(time_in.values())).shape[0]
+            z = self.lib.normals_at(idx, T, k.spec.n_noise, seed)
+            sub = {f: (np.asarray(v)[idx] if f in rows else v) for f, v in carry.items()}
+            o = k(k.carry.pack(idx.size, **sub), consts=consts, time_in=time_in, noise=z)
+            for f, v in k.result.unpack(o.result).items():
+                r[f][idx] = v
+            for mine, theirs in zip(out.lane_out, o.lane_out, strict=True):
+                mine[..., idx] = theirs
+        return r, out.lane_out
+
+    def _rerun(self) -> None:
+        self.guard.reruns += 1
 
     def mppi(self, x0, U, N: int, c: SamplerConstants, seed: int) -> MPPIBatch:
         U, c = self._check(N, U, c)
         x0 = as_array("x0", x0, (self.sp.nx,))
         T = U.shape[0]
         if self.lib is not None:
-            k = self.lib.mppi
-            out = k(k.carry.pack(N, x=x0), consts=c.kernel_consts(), time_in={"u": U},
-                    seed=seed)
-            r = k.result.unpack(out.result)
-            return MPPIBatch(S=r["S"], crashed=r["crashed"] > 0, v=out.lane_out[0])
+            f32 = self.lib32 is not None
+            r, lane = self._run("mppi", N, {"x": x0}, (), {"u": U}, c, seed, f32)
+            if f32 and np.all(r["crashed"] > 0):  # no crash-free sample: float64's batch
+                self._rerun()
+                r, lane = self._run("mppi", N, {"x": x0}, (), {"u": U}, c, seed, False)
+            return MPPIBatch(S=r["S"], crashed=r["crashed"] > 0, v=lane[0])
         ref = mppi_reference(self.sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), c)
         return MPPIBatch(S=ref["S"], crashed=ref["crashed"], v=np.transpose(ref["v"], (1, 2, 0)))
 
     def sais(self, x0, xs0, U, K, N: int, c: SamplerConstants, seed: int,
              diagnostics: bool = False) -> SAISBatch:
         """SAIS batch (Algorithm 1). ``diagnostics=True`` returns a :class:`SAISDiagBatch`
-        (same costs, bitwise, for the same seed; plus trajectories and pure state costs)."""
+        (same costs, bitwise, for the same seed as a float64 sampler; plus trajectories and
+        pure state costs; always computed in float64)."""
         U, c = self._check(N, U, c)
         T = U.shape[0]
         K = as_array("K", K, (T, self.sp.nu, self.sp.nx))  # shape and finiteness
@@ -104,14 +191,16 @@ class Sampler:
         if diagnostics:
             return self._sais_diag(x0, xs0, U, K, N, c, seed)
         if self.lib is not None:
-            k = self.lib.sais
-            out = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
-                    time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed)
-            r = k.result.unpack(out.result)
+            f32 = self.lib32 is not None
+            args = ("sais", N, {"x": x0, "x_nom": xs0}, (), {"u": U, "K": K.reshape(T, -1)}, c,
+                    seed)
+            r, lane = self._run(*args, f32)
+            if f32 and (np.all(r["crashed_real"] > 0) or np.all(r["crashed_nom"] > 0)):
+                self._rerun()  # no crash-free real (or nominal) sample: float64's batch
+                r, lane = self._run(*args, False)
             return SAISBatch(S_nom=r["S_nom"], S_real=r["S_real"], S_state_nom=r["S_state_nom"],
                              S_hat=r["S_hat"], LR=r["LR"], crashed_real=r["crashed_real"] > 0,
-                             crashed_nom=r["crashed_nom"] > 0, v_nom=out.lane_out[0],
-                             v_real=out.lane_out[1])
+                             crashed_nom=r["crashed_nom"] > 0, v_nom=lane[0], v_real=lane[1])
         ref = sais_reference(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
                              self._noise(N, T, seed), c)
         return SAISBatch(S_nom=ref["S_nom"], S_real=ref["S_real"],
@@ -167,11 +256,12 @@ class Sampler:
             raise fail("stride", stride, "candidate strides must be 0 or 1")
         U_next = np.vstack([U[1:], U[-1:]])
         if self.lib is not None:
-            k = self.lib.candidates
-            carry = k.carry.pack(N, x=starts, delay=stride, stride=stride)
-            out = k(carry, consts=c.kernel_consts(), time_in={"u": U, "u_next": U_next},
-                    seed=seed)
-            return k.result.unpack(out.result)["S"]
+            # float32: no whole-batch rerun (candidate free energies are only compared with
+            # the threshold; a candidate whose samples all crash is refused in both precisions)
+            r, _ = self._run("candidates", N, {"x": starts, "delay": stride, "stride": stride},
+                             ("x", "delay", "stride"), {"u": U, "u_next": U_next}, c, seed,
+                             self.lib32 is not None)
+            return r["S"]
         U_lane = np.where(stride[:, None, None] > 0, U_next[None], U[None])
         return mppi_reference(self.sp, starts, U_lane, self._noise(N, T, seed), c,
                               delay=stride)["S"]

@@ -6,10 +6,43 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from workbench.validation import fail, real, scale
+
+# The float32 kernels' guard band (margin units, m^2 for squared-distance margins): a sample
+# whose smallest margin comes within it of the crash margin eps_h (at or before its crash) is
+# recomputed in double. Float32 rollouts of the navigation double integrator (T = 100 steps,
+# random controls, positions up to ~20 m) drift from float64 by at most 2.2e-5 m^2 in the
+# smallest margin (1.1e-5 near the obstacles); 2.5e-4 leaves a factor 11. The share of samples
+# recomputed grows with the band: in closed loop on the navigation map about 1% (3.7% at 1e-3).
+# Scale it with the square of the workspace size for much larger maps or horizons.
+GUARD_BAND = 2.5e-4
+_TINY32 = float(np.finfo(np.float32).tiny)  # 1.18e-38
+_MAX32 = float(np.finfo(np.float32).max)  # 3.40e38
+_BOUNDED = ("u_min", "u_max", "crash_cost", "p", "scene")  # finite in float32
+
+
+def scale32(name: str, value: float, power: int = 1) -> float:
+    """:func:`workbench.validation.scale` for float32: ``value**power`` and its reciprocal are
+    normal float32 numbers (value in [tiny^(1/power), tiny^(-1/power)], tiny = 1.18e-38)."""
+    v = float(value)
+    p = v**power if np.isfinite(v) else np.inf
+    ok = np.isfinite(p) and _TINY32 <= p <= 1.0 / _TINY32
+    if not ok:
+        lo, hi = _TINY32 ** (1.0 / power), _TINY32 ** (-1.0 / power)
+        what = "the value" if power == 1 else "its square" if power == 2 else f"value^{power}"
+        raise fail(name, value, f"must lie in [{lo:.4g}, {hi:.4g}] for precision 'float32' "
+                   f"({what} and its reciprocal must be normal float32 numbers)")
+    return v
+
 
 @dataclass(frozen=True)
 class SamplerConstants:
-    """Run-time constants shared by all samples (see kernels.py)."""
+    """Run-time constants shared by all samples (see kernels.py).
+
+    Checked here: every ``sigma`` in [1.5e-154, 6.7e153] and ``lam`` in [2.2e-308, 4.5e307]
+    (sigma^2 and 1/sigma^2, lambda and 1/lambda are normal float64 numbers, as
+    :class:`~workbench.sampling.controllers.MPPIConfig` requires); ``guard_band`` >= 0.
+    :meth:`check_float32` adds the float32 kernels' ranges."""
 
     sigma: np.ndarray  # (nu,) sampling std
     lam: float  # temperature lambda
@@ -22,6 +55,44 @@ class SamplerConstants:
     clip_in_cost: bool = True  # SPEC 10.1: clipped noise and feedback in lines 8, 9, 12
     # the obstacles (flat, model.n_scene; empty when the model has no run-time scene)
     scene: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    guard_band: float = GUARD_BAND  # float32 kernels only (see GUARD_BAND)
+
+    def __post_init__(self) -> None:
+        for i, v in enumerate(np.ravel(np.asarray(self.sigma, dtype=float))):
+            scale(f"SamplerConstants.sigma[{i}]", float(v), power=2)
+        scale("SamplerConstants.lam", self.lam)
+        real("SamplerConstants.guard_band", self.guard_band, 0.0)
+
+    def check_float32(self) -> None:
+        """Refuse constants a float32 kernel cannot represent: sigma^2, lambda and
+        lambda (1 - nu_mix) outside float32's normal range, or any other constant (crash cost,
+        limits, goal, scene) beyond float32's largest finite value (it would become inf, and
+        inf * 0 a NaN cost). alpha may be +inf (the kernels use it in double)."""
+        if self.__dict__.get("_float32_ok"):
+            return
+        sig = np.ravel(np.asarray(self.sigma, dtype=float))
+        lam, lr = float(self.lam), float(self.lam) * (1.0 - float(self.nu_mix))
+        big = [np.asarray(getattr(self, n), dtype=float) for n in _BOUNDED]
+        with np.errstate(over="ignore", invalid="ignore"):
+            sq = sig * sig
+            fine = (bool(np.all((sq >= _TINY32) & (sq <= 1.0 / _TINY32)))
+                    and _TINY32 <= lam <= 1.0 / _TINY32
+                    and (lr == 0.0 or _TINY32 <= lr <= 1.0 / _TINY32)
+                    and all(a.size == 0 or float(np.max(np.abs(a))) <= _MAX32 for a in big)
+                    and self.guard_band <= _MAX32)
+        if not fine:  # name the first offending field
+            for i, v in enumerate(sig):
+                scale32(f"SamplerConstants.sigma[{i}]", v, power=2)
+            scale32("SamplerConstants.lam", lam)
+            if lr != 0.0:
+                scale32("SamplerConstants.lam * (1 - nu_mix)", lr)
+            for name, arr in zip(_BOUNDED, big, strict=True):
+                if arr.size and not np.all(np.abs(arr) <= _MAX32):
+                    raise fail(f"SamplerConstants.{name}", arr, "must be finite and at most "
+                               f"{_MAX32:.4g} in magnitude for precision 'float32'")
+            raise fail("SamplerConstants.guard_band", self.guard_band,
+                       f"must be at most {_MAX32:.4g} for precision 'float32'")
+        self.__dict__["_float32_ok"] = True  # checked once per (immutable) instance
 
     def kernel_consts(self) -> dict[str, np.ndarray]:
         return {"sigma": np.asarray(self.sigma, float),
@@ -30,4 +101,5 @@ class SamplerConstants:
                 "crash": np.array([self.crash_cost]),
                 "p": np.asarray(self.p, float), "alpha": np.array([self.alpha]),
                 "clip_cost": np.array([float(self.clip_in_cost)]),
-                "scene": np.asarray(self.scene, float)}
+                "scene": np.asarray(self.scene, float),
+                "guard": np.array([float(self.guard_band)])}

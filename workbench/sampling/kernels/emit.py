@@ -18,18 +18,42 @@ Step inputs have roles:
 Step outputs: the new carry first, then per-sample per-time outputs written as (T, m, N).
 A ``final`` Function maps (carry, consts) to per-sample results (N, nr) after the last step.
 Lane-contiguous (T, m, N) layouts keep every load and store of the lane loop contiguous.
+
+Precision (``KernelSpec.precision``): ``"float64"`` kernels compute in double, four samples per
+block. ``"float32"`` kernels compute in ``float`` (f-suffixed libm calls, float literals rounded
+to nearest), eight samples per block (twice the SIMD lanes), with the carry entries listed in
+``KernelSpec.wide`` (the cost sums) kept in double: an operation is double when
+one of its operands is, so a step cost is formed in float and added to a double sum. Constants,
+``const`` and ``time`` inputs are available in both types and take the type of the operation that
+uses them. Inputs and outputs stay double arrays (converted on load and store); the noise is the
+double generator's draw rounded to float, so a float32 kernel sees the float64 kernel's normals.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
+from functools import cached_property
 from importlib import resources
 
 import casadi as ca
 
-LANES = 4
+LANES = 4  # samples per block of a float64 kernel (a 256-bit vector of doubles)
+PRECISIONS = ("float64", "float32")
+_LANES = {"float64": LANES, "float32": 2 * LANES}
 ROLES = ("carry", "noise", "lane", "time", "const")
+# OpenMP schedule of the block loop: equal shares per thread (busy machines are handled by the
+# thread count, workbench/sampling/kernels/threads.py; a dynamic schedule measured no better)
+WB_SCHEDULE = "static"
+
+
+def lane_count(precision: str) -> int:
+    """Samples per block of a kernel of ``precision`` (float32: twice float64's)."""
+    if precision not in _LANES:
+        raise ValueError(f"precision = {precision!r} is invalid: allowed values are "
+                         f"{PRECISIONS}")
+    return _LANES[precision]
 
 _UNARY = {
     ca.OP_NEG: "(-{0})", ca.OP_SQ: "({0}*{0})", ca.OP_TWICE: "({0}+{0})", ca.OP_INV: "(1.0/{0})",
@@ -65,6 +89,19 @@ _BINARY = {
 # libm calls: emitted as early as their inputs allow, so that fewer values are live across them
 # (a SIMD libm call clobbers every vector register, forcing spills of whatever is live)
 _CALLS = {ca.OP_SIN, ca.OP_COS, ca.OP_TAN, ca.OP_ASIN, ca.OP_ACOS, ca.OP_ATAN, ca.OP_ATAN2}
+_LIBM = ("sqrt", "exp", "log", "sin", "cos", "tan", "tanh", "fabs", "floor", "ceil", "atan",
+         "log1p", "expm1", "asin", "acos", "erf", "sinh", "cosh", "asinh", "acosh", "atanh",
+         "pow", "atan2", "hypot", "copysign", "fmod", "remainder")
+_LIBM_RE = re.compile(r"\b(" + "|".join(_LIBM) + r")\(")
+
+
+def _float_template(t: str) -> str:
+    """The float version of a C template: f-suffixed libm calls and float literals."""
+    return re.sub(r"(?<![\w.])(\d+\.\d+)", r"\1f", _LIBM_RE.sub(r"\1f(", t))
+
+
+_UNARY_F = {op: _float_template(t) for op, t in _UNARY.items()}
+_BINARY_F = {op: _float_template(t) for op, t in _BINARY.items()}
 _OP_NAMES = {getattr(ca, n): n[3:].lower() for n in dir(ca) if n.startswith("OP_")}
 _STRUCTURAL = (ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST)
 
@@ -98,10 +135,26 @@ def _literal(v: float) -> str:
     return f"{v.hex()}"
 
 
-def straight_line(f: ca.Function, load, store, prefix: str) -> list[str]:
+def _literal_f(v: float) -> str:
+    """A float literal: v rounded to the nearest float (inf beyond float's range)."""
+    import numpy as np
+
+    with np.errstate(over="ignore"):
+        f = float(np.float32(v))
+    return _literal(f) if math.isnan(f) or math.isinf(f) else f"{f.hex()}f"
+
+
+def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
+                  load_f=None) -> list[str]:
     """C statements evaluating SX Function ``f``: ``load(i, nz)`` gives the C expression of
     input i element nz, ``store(o, nz, expr)`` the statement writing output o element nz.
-    Outputs are collected and written after every load."""
+    Outputs are collected and written after every load. ``load_f(i, nz)`` (optional) gives a
+    float expression of an input (None: the double one converted).
+
+    ``kind`` None: every value is a double. Otherwise ``kind(i, nz)`` types input i element
+    nz: ``"d"`` double, ``"f"`` float, ``"p"`` both (a name and a ``_d`` double twin);
+    constants are ``"p"``; an operation is double when an operand is, else float when an
+    operand is, else ``"p"`` (evaluated in both types)."""
     if not f.is_a("SXFunction"):
         raise EmitError(f"{f.name()}: only SX Functions can be emitted")
     bad = unsupported_operations(f)
@@ -109,36 +162,63 @@ def straight_line(f: ca.Function, load, store, prefix: str) -> list[str]:
         raise EmitError(f"{f.name()} uses the CasADi operation{'s' if len(bad) > 1 else ''} "
                         f"{', '.join(bad)}, which the sampler's C emitter does not support; "
                         f"supported: {', '.join(supported_operations())}")
+    typed = kind is not None
     work: dict[int, str] = {}
+    typ: dict[str, str] = {}
     body, stores = [], []
     # statement order: (k, 0, k) for instruction k; a libm call moves up to just after its
     # last input: (that input's first key entry, 1, k)
     key: dict[str, tuple[int, int, int]] = {}
+
+    def operand(name: str, want: str) -> str:
+        return name + "_d" if want == "d" and typ.get(name) == "p" else name
+
+    def declare(name: str, t: str, expr_f: str, expr_d: str) -> str:
+        if not typed:
+            return f"const double {name} = {expr_d};"
+        if t == "d":
+            return f"const double {name} = {expr_d};"
+        if t == "f":
+            return f"const float {name} = {expr_f};"
+        return f"const float {name} = {expr_f}; const double {name}_d = {expr_d};"
+
     for k in range(f.n_instructions()):
         op = f.instruction_id(k)
         ins, outs = f.instruction_input(k), f.instruction_output(k)
         if op == ca.OP_OUTPUT:
-            stores.append(store(outs[0], outs[1], work[ins[0]]))
+            src = work[ins[0]]
+            stores.append(store(outs[0], outs[1], operand(src, "d")))
             continue
         name = f"{prefix}{k}"
         if op == ca.OP_INPUT:
-            expr = load(ins[0], ins[1])
+            t = kind(ins[0], ins[1]) if typed else "d"
+            expr_d = load(ins[0], ins[1])
+            alt = load_f(ins[0], ins[1]) if load_f is not None else None
+            expr_f = alt if alt is not None else f"(float)({expr_d})"
         elif op == ca.OP_CONST:
-            expr = _literal(f.instruction_constant(k))
-        elif op in _UNARY:
-            expr = _UNARY[op].format(work[ins[0]])
-        elif op in _BINARY:
-            a = work[ins[0]]
-            b = work[ins[1]] if op != ca.OP_CONSTPOW or len(ins) > 1 else None
-            expr = _BINARY[op].format(a, b)
-        else:  # unreachable: unsupported_operations checked every instruction
-            raise EmitError(f"{f.name()}: CasADi operation {op_name(op)} is not supported")
+            v = f.instruction_constant(k)
+            t, expr_d, expr_f = ("p" if typed else "d"), _literal(v), _literal_f(v)
+        else:
+            args = [work[i] for i in ins[: 2 if op in _BINARY else 1]]
+            if op == ca.OP_CONSTPOW and len(ins) < 2:
+                args.append(None)
+            kinds = {typ.get(a, "d") for a in args if a is not None}
+            t = "d" if "d" in kinds or not typed else "f" if "f" in kinds else "p"
+            if op in _UNARY:
+                tmpl_d, tmpl_f = _UNARY[op], _UNARY_F[op]
+            elif op in _BINARY:
+                tmpl_d, tmpl_f = _BINARY[op], _BINARY_F[op]
+            else:  # unreachable: unsupported_operations checked every instruction
+                raise EmitError(f"{f.name()}: CasADi operation {op_name(op)} is not supported")
+            expr_d = tmpl_d.format(*[None if a is None else operand(a, "d") for a in args])
+            expr_f = tmpl_f.format(*args)
         if op in _CALLS:
             last = max(key[work[i]] for i in ins[: 2 if op in _BINARY else 1])
             key[name] = (last[0], 1, k)
         else:
             key[name] = (k, 0, k)
-        body.append((key[name], f"const double {name} = {expr};"))
+        typ[name] = t
+        body.append((key[name], declare(name, t, expr_f, expr_d)))
         work[outs[0]] = name
     return [stmt for _, stmt in sorted(body)] + stores
 
@@ -151,9 +231,17 @@ class KernelSpec:
     step: ca.Function
     final: ca.Function
     roles: dict[str, str]
+    precision: str = "float64"
+    # carry entries kept in double by a float32 kernel (the cost sums)
+    wide: tuple[int, ...] = ()
 
     def inputs(self, role: str) -> list[str]:
-        return [n for n in self.step.name_in() if self.roles[n] == role]
+        return list(self._inputs[role])
+
+    @cached_property
+    def _inputs(self) -> dict[str, tuple[str, ...]]:
+        # CasADi's name and size queries cost ~0.1 ms each: asked once per spec
+        return {r: tuple(n for n in self.step.name_in() if self.roles[n] == r) for r in ROLES}
 
     def __post_init__(self) -> None:
         for n in self.step.name_in():
@@ -167,22 +255,37 @@ class KernelSpec:
         for n in self.final.name_in():
             if n != carry and self.roles.get(n) != "const":
                 raise EmitError(f"{self.name}: final inputs are the carry and consts, got {n!r}")
+        if self.precision not in PRECISIONS:
+            raise EmitError(f"{self.name}: precision {self.precision!r} is not one of "
+                            f"{PRECISIONS}")
+        if any(not 0 <= j < self.n_carry for j in self.wide):
+            raise EmitError(f"{self.name}: wide carry entries {self.wide} outside the carry "
+                            f"(size {self.n_carry})")
 
     @property
+    def lanes(self) -> int:
+        """Samples per block (the kernel pads N to a multiple of it)."""
+        return _LANES[self.precision]
+
+    @cached_property
     def n_carry(self) -> int:
         return self.step.numel_in(self.inputs("carry")[0])
 
-    @property
+    @cached_property
     def n_noise(self) -> int:
         z = self.inputs("noise")
         return self.step.numel_in(z[0]) if z else 0
 
-    @property
+    @cached_property
     def n_result(self) -> int:
         return sum(self.final.numel_out(i) for i in range(self.final.n_out()))
 
     def lane_out_sizes(self) -> list[int]:
-        return [self.step.numel_out(i) for i in range(1, self.step.n_out())]
+        return list(self._lane_out_sizes)
+
+    @cached_property
+    def _lane_out_sizes(self) -> tuple[int, ...]:
+        return tuple(self.step.numel_out(i) for i in range(1, self.step.n_out()))
 
 
 def emit_kernel(spec: KernelSpec) -> str:
@@ -191,6 +294,9 @@ def emit_kernel(spec: KernelSpec) -> str:
     carry = spec.inputs("carry")[0]
     nc, nz = spec.n_carry, spec.n_noise
     lane, time_, const = spec.inputs("lane"), spec.inputs("time"), spec.inputs("const")
+    f32 = spec.precision == "float32"
+    L = spec.lanes
+    wide = set(spec.wide)
 
     def load_step(i: int, nz_: int) -> str:
         name = step.name_in(i)
@@ -206,6 +312,30 @@ def emit_kernel(spec: KernelSpec) -> str:
             j, m = time_.index(name), step.numel_in(i)
             return f"tin{j}[(size_t)t*{m}+{nz_}]"
         return f"cin{const.index(name)}[{nz_}]"
+
+    def load_step_f(i: int, nz_: int) -> str | None:
+        """Float copies of shared inputs, converted once outside the lane loop."""
+        name = step.name_in(i)
+        role = spec.roles[name]
+        if role == "time":
+            return f"tf{time_.index(name)}[{nz_}]"
+        if role == "const":
+            return f"cf{const.index(name)}[{nz_}]"
+        return None
+
+    def kind_of(fn: ca.Function):
+        """Input types of a float32 kernel: wide carries double, per-sample values float,
+        values shared by all samples (const, time) both."""
+        if not f32:
+            return None
+
+        def kind(i: int, nz_: int) -> str:
+            role = spec.roles.get(fn.name_in(i), "carry")
+            if fn.name_in(i) == carry:
+                return "d" if nz_ in wide else "f"
+            return "p" if role in ("const", "time") else "f"
+
+        return kind
 
     def store_step(o: int, nz_: int, expr: str) -> str:
         if o == 0:
@@ -223,39 +353,59 @@ def emit_kernel(spec: KernelSpec) -> str:
         name = final.name_in(i)
         return f"c{nz_}[l]" if name == carry else f"cin{const.index(name)}[{nz_}]"
 
+    def load_final_f(i: int, nz_: int) -> str | None:
+        name = final.name_in(i)
+        return None if name == carry else f"cf{const.index(name)}[{nz_}]"
+
     def store_final(o: int, nz_: int, expr: str) -> str:
         return f"result[(size_t)(n0+l)*{nr}+{offsets[o] + nz_}] = {expr};"
 
-    step_body = straight_line(step, load_step, store_step, "s")
-    final_body = straight_line(final, load_final, store_final, "f")
+    step_body = straight_line(step, load_step, store_step, "s", kind_of(step), load_step_f)
+    final_body = straight_line(final, load_final, store_final, "f", kind_of(final),
+                               load_final_f)
     n_lout = step.n_out() - 1
     ind = "        "
+
+    def ctype(j: int) -> str:
+        return "float" if f32 and j not in wide else "double"
+
     out = [
-        f"/* kernel {spec.name}: carry {nc}, noise {nz}, lane {len(lane)}, time {len(time_)}, "
-        f"const {len(const)}, lane outputs {n_lout}, results {nr} */",
+        f"/* kernel {spec.name} ({spec.precision}): carry {nc}, noise {nz}, lane {len(lane)}, "
+        f"time {len(time_)}, const {len(const)}, lane outputs {n_lout}, results {nr} */",
         f"void {spec.name}(int N, int T, const double* carry0, const double* const* lane_in,",
         "    const double* const* time_in, const double* const* const_in, double* const* lane_out,",
         "    double* result, double* noise, int gen_noise, unsigned long long seed) {",
         "  (void)lane_in; (void)time_in; (void)const_in; (void)lane_out; (void)noise;",
         "  (void)gen_noise; (void)seed;",
-        f"  const int nblk = N / {LANES};",
-        "  #pragma omp parallel for schedule(static)",
+        f"  const int nblk = N / {L};",
+        f"  #pragma omp parallel for schedule({WB_SCHEDULE})",
         "  for (int b = 0; b < nblk; ++b) {",
-        f"    const int n0 = b * {LANES};",
+        f"    const int n0 = b * {L};",
     ]
-    out += [f"    double c{j}[{LANES}];" for j in range(nc)]
+    out += [f"    {ctype(j)} c{j}[{L}];" for j in range(nc)]
     out += [f"    const double* lin{j} = lane_in[{j}];" for j in range(len(lane))]
     out += [f"    const double* cin{j} = const_in[{j}];" for j in range(len(const))]
+    if f32:  # float copies of the shared inputs: converted once, alias-free
+        for j, n in enumerate(const):
+            m = step.numel_in(n)
+            out += [f"    float cf{j}[{m}];",
+                    f"    for (int k = 0; k < {m}; ++k) cf{j}[k] = (float)cin{j}[k];"]
     out += [f"    double* lout{j} = lane_out[{j}];" for j in range(n_lout)]
-    out += [f"    for (int l = 0; l < {LANES}; ++l) {{"]
+    out += [f"    for (int l = 0; l < {L}; ++l) {{"]
     out += [f"      c{j}[l] = carry0[(size_t)(n0+l)*{nc}+{j}];" for j in range(nc)]
     out += ["    }"]
     if nz:
-        out += [f"    double z{j}[{LANES}];" for j in range(nz)]
+        out += [f"    double z{j}[{L}];" for j in range(nz)]
         out += ["    wb_rng_block rng;",
                 "    if (gen_noise) wb_block_seed(&rng, seed, (unsigned long long)n0);"]
     out += ["    for (int t = 0; t < T; ++t) {"]
     out += [f"      const double* tin{j} = time_in[{j}];" for j in range(len(time_))]
+    if f32:
+        for j, n in enumerate(time_):
+            m = step.numel_in(n)
+            out += [f"      float tf{j}[{m}];",
+                    f"      for (int k = 0; k < {m}; ++k) "
+                    f"tf{j}[k] = (float)tin{j}[(size_t)t*{m}+k];"]
     if nz:
         gen = "".join(f" wb_block_normals(&rng, z{j});" for j in range(nz))
         wr = "".join(f" noise[((size_t)t*{nz}+{j})*N+n0+l] = z{j}[l];" for j in range(nz))
@@ -263,14 +413,14 @@ def emit_kernel(spec: KernelSpec) -> str:
         out += [
             "      if (gen_noise) {",
             f"       {gen}",
-            f"        if (noise) for (int l = 0; l < {LANES}; ++l) {{{wr} }}",
+            f"        if (noise) for (int l = 0; l < {L}; ++l) {{{wr} }}",
             "      } else {",
-            f"        for (int l = 0; l < {LANES}; ++l) {{{rd} }}",
+            f"        for (int l = 0; l < {L}; ++l) {{{rd} }}",
             "      }",
         ]
-    out += ["      #pragma omp simd", f"      for (int l = 0; l < {LANES}; ++l) {{"]
+    out += ["      #pragma omp simd", f"      for (int l = 0; l < {L}; ++l) {{"]
     out += [ind + s for s in step_body]
-    out += ["      }", "    }", f"    for (int l = 0; l < {LANES}; ++l) {{"]
+    out += ["      }", "    }", f"    for (int l = 0; l < {L}; ++l) {{"]
     out += ["      " + s for s in final_body]
     out += ["    }", "  }", "}", ""]
     return "\n".join(out)
@@ -289,12 +439,13 @@ def ziggurat_tables(layers: int = 128) -> tuple[list[float], list[float]]:
     return x, ratio
 
 
-def rng_source() -> str:
+def rng_source(lanes: int = LANES) -> str:
     """C of the per-sample generator (the package file ``rng.c``) behind its ziggurat tables,
-    which are computed here (:func:`ziggurat_tables`) and written as data."""
+    which are computed here (:func:`ziggurat_tables`) and written as data; ``lanes`` samples
+    per block (the kernels' :attr:`KernelSpec.lanes`; draws never depend on it)."""
     x, ratio = ziggurat_tables()
     tables = "\n".join([
         f"static const double wb_zig_x[129] = {{{', '.join(_literal(v) for v in x)}}};",
         f"static const double wb_zig_r[128] = {{{', '.join(_literal(v) for v in ratio)}}};",
-        f"#define WB_ZIG_R {_literal(3.442619855899)}", f"#define WB_LANES {LANES}", ""])
+        f"#define WB_ZIG_R {_literal(3.442619855899)}", f"#define WB_LANES {int(lanes)}", ""])
     return tables + (resources.files("workbench.sampling.kernels") / "rng.c").read_text()

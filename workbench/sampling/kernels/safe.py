@@ -58,6 +58,7 @@ from workbench.sampling.kernels.build import (
     _symbols,
     kernel_source,
     load_verified,
+    set_threads,
 )
 from workbench.sampling.kernels.emit import EmitError, KernelSpec
 from workbench.sampling.kernels.layout import Layout
@@ -168,7 +169,8 @@ class SafeLibrary:
         return out
 
     def set_threads(self, n: int) -> None:
-        self.cdll.wb_set_threads(int(n))
+        """:func:`~workbench.sampling.kernels.build.set_threads` (every kernel library)."""
+        set_threads(n)
 
 
 def _build(cdll: ctypes.CDLL, spec: KernelSpec, sp: SamplingProblem) -> SafeLibrary:

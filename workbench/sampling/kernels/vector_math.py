@@ -16,6 +16,10 @@ scalar calls.
 
 Only libraries whose kernels use one of :data:`VECTOR_FUNCTIONS` get the declarations; the
 double integrator's source is unchanged.
+
+Float32 kernels call the float functions (``sinf``…; ``_ZGVdN8v_sinf`` with AVX2): the probe
+and the bound are the same, in float ulps, against the double libm value at the float argument
+rounded to float (``precision="float32"`` below).
 """
 
 from __future__ import annotations
@@ -38,7 +42,15 @@ VECTOR_FUNCTIONS = {
     ca.OP_ASIN: ("asin", 1), ca.OP_ACOS: ("acos", 1), ca.OP_ATAN: ("atan", 1),
     ca.OP_ATAN2: ("atan2", 2),
 }
-_ARGS = {1: "double", 2: "double, double"}
+_ARGS = {1: "{t}", 2: "{t}, {t}"}
+
+
+def _suffix(precision: str) -> str:
+    return "f" if precision == "float32" else ""
+
+
+def _ctype(precision: str) -> str:
+    return "float" if precision == "float32" else "double"
 
 
 def enabled() -> bool:
@@ -50,13 +62,15 @@ def enabled() -> bool:
     return v != "0"
 
 
-def declarations(names: Iterable[str]) -> str:
-    """C declarations giving gcc the SIMD variants of libm functions ``names``. ``const``: no
-    side effects (the kernels build with -fno-math-errno; -fno-builtin-sin/cos take away the
-    knowledge gcc has of the builtins, and a call that may clobber memory stops the vectoriser)."""
+def declarations(names: Iterable[str], precision: str = "float64") -> str:
+    """C declarations giving gcc the SIMD variants of libm functions ``names`` (their float
+    versions ``sinf``… for ``precision="float32"``). ``const``: no side effects (the kernels
+    build with -fno-math-errno; -fno-builtin-sin/cos take away the knowledge gcc has of the
+    builtins, and a call that may clobber memory stops the vectoriser)."""
     arity = {n: a for n, a in VECTOR_FUNCTIONS.values()}
-    return "".join(f'__attribute__((simd("notinbranch"), const)) double {n}({_ARGS[arity[n]]});\n'
-                   for n in sorted(set(names)))
+    t, f = _ctype(precision), _suffix(precision)
+    return "".join(f'__attribute__((simd("notinbranch"), const)) {t} {n}{f}('
+                   f'{_ARGS[arity[n]].format(t=t)});\n' for n in sorted(set(names)))
 
 
 def used(functions: Iterable[ca.Function]) -> tuple[str, ...]:
@@ -65,11 +79,13 @@ def used(functions: Iterable[ca.Function]) -> tuple[str, ...]:
     return tuple(sorted(VECTOR_FUNCTIONS[op][0] for op in ops & set(VECTOR_FUNCTIONS)))
 
 
-def simd_variants(binary: bytes) -> set[str]:
-    """Names of the functions whose SIMD variants (``_ZGV<isa>N<lanes>v…_<name>``) a compiled
-    library calls."""
+def simd_variants(binary: bytes, precision: str = "float64") -> set[str]:
+    """Names of the functions whose SIMD variants (``_ZGV<isa>N<lanes>v…_<name>``, ``…_<name>f``
+    for float32) a compiled library calls."""
     names = [n for n, _ in VECTOR_FUNCTIONS.values()]
-    return {n for n in names if re.search(rb"_ZGV[a-z]N\d+v+_" + n.encode() + rb"\x00", binary)}
+    f = _suffix(precision).encode()
+    return {n for n in names
+            if re.search(rb"_ZGV[a-z]N\d+v+_" + n.encode() + f + rb"\x00", binary)}
 
 
 def ulp_distance(a, b) -> np.ndarray:
@@ -85,6 +101,20 @@ def ulp_distance(a, b) -> np.ndarray:
     same = (oa >= 0) == (ob >= 0)
     d = np.where(same, np.abs(np.where(same, oa - ob, 0)).astype(np.float64),
                  np.abs(oa).astype(np.float64) + np.abs(ob).astype(np.float64))
+    nan_a, nan_b = np.isnan(a), np.isnan(b)
+    return np.where(nan_a | nan_b, np.where(nan_a & nan_b, 0.0, np.inf), d)
+
+
+def ulp_distance32(a, b) -> np.ndarray:
+    """:func:`ulp_distance` in float32 units, of the float32 values of ``a`` and ``b``."""
+    a, b = np.broadcast_arrays(np.asarray(a, dtype=np.float32), np.asarray(b, dtype=np.float32))
+
+    def ordered(x):
+        i = x.view(np.int32).astype(np.int64)
+        return np.where(i < 0, np.int64(-(2**31)) - i, i)
+
+    oa, ob = ordered(a), ordered(b)
+    d = np.abs(oa - ob).astype(np.float64)
     nan_a, nan_b = np.isnan(a), np.isnan(b)
     return np.where(nan_a | nan_b, np.where(nan_a & nan_b, 0.0, np.inf), d)
 
@@ -113,7 +143,7 @@ def reference(name: str, x, u, y) -> np.ndarray:
         return getattr(np, name)(x)
 
 
-def probe_spec():
+def probe_spec(precision: str = "float64"):
     """A kernel whose lane outputs are every vectorisable function of lane inputs x, u, y
     (asin and acos of u in [-1, 1])."""
     from workbench.sampling.kernels.emit import KernelSpec
@@ -123,57 +153,67 @@ def probe_spec():
     args = {"asin": (u,), "acos": (u,), "atan2": (x, y)}
     vals = [getattr(ca, n)(*args.get(n, (x,))) for n, _ in VECTOR_FUNCTIONS.values()]
     # the carry and a time input are read after the calls, as in a model
-    step = ca.Function("wb_vector_math_probe_step", [c, x, u, y, w],
+    name = "wb_vector_math_probe" + ("_f32" if precision == "float32" else "")
+    step = ca.Function(name + "_step", [c, x, u, y, w],
                        [c + vals[0] * w, ca.vertcat(*vals)],
                        ["carry", "x", "u", "y", "w"], ["carry_next", "values"])
-    final = ca.Function("wb_vector_math_probe_final", [c], [c], ["carry"], ["result"])
-    return KernelSpec(name="wb_vector_math_probe", step=step, final=final,
+    final = ca.Function(name + "_final", [c], [c], ["carry"], ["result"])
+    return KernelSpec(name=name, step=step, final=final,
                       roles={"carry": "carry", "x": "lane", "u": "lane", "y": "lane",
-                             "w": "time"})
+                             "w": "time"}, precision=precision)
 
 
 @cache
-def unavailable(flags: tuple[str, ...], lanes: int) -> str | None:
+def unavailable(flags: tuple[str, ...], lanes: int, precision: str = "float64") -> str | None:
     """Why the kernels cannot use libmvec with these compiler flags (None: they can).
 
     Builds a probe with the kernels' flags, checks that gcc called a SIMD variant of every
-    function and that each result is within :data:`MAX_ULP` ulp of scalar libm."""
+    function and that each result is within :data:`MAX_ULP` ulp of scalar libm (float32: float
+    ulps from the double libm value at the float argument, rounded to float)."""
     from workbench.codegen import CompileError, build_library
     from workbench.sampling.kernels.build import CompiledKernel
     from workbench.sampling.kernels.emit import emit_kernel, rng_source
 
-    spec = probe_spec()
+    spec = probe_spec(precision)
     names = [n for n, _ in VECTOR_FUNCTIONS.values()]
-    source = rng_source() + "\n" + declarations(names) + emit_kernel(spec)
+    source = rng_source(spec.lanes) + "\n" + declarations(names, precision) + emit_kernel(spec)
+    f32 = precision == "float32"
     try:
-        lib = build_library("vector_math_probe", [], source, extra_flags=flags)
+        lib = build_library("vector_math_probe" + ("_f32" if f32 else ""), [], source,
+                            extra_flags=flags)
     except CompileError as exc:
         return f"the probe does not build: {str(exc).splitlines()[0]}"
     if lib is None:
         return "no C compiler"
-    scalar = sorted(set(names) - simd_variants(lib.path.read_bytes()))
+    scalar = sorted(set(names) - simd_variants(lib.path.read_bytes(), precision))
     if scalar:
         return f"the compiler kept scalar calls for {', '.join(scalar)}"
     inp = probe_inputs()
+    if f32:  # the values the float kernel computes with
+        with np.errstate(over="ignore"):
+            inp = {k: v.astype(np.float32).astype(np.float64) for k, v in inp.items()}
     lane_in = {k: inp[k][None, None, :] for k in ("x", "u", "y")}
     out = CompiledKernel(spec, lib.cdll)(np.zeros((inp["x"].size, 1)), consts={},
                                          time_in={"w": np.ones((1, 1))},
                                          lane_in=lane_in).lane_out[0][0]
+    dist = ulp_distance32 if f32 else ulp_distance
     for j, name in enumerate(names):
-        err = float(np.max(ulp_distance(out[j], reference(name, inp["x"], inp["u"], inp["y"]))))
+        err = float(np.max(dist(out[j], reference(name, inp["x"], inp["u"], inp["y"]))))
         if err > MAX_ULP:
-            return f"libmvec {name} is {err:.0f} ulp from scalar libm (allowed {MAX_ULP})"
+            return (f"libmvec {name}{_suffix(precision)} is {err:.0f} ulp from scalar libm "
+                    f"(allowed {MAX_ULP})")
     return None
 
 
 def prelude(functions: Iterable[ca.Function], flags: tuple[str, ...], lanes: int,
-            vector_math: bool | None = None) -> str:
+            vector_math: bool | None = None, precision: str = "float64") -> str:
     """Declarations to put before kernels built from ``functions``: the SIMD variants of the
-    trigonometric functions they use, when wanted (``vector_math``; None: :func:`enabled`) and
-    the probe passes; else empty (scalar libm calls)."""
+    trigonometric functions they use (float versions for float32 kernels), when wanted
+    (``vector_math``; None: :func:`enabled`) and the probe passes; else empty (scalar libm
+    calls)."""
     want = enabled() if vector_math is None else vector_math  # a bad value fails for every model
     names = used(functions)
-    if not names or not want or unavailable(tuple(flags), lanes) is not None:
+    if not names or not want or unavailable(tuple(flags), lanes, precision) is not None:
         return ""
     return "/* libmvec SIMD variants (workbench/sampling/kernels/vector_math.py) */\n" + \
-        declarations(names)
+        declarations(names, precision)
