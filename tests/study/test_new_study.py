@@ -127,5 +127,6 @@ def test_a_new_study_needs_only_its_files_and_one_registration_line(tmp_path):
     assert (out / "report.md").read_text().startswith("# Toy")
     assert sorted(p.name for p in pkg.iterdir() if p.suffix in (".py", ".toml")) == sorted(FILES)
     again = _cli(tmp_path, "run", "toy", "--workers", "0", "--out", str(out))
-    assert again.returncode == 0
-    assert json.loads((out / "run.json").read_text())["tasks"]["computed"] == 0
+    assert again.returncode == 0, again.stderr
+    record = json.loads((out / "run.json").read_text())  # the computing run's record is kept
+    assert record["tasks"]["computed"] == 4 and record["last_invocation"]["tasks"]["computed"] == 0

@@ -2,17 +2,44 @@
 
 Only the coordinating process writes results, one finished task at a time (atomically), so an
 interrupted or killed run keeps every task it finished and nothing else; a rerun computes only
-the rest. During a run SIGINT/SIGTERM are blocked and taken by a watcher thread, so a C library
+the rest. Before anything is written the run checks the scheduler (when one is given) and claims
+its folder (:mod:`workbench.study.folder`: one run per folder, locked while it runs).
+
+Interrupts: during a run SIGINT/SIGTERM are blocked and taken by a watcher thread, so a C library
 with its own SIGINT handler (OSQP) cannot swallow them; the watcher sets a stop flag and
 interrupts the main thread. Local workers never see SIGINT (own process group, blocked) and are
 terminated; Dask futures are cancelled. A task that finishes after the stop flag is set is
 discarded, whatever it returns (a task may swallow KeyboardInterrupt).
+
+Workers end with their coordinator: on Linux each worker asks the kernel to SIGKILL it when the
+coordinator ends (``prctl(PR_SET_PDEATHSIG)``), however the coordinator ends (``kill -9``, an
+out-of-memory kill, a CI timeout), and exits at once if the coordinator ended before it could
+ask; elsewhere a thread in each worker checks every second that its parent is still there. (The
+kernel ties the signal to the thread that started the worker: :func:`run_study` starts and stops
+its workers in the calling thread, before it returns.)
+
+Time limit (``task_timeout_s``, default None: none): a local worker whose task runs longer
+(counted from when the worker begins it, so its start-up does not count) is stopped (and
+replaced) and the task is recorded as an error ``task timed out after N s``
+(retried on the next run, like any error); on a Dask cluster the task is cancelled (see
+:mod:`workbench.study.cluster`); in this process (``workers=0``) a task cannot be stopped, so
+the limit is checked when it returns: a task that took longer is recorded as the same error and
+its result is not kept, so that every back end keeps the same tasks.
+
+Provenance: each task is stored with the evaluator and code hash of the process that computed it
+(:mod:`workbench.study.provenance`). Continuing a run whose stored tasks were computed by other
+code or another evaluator than this process would use is refused (:class:`MixedResultsError`)
+unless ``allow_mixed=True``.
+
+Status lines go to the ``workbench.study`` logger (errors and interrupts as ERROR/WARNING).
 """
 
 from __future__ import annotations
 
 import _thread
 import contextlib
+import ctypes
+import logging
 import os
 import signal
 import socket
@@ -20,7 +47,7 @@ import sys
 import threading
 import time
 import traceback
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from multiprocessing import connection, get_context
@@ -29,16 +56,26 @@ from typing import Any
 
 from tqdm import tqdm
 
-from workbench.study.store import RunStore, TaskError, TaskRecord
+from workbench.study import provenance
+from workbench.study.folder import RunFolderError, claim
+from workbench.study.io import StorageError
+from workbench.study.store import RunStore, TaskError, TaskRecord, study_manifest
 from workbench.study.tasks import Study, TaskContext, TaskOutput
-from workbench.validation import fail
+from workbench.validation import fail, flag, real
 
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _STOP = threading.Event()
+log = logging.getLogger("workbench.study")
+PR_SET_PDEATHSIG = 1
+_STARTED = "started"  # a worker's notice that it began the task it was given
 
 
 class StudyInterrupted(KeyboardInterrupt):
     """The run was stopped by SIGINT/SIGTERM; finished tasks are stored, rerun to continue."""
+
+
+class MixedResultsError(RunFolderError):
+    """Stored tasks were computed by other code or another evaluator than this run would use."""
 
 
 @dataclass(frozen=True)
@@ -64,8 +101,27 @@ class RunResult:
                                f"in {self.root / 'errors.json'}):\n{lines}")
 
 
+def check_workers(workers: Any) -> int:
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise fail("workers", workers, "must be an integer >= 0 (0 = in this process)")
+    return workers
+
+
+def check_timeout(task_timeout_s: Any) -> float | None:
+    """None (no limit) or a finite number of seconds > 0."""
+    if task_timeout_s is None:
+        return None
+    return real("task_timeout_s", task_timeout_s, 0.0, strict=True)
+
+
+def _timeout_text(timeout: float, how: str) -> str:
+    return (f"TimeoutError: task timed out after {timeout:g} s (task_timeout_s = {timeout:g}); "
+            f"{how}")
+
+
 def _execute(run_task: Callable, task: Any, ctx: TaskContext) -> TaskRecord:
-    """Run one task; an exception becomes an error record with its traceback."""
+    """Run one task; an exception becomes an error record with its traceback. A finished
+    task carries the evaluator and code hash of this process."""
     t0 = time.perf_counter()
     worker = f"{socket.gethostname()}:{os.getpid()}"
     try:
@@ -73,7 +129,7 @@ def _execute(run_task: Callable, task: Any, ctx: TaskContext) -> TaskRecord:
         if not isinstance(out, TaskOutput):
             raise TypeError(f"run_task returned {type(out).__name__}, expected TaskOutput")
         return TaskRecord(ctx.task_id, output=out, elapsed_s=time.perf_counter() - t0,
-                          worker=worker)
+                          worker=worker, provenance=provenance.current(run_task))
     except Exception:
         return TaskRecord(ctx.task_id, error=traceback.format_exc(),
                           elapsed_s=time.perf_counter() - t0, worker=worker)
@@ -86,10 +142,36 @@ def limit_threads() -> None:
 
 
 # ---------------------------------------------------------------------- local worker processes
-def _worker_main(conn, run_task: Callable, init: Callable | None) -> None:
+def _watch_parent(parent_pid: int) -> None:
+    while True:
+        time.sleep(1.0)
+        if os.getppid() != parent_pid:
+            os._exit(1)
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Make this process end when ``parent_pid`` (its parent) ends: on Linux the kernel sends
+    SIGKILL when the parent ends (PR_SET_PDEATHSIG); elsewhere a thread checks every second.
+    Exits at once (code 1) if the parent has already gone (the process was reparented)."""
+    armed = False
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+    if os.getppid() != parent_pid:  # the parent ended before the signal was asked for
+        os._exit(1)
+    if not armed:
+        threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True,
+                         name="parent-watch").start()
+
+
+def _worker_main(conn, run_task: Callable, init: Callable | None, parent_pid: int) -> None:
     # Only the coordinator decides when to stop: SIGINT stays ignored and blocked (a solver's
     # own handler cannot catch it), the worker leaves the terminal's process group, and SIGTERM
-    # (sent by the coordinator) ends it at once.
+    # (sent by the coordinator) ends it at once. It ends with the coordinator, however that ends.
+    die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.setpgrp()
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
@@ -109,6 +191,8 @@ def _worker_main(conn, run_task: Callable, init: Callable | None) -> None:
         if msg is None:
             return
         task, ctx = msg
+        with contextlib.suppress(OSError):
+            conn.send(_STARTED)  # the time limit counts from here, not from the worker's start
         rec = (TaskRecord(ctx.task_id, error=init_error) if init_error
                else _execute(run_task, task, ctx))
         try:
@@ -141,10 +225,31 @@ class _Worker:
     def __init__(self, mp, run_task, init):
         self.conn, child = mp.Pipe()
         with _spawn_env():
-            self.proc = mp.Process(target=_worker_main, args=(child, run_task, init), daemon=True)
+            self.proc = mp.Process(target=_worker_main,
+                                   args=(child, run_task, init, os.getpid()), daemon=True)
             self.proc.start()
         child.close()
         self.item = None
+        self.started: float | None = None  # when the worker began its item
+
+    def give(self, item) -> None:
+        self.item, self.started = item, None
+        with contextlib.suppress(OSError):  # a dead worker is handled by the pool
+            self.conn.send(item)
+
+    def receive(self) -> TaskRecord | None:
+        """The record of the item, if it has come back (notes the start notice on the way)."""
+        while self.conn.poll():
+            msg = self.conn.recv()
+            if msg == _STARTED:
+                self.started = time.monotonic()
+            else:
+                return msg
+        return None
+
+    def over(self, timeout: float | None) -> bool:
+        return (timeout is not None and self.started is not None
+                and time.monotonic() - self.started > timeout)
 
     def stop(self, hard: bool) -> None:
         if not hard:
@@ -160,7 +265,8 @@ class _Worker:
         self.conn.close()
 
 
-def _local(study: Study, pending: list, workers: int) -> Iterator[tuple[Any, TaskRecord]]:
+def _local(study: Study, pending: list, workers: int,
+           timeout: float | None) -> Iterator[tuple[Any, TaskRecord]]:
     mp = get_context("spawn")
     queue = deque(pending)
     pool = [_Worker(mp, study.run_task, study.worker_init) for _ in range(workers)]
@@ -169,37 +275,51 @@ def _local(study: Study, pending: list, workers: int) -> Iterator[tuple[Any, Tas
         while queue or any(w.item is not None for w in pool):
             for w in pool:
                 if w.item is None and queue:
-                    w.item = queue.popleft()
-                    with contextlib.suppress(OSError):  # a dead worker is handled below
-                        w.conn.send(w.item)
+                    w.give(queue.popleft())
             busy = [w for w in pool if w.item is not None]
-            connection.wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], 0.5)
+            wait_s = 0.5
+            running = [w.started for w in busy if w.started is not None]
+            if timeout is not None and running:
+                left = min(running) + timeout - time.monotonic()
+                wait_s = min(wait_s, max(left, 0.0) + 0.01)
+            connection.wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], wait_s)
             for i, w in enumerate(pool):
                 if w.item is None:
                     continue
                 item, rec = w.item, None
                 with contextlib.suppress(EOFError, OSError):
-                    if w.conn.poll():
-                        rec = w.conn.recv()
+                    rec = w.receive()
                 if rec is None and not w.proc.is_alive():
                     rec = TaskRecord(item[1].task_id, error=f"worker process died (exit code "
                                      f"{w.proc.exitcode}) while running this task")
-                    w.stop(hard=True)
-                    pool[i] = _Worker(mp, study.run_task, study.worker_init)
-                if rec is not None:
-                    w.item = None
-                    yield item, rec
+                elif rec is None and w.over(timeout):
+                    rec = TaskRecord(item[1].task_id, error=_timeout_text(
+                        timeout, "its worker process was stopped"))
+                else:
+                    if rec is not None:
+                        w.item = None
+                        yield item, rec
+                    continue
+                w.stop(hard=True)
+                pool[i] = _Worker(mp, study.run_task, study.worker_init)
+                yield item, rec
         hard = False
     finally:
         for w in pool:
             w.stop(hard)
 
 
-def _in_process(study: Study, pending: list) -> Iterator[tuple[Any, TaskRecord]]:
+def _in_process(study: Study, pending: list,
+                timeout: float | None) -> Iterator[tuple[Any, TaskRecord]]:
     for task, ctx in pending:
         rec = _execute(study.run_task, task, ctx)
         if _STOP.is_set():  # the task swallowed the interrupt: its result is not trusted
             raise StudyInterrupted
+        if timeout is not None and rec.elapsed_s > timeout:
+            rec = TaskRecord(ctx.task_id, error=_timeout_text(
+                timeout, f"it ran {rec.elapsed_s:.3g} s in this process, which cannot stop a "
+                "task early (local workers, workers >= 1, stop it at the limit); its result is "
+                "not kept"), elapsed_s=rec.elapsed_s, worker=rec.worker)
         yield (task, ctx), rec
 
 
@@ -243,29 +363,102 @@ def _stop_on_signals():
             signal.signal(s, h)
 
 
+@contextlib.contextmanager
+def scheduler_client(scheduler: Any) -> Iterator[tuple[Any, str | None]]:
+    """(client, address) for a scheduler address or Client, connected before anything is
+    written (malformed or unreachable: an error within seconds); (None, None) without one. A
+    client made here is closed on exit."""
+    if scheduler is None:
+        yield None, None
+        return
+    from workbench.study.cluster import connect
+
+    client, own, address = connect(scheduler)
+    try:
+        yield client, address
+    finally:
+        if own:
+            client.close()
+
+
+def _mixed(store: RunStore, headers: dict, current: dict) -> MixedResultsError | None:
+    """The error for stored tasks computed by other code or another evaluator, or None."""
+    other = Counter()
+    for h in headers.values():
+        p = h.get("provenance")
+        if p != current:
+            other["no record (stored by an earlier version)" if not p else
+                  f"evaluator {p.get('evaluator')!r}, code {str(p.get('code_sha256'))[:12]}"] += 1
+    if not other:
+        return None
+    n = sum(other.values())
+    groups = "; ".join(f"{k}: {v}" for k, v in sorted(other.items()))
+    return MixedResultsError(
+        f"{n} of {len(headers)} stored tasks in {store.root} were computed by other code or "
+        f"another evaluator than this run would use (evaluator {current['evaluator']!r}, code "
+        f"{current['code_sha256'][:12]}; stored: {groups}). Reusing them would mix results "
+        "(another evaluator draws other noise, so common random numbers would break). To "
+        "recompute everything, choose a fresh folder with --out or delete this one; to reuse "
+        "them anyway, pass allow_mixed=True (command line: --allow-mixed)")
+
+
+def refuse_mixed(study: Study, root: Path | str) -> None:
+    """Raise :class:`MixedResultsError` if stored tasks of ``study`` in ``root`` (a claimed
+    folder) were computed by other code or another evaluator than this process would use."""
+    store = RunStore(Path(root))
+    err = _mixed(store, store.headers(study.task_ids()), provenance.current(study.run_task))
+    if err is not None:
+        raise err
+
+
 def run_study(study: Study, out: Path | str, *, workers: int = 2, scheduler: Any = None,
-              progress: bool = True) -> RunResult:
+              progress: bool = True, task_timeout_s: float | None = None,
+              allow_mixed: bool = False) -> RunResult:
     """Run (or continue) ``study`` in the directory ``out``.
 
     workers: 0 runs tasks in this process; N >= 1 in N spawned worker processes (one thread
     each). scheduler: a Dask scheduler address (or a ``distributed.Client``) instead of local
-    workers. Writes the manifest first, each finished task as it arrives, the errors, and the
-    tidy tables once every task is finished. Raises :class:`StudyInterrupted` on SIGINT/SIGTERM.
+    workers; checked (and connected) before anything is written. task_timeout_s: time limit of
+    one task in seconds (None: none); a task over it is recorded as an error. allow_mixed: reuse
+    stored tasks that other code or another evaluator computed (else
+    :class:`MixedResultsError`). Claims ``out`` (:func:`workbench.study.folder.claim`), writes
+    the manifest, each finished task as it arrives, the errors, and the tidy tables once every
+    task is finished. Raises :class:`StudyInterrupted` on SIGINT/SIGTERM and
+    :class:`~workbench.study.io.StorageError` when a result file cannot be written.
     """
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
-        raise fail("workers", workers, "must be an integer >= 0 (0 = in this process)")
+    workers = check_workers(workers)
+    timeout = check_timeout(task_timeout_s)
+    allow_mixed = flag("allow_mixed", allow_mixed)
+    current = provenance.current(study.run_task)
+    with scheduler_client(scheduler) as (client, address), \
+            claim(Path(out), study_manifest(study)):
+        return _run_claimed(study, RunStore(Path(out)), workers, client, address, progress,
+                            timeout, allow_mixed, current)
+
+
+def _run_claimed(study: Study, store: RunStore, workers: int, client: Any, address: str | None,
+                 progress: bool, timeout: float | None, allow_mixed: bool,
+                 current: dict) -> RunResult:
     t0 = time.perf_counter()
-    store = RunStore(Path(out))
-    backend = ({"scheduler": scheduler if isinstance(scheduler, str) else repr(scheduler)}
-               if scheduler is not None else {"workers": workers})
+    backend: dict[str, Any] = ({"scheduler": address} if client is not None
+                               else {"workers": workers})
+    backend["task_timeout_s"] = timeout
     ids = study.task_ids()
-    threads = 1 if (workers or scheduler is not None) else max(1, os.cpu_count() or 1)
+    threads = 1 if (workers or client is not None) else max(1, os.cpu_count() or 1)
     errors: list[TaskError] = []
     computed, records, bar = 0, None, None
+    headers = store.headers(ids)
+    done = set(headers)
+    mixed = _mixed(store, headers, current)
+    if mixed is not None and not allow_mixed:
+        raise mixed
+    if mixed is not None:
+        log.warning("%s: %s", study.name, str(mixed).split(". Reusing")[0]
+                    + "; reused (allow_mixed)")
+        backend["allow_mixed"] = True
     with _stop_on_signals():
         try:
-            store.write_manifest(study, backend)
-            done = store.finished(ids)
+            store.write_manifest(study, backend, provenance.describe(study.run_task))
             pending = [(t, study.context(t, threads))
                        for t, i in zip(study.tasks, ids, strict=True) if i not in done]
             bar = tqdm(total=len(ids), initial=len(done), desc=study.name, unit="task",
@@ -273,13 +466,13 @@ def run_study(study: Study, out: Path | str, *, workers: int = 2, scheduler: Any
                        dynamic_ncols=True)
             if not pending:
                 records = (r for r in ())
-            elif scheduler is not None:
+            elif client is not None:
                 from workbench.study.cluster import dask_records
-                records = dask_records(study, pending, scheduler, _execute)
+                records = dask_records(study, pending, client, _execute, timeout)
             elif workers == 0:
-                records = _in_process(study, pending)
+                records = _in_process(study, pending, timeout)
             else:
-                records = _local(study, pending, min(workers, len(pending)))
+                records = _local(study, pending, min(workers, len(pending)), timeout)
             for (task, _), rec in records:
                 if _STOP.is_set():
                     raise StudyInterrupted
@@ -294,7 +487,7 @@ def run_study(study: Study, out: Path | str, *, workers: int = 2, scheduler: Any
             bar.close()
             store.write_errors(errors)
             for e in errors:
-                print(f"{study.name}: ERROR {e.headline()}", file=sys.stderr)
+                log.error("%s: ERROR %s", study.name, e.headline())
             if not errors:
                 store.write_tables(store.build_tables(study))
         except KeyboardInterrupt:
@@ -304,9 +497,18 @@ def run_study(study: Study, out: Path | str, *, workers: int = 2, scheduler: Any
             if bar is not None:
                 bar.close()
             n = len(store.finished(ids))
-            print(f"\n{study.name}: interrupted; {n} of {len(ids)} tasks finished and stored in "
-                  f"{store.root}; rerun the same command to continue", file=sys.stderr)
+            log.warning("%s: interrupted; %d of %d tasks finished and stored in %s; rerun the "
+                        "same command to continue", study.name, n, len(ids), store.root)
             raise StudyInterrupted from None
+        except StorageError as exc:
+            if records is not None:
+                records.close()
+            if bar is not None:
+                bar.close()
+            n = len(store.finished(ids))
+            raise exc.with_advice(
+                f"{n} of {len(ids)} tasks are finished and stored; once there is room (or the "
+                "limit is raised), rerun the same command to continue") from exc
         finally:
             if records is not None:
                 records.close()

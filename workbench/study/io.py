@@ -1,14 +1,20 @@
-"""Atomic result files and run manifests (DESIGN principle 8).
+"""Atomic result files and run manifests.
 
 Files are written atomically (a temporary file beside the target, renamed into place) with the
 permissions an ordinary ``open`` would give: ``0666 & ~umask`` (directories ``0777 & ~umask``),
 so that others can read a report when the umask allows it. JSON files are strict JSON
 (RFC 8259): a non-finite number (NaN, +-inf) is written as ``null``.
+
+A write that the system refuses (disk full, quota exceeded, file-size limit, read-only file
+system, no permission) raises :class:`StorageError`, which names the file and the reason; the
+temporary file is removed and the target keeps its previous content (or stays absent).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -37,6 +43,52 @@ def current_umask() -> int:
     return old
 
 
+_HINTS = {
+    errno.ENOSPC: "the disk is full; free some space",
+    errno.EDQUOT: "the disk quota is exceeded; free some space or raise the quota",
+    errno.EFBIG: "the file is larger than the file system or the process's file-size limit "
+                 "(ulimit -f) allows",
+    errno.EROFS: "the file system is read-only",
+    errno.EACCES: "this user may not write there",
+    errno.EPERM: "this user may not write there",
+    errno.EIO: "the device reported an input/output error",
+}
+
+
+class StorageError(OSError):
+    """A result file could not be written: the message names the file, the system's reason
+    (with its errno name, e.g. ENOSPC) and what it means. ``errno`` and ``filename`` are those
+    of the underlying OSError; ``path`` is the file that was being written."""
+
+    def __init__(self, path: Path | str, exc: OSError, advice: str = ""):
+        super().__init__(exc.errno, exc.strerror or str(exc), str(path))
+        self.path = Path(path)
+        self.cause = exc
+        name = errno.errorcode.get(exc.errno or 0, "")
+        hint = _HINTS.get(exc.errno or 0, "")
+        self.message = (f"cannot write {self.path}: {exc.strerror or exc}"
+                        + (f" ({name})" if name else "") + (f": {hint}" if hint else "")
+                        + (f"; {advice}" if advice else ""))
+
+    def __str__(self) -> str:
+        return self.message
+
+    def __reduce__(self):
+        return (_storage_error, (str(self.path), self.cause, self.message))
+
+    def with_advice(self, advice: str) -> StorageError:
+        """The same error with a sentence on what to do appended."""
+        err = StorageError(self.path, self.cause)
+        err.message = f"{self.message}; {advice}"
+        return err
+
+
+def _storage_error(path: str, exc: OSError, message: str) -> StorageError:
+    err = StorageError(path, exc)
+    err.message = message
+    return err
+
+
 def make_dirs(path: Path) -> None:
     """Create ``path`` and its parents with mode ``0777 & ~umask`` (as ``mkdir -p``)."""
     Path(path).mkdir(mode=0o777, parents=True, exist_ok=True)
@@ -44,11 +96,14 @@ def make_dirs(path: Path) -> None:
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write to a temporary file beside ``path`` and rename it into place; the file gets mode
-    ``0666 & ~umask``, as a plain ``open(path, "wb")`` would give it."""
+    ``0666 & ~umask``, as a plain ``open(path, "wb")`` would give it. Raises
+    :class:`StorageError` (naming ``path``) when the system refuses the write; no temporary
+    file is left behind and ``path`` keeps its previous content."""
     path = Path(path)
-    make_dirs(path.parent)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = None
     try:
+        make_dirs(path.parent)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         try:
             os.fchmod(fd, 0o666 & ~current_umask())  # mkstemp creates 0600
         except OSError:  # a file system without modes: keep what it gives
@@ -56,9 +111,15 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
         os.replace(tmp, path)
+        tmp = None
+    except StorageError:
+        raise
+    except OSError as exc:
+        raise StorageError(path, exc) from exc
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -2,19 +2,34 @@
 
 A run directory ends up holding ``config.toml`` (the resolved config: every size that ran),
 ``manifest.json`` and the per-task results (:mod:`workbench.study.store`), the tidy tables,
-``summary.json`` (a function of the results only), ``run.json`` (profile, wall time, tasks
-computed and loaded, back end, cores and load) and the study's ``report.md`` with its figures.
-Every JSON file is strict JSON: a NaN or infinite number (e.g. the rate of an empty cell, an
-``alpha = inf`` in the manifest's config) is written as ``null``.
+``summary.json`` (a function of the results only), ``run.json`` (the run record) and the
+study's ``report.md`` with its figures. Every JSON file is strict JSON: a NaN or infinite number
+(e.g. the rate of an empty cell, an ``alpha = inf`` in the manifest's config) is written as
+``null``.
+
+Before anything is written, the config, the worker count, the time limit and the scheduler
+(format, then a connection within seconds) are checked, and the folder is claimed for this run
+(:mod:`workbench.study.folder`): a folder of another config, a folder of someone else's files
+and a folder in use by another run are refused with a message saying what to do. The folder
+stays locked until the report is written.
+
+``run.json`` describes the invocation that computed tasks: profile, tasks (total, computed,
+loaded), ``wall_time_s``, back end, cores and the 1-minute load average at its start and end;
+``last_invocation`` holds the same fields for the latest invocation. A rerun that computes
+nothing (every task already stored) updates ``last_invocation`` only, so the wall time of the
+run that did the work is kept, and the report's run line quotes it.
 
 A run refuses more than :data:`~workbench.validation.MAX_TASKS` tasks (10^7) before computing
-anything; each study's config bounds its own sizes when it is built.
+anything; each study's config bounds its own sizes when it is built. Status lines (the summary
+lines of a finished run) go to the ``workbench.study`` logger at INFO.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import logging
+import math
 import os
 import time
 import tomllib
@@ -25,7 +40,15 @@ from typing import Any
 
 from workbench.study import config_io
 from workbench.study.config_io import ConfigError
-from workbench.study.execute import RunResult, run_study
+from workbench.study.execute import (
+    RunResult,
+    check_timeout,
+    check_workers,
+    refuse_mixed,
+    run_study,
+    scheduler_client,
+)
+from workbench.study.folder import MANIFEST, RunFolderError, claim, locked
 from workbench.study.io import atomic_write_json, atomic_write_text
 from workbench.study.report import tasks_phrase
 from workbench.study.spec import Finished, StudySpec, Summary
@@ -35,6 +58,8 @@ from workbench.study.tasks import Study
 from workbench.validation import MAX_TASKS
 
 RUN_FILE = "run.json"
+RECORD_KEYS = ("profile", "tasks", "wall_time_s", "backend", "cpu_count", "load_average_1min")
+log = logging.getLogger("workbench.study")
 
 
 @dataclass(frozen=True)
@@ -63,7 +88,10 @@ def _stored_config(spec: StudySpec, out: Path) -> Any:
     """The config of the run in ``out``: the manifest's, unless it holds a null (the config
     holds no None, :func:`~workbench.study.config_io.to_dict` leaves None out, so a null is an
     inf or NaN that strict JSON could not keep): then the run's config.toml (TOML keeps them)."""
-    data = RunStore(out).manifest()["config"]
+    data = RunStore(out).manifest().get("config")
+    if not isinstance(data, dict):
+        raise RunFolderError(f"{out / MANIFEST} holds no config: it is not a run's manifest; "
+                             f"rerun the study into {out} to rewrite it, or delete the folder")
     toml = out / "config.toml"
     if _has_null(data) and toml.is_file():
         data = tomllib.loads(toml.read_text())
@@ -144,39 +172,92 @@ def _summarise(spec: StudySpec, study: Study, finished: Finished) -> Summary:
     return summary
 
 
+def _read_record(out: Path) -> dict | None:
+    try:
+        record = json.loads((out / RUN_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _computed(record: dict | None) -> int:
+    try:
+        return int(record["tasks"]["computed"])  # type: ignore[index]
+    except (KeyError, TypeError, ValueError):
+        return 0
+
+
+def _run_record(spec: StudySpec, out: Path, this: dict) -> dict:
+    """run.json: the fields of the invocation that computed tasks (this one, unless it computed
+    nothing and an earlier one did) and ``last_invocation`` (this one)."""
+    previous = _read_record(out)
+    keep = this["tasks"]["computed"] == 0 and _computed(previous) > 0
+    base = {k: previous[k] for k in RECORD_KEYS if k in previous} if keep else this
+    return {"study": spec.name, **base, "last_invocation": this}
+
+
+def _run_line(record: dict) -> str:
+    """The report's line on the run that computed the tasks (from run.json's fields)."""
+    try:
+        wall, tasks = float(record["wall_time_s"]), record["tasks"]
+        computed, total = int(tasks["computed"]), int(tasks["total"])
+        where, cpu = record["backend"], record.get("cpu_count")
+        load = [math.nan if v is None else float(v)
+                for v in (record.get("load_average_1min") or (None, None))][:2]
+    except (KeyError, TypeError, ValueError, IndexError):
+        return "Report rebuilt from stored results (no run record found)."
+    return (f"Wall time {wall:.1f} s ({tasks_phrase(computed, total)}; {where}; {cpu} cores, "
+            f"1-min load average {load[0]:.1f} at the start and {load[1]:.1f} at the end: "
+            "compute times are wall-clock and grow with the load).")
+
+
 def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers: int = 2,
-        scheduler: str | None = None, progress: bool = True,
-        profile: str | None = None) -> Outcome:
+        scheduler: str | None = None, progress: bool = True, profile: str | None = None,
+        task_timeout_s: float | None = None, allow_mixed: bool = False) -> Outcome:
     """Run (or continue) a study in ``out`` (default: the study's folder under reports/).
-    Raises RuntimeError listing the tasks that raised (tracebacks in errors.json) and
-    :class:`~workbench.study.StudyInterrupted` on Ctrl-C (rerun to continue)."""
+
+    task_timeout_s: time limit of one task in seconds (None: none; a task over it is recorded
+    as an error). allow_mixed: reuse stored tasks computed by other code or another evaluator.
+    Raises :class:`~workbench.study.config_io.ConfigError` (a
+    :class:`~workbench.study.folder.RunFolderError` for a folder of another run, of someone
+    else's files or in use; a :class:`~workbench.study.scheduler.SchedulerError`) before
+    anything is written; RuntimeError listing the tasks that raised (tracebacks in
+    errors.json); :class:`~workbench.study.StudyInterrupted` on Ctrl-C (rerun to continue);
+    :class:`~workbench.study.io.StorageError` when a file cannot be written."""
     if not isinstance(config, spec.config_type):
         raise ConfigError(f"config = {type(config).__name__} is invalid: study {spec.name!r} "
                           f"takes a {spec.config_type.__name__}")
+    try:
+        check_workers(workers)
+        check_timeout(task_timeout_s)
+    except ValueError as exc:  # before anything is written, as a config error
+        raise ConfigError(str(exc)) from exc
     t0, load0 = time.perf_counter(), os.getloadavg()[0]
     out = _user_path(out or spec.default_out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "config.toml", config_io.dump(
-        config, header=f"resolved config of this run; rerun: workbench run {spec.name} "
-                       f"--config {out / 'config.toml'} --out {out}"))
-    study, finished = _prepared(spec, config, out)
-    result = run_study(study, out, workers=workers, scheduler=scheduler, progress=progress)
-    result.raise_for_errors()
-    summary = _summarise(spec, study, finished)
-    wall = time.perf_counter() - t0
-    where = f"scheduler {scheduler}" if scheduler else f"{workers} workers"
-    cpu, load = os.cpu_count(), (load0, os.getloadavg()[0])
-    atomic_write_json(out / RUN_FILE, {
-        "study": spec.name, "profile": profile,
-        "tasks": {"total": result.n_tasks, "computed": result.computed, "loaded": result.loaded},
-        "wall_time_s": wall, "backend": where, "cpu_count": cpu, "load_average_1min": load})
-    run_line = (f"Wall time {wall:.1f} s ({tasks_phrase(result.computed, result.n_tasks)}; "
-                f"{where}; {cpu} cores, 1-min load average {load[0]:.1f} at the start and "
-                f"{load[1]:.1f} at the end: compute times are wall-clock and grow with the "
-                "load).")
-    report = spec.fn("report")(dataclasses.replace(finished, run_line=run_line), summary)
+    dry = declare(spec, config)[0]
+    with scheduler_client(scheduler) as (client, _), claim(out, study_manifest(dry)):
+        if not allow_mixed:  # before the study prepares anything
+            refuse_mixed(dry, out)
+        atomic_write_text(out / "config.toml", config_io.dump(
+            config, header=f"resolved config of this run; rerun: workbench run {spec.name} "
+                           f"--config {out / 'config.toml'} --out {out}"))
+        study, finished = _prepared(spec, config, out)
+        result = run_study(study, out, workers=workers, scheduler=client, progress=progress,
+                           task_timeout_s=task_timeout_s, allow_mixed=allow_mixed)
+        result.raise_for_errors()
+        summary = _summarise(spec, study, finished)
+        where = f"scheduler {scheduler}" if scheduler else f"{workers} workers"
+        this = {"profile": profile, "tasks": {"total": result.n_tasks,
+                                              "computed": result.computed,
+                                              "loaded": result.loaded},
+                "wall_time_s": time.perf_counter() - t0, "backend": where,
+                "cpu_count": os.cpu_count(), "load_average_1min": (load0, os.getloadavg()[0])}
+        record = _run_record(spec, out, this)
+        atomic_write_json(out / RUN_FILE, record)
+        report = spec.fn("report")(dataclasses.replace(finished, run_line=_run_line(record)),
+                                   summary)
     for line in summary.lines:
-        print(line)
+        log.info("%s", line)
     return Outcome(summary, result, Path(report))
 
 
@@ -185,23 +266,22 @@ def rebuild_report(spec: StudySpec, out: Path | str) -> Path:
     is computed; run.json, the record of the run, is left as it is). The config is the
     manifest's (the run's config.toml where the manifest holds null for an inf or NaN)."""
     out = _user_path(out)
-    try:
-        config = _stored_config(spec, out)
-    except (OSError, KeyError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+    if not (out / MANIFEST).is_file():
         raise ConfigError(f"{out}: no readable manifest.json; run `workbench run {spec.name} "
-                          f"--out {out}` first") from exc
-    study, finished = _prepared(spec, config, out)
-    missing = len(study.tasks) - len(finished.store.finished(finished.ids.values()))
-    if missing:
-        raise ConfigError(f"{out}: {missing} of {len(study.tasks)} tasks are not finished; "
-                          f"`workbench run {spec.name} --config {out / 'config.toml'} --out "
-                          f"{out}` completes them")
-    summary = _summarise(spec, study, finished)
-    try:
-        record = json.loads((out / RUN_FILE).read_text())  # wall_time_s may be null
-        run_line = (f"Wall time {record['wall_time_s']:.1f} s ({record['tasks']['computed']} of "
-                    f"{record['tasks']['total']} tasks computed in the last run; "
-                    f"{record['backend']}).")
-    except (OSError, KeyError, TypeError, ValueError):
-        run_line = "Report rebuilt from stored results (no run record found)."
-    return Path(spec.fn("report")(dataclasses.replace(finished, run_line=run_line), summary))
+                          f"--out {out}` first")
+    with locked(out):
+        try:
+            config = _stored_config(spec, out)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{out / 'config.toml'}: {exc}; the run's config.toml was "
+                              "edited or cut short: restore it, or rerun the study") from exc
+        study, finished = _prepared(spec, config, out)
+        missing = len(study.tasks) - len(finished.store.finished(finished.ids.values()))
+        if missing:
+            raise ConfigError(f"{out}: {missing} of {len(study.tasks)} tasks are not finished; "
+                              f"`workbench run {spec.name} --config {out / 'config.toml'} "
+                              f"--out {out}` completes them")
+        summary = _summarise(spec, study, finished)
+        record = _read_record(out) or {}
+        return Path(spec.fn("report")(dataclasses.replace(finished, run_line=_run_line(record)),
+                                      summary))

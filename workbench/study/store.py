@@ -2,13 +2,18 @@
 
 Layout of ``root``::
 
-    manifest.json          written first (study, config, seed, versions, git revision, machine)
-    tasks/<id>.npz         one finished task, written atomically: record, table rows, arrays
+    .workbench-run.json    the folder's owner (:mod:`workbench.study.folder`), written first
+    manifest.json          study, config, seed, versions, git revision, machine, evaluator and
+                           code hash of this invocation (rewritten by each invocation)
+    tasks/<id>.npz         one finished task, written atomically: record (with the evaluator
+                           and code hash of the process that computed it), table rows, arrays
     tasks/<id>.error.json  a task that raised: its description and traceback (retried on rerun)
     <table>.parquet/.csv   tidy tables, rows in the study's task order (written when complete)
     errors.json            the errors of the last run (absent when there were none)
 
-A task counts as finished only if its ``.npz`` loads and carries the expected id.
+A task counts as finished only if its ``.npz`` loads and carries the expected id. A write
+that fails (disk full, file-size limit, ...) raises :class:`~workbench.study.io.StorageError`
+naming the file; no part of the file is left.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from workbench.study.folder import MANIFEST, RunFolderError, read_json
 from workbench.study.io import _default, atomic_write_bytes, atomic_write_json, manifest
 from workbench.study.tasks import Study, TaskOutput, columns, describe
 from workbench.validation import fail
@@ -40,13 +46,16 @@ _RECORD, _TABLE, _ARRAY = "record", "table:", "array:"
 @dataclass(frozen=True)
 class TaskRecord:
     """A task's outcome as sent back by a worker: ``output`` when it finished, ``error`` (the
-    traceback text) when it raised. ``elapsed_s`` and ``worker`` are not part of the results."""
+    traceback text) when it raised. ``provenance``: evaluator and code hash of the process that
+    ran it (:func:`workbench.study.provenance.current`), stored with the task. ``elapsed_s`` and
+    ``worker`` are not part of the results."""
 
     task_id: str
     output: TaskOutput | None = None
     error: str | None = None
     elapsed_s: float = 0.0
     worker: str = ""
+    provenance: Mapping[str, str] | None = None
 
     @property
     def ok(self) -> bool:
@@ -84,16 +93,26 @@ class RunStore:
             raise fail("out", str(self.root), "must be a writable directory")
 
     # ------------------------------------------------------------------ manifest
-    def write_manifest(self, study: Study, execution: Mapping[str, Any]) -> dict:
-        """Provenance of this invocation, written before any task runs."""
+    def write_manifest(self, study: Study, execution: Mapping[str, Any],
+                       provenance: Mapping[str, Any] | None = None) -> dict:
+        """Provenance of this invocation, written before any task runs: the study's part
+        (:func:`study_manifest`), how it executes, the evaluator and code hash of this process,
+        versions and machine."""
         data = {**study_manifest(study), "execution": dict(execution),
                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                **({"provenance": dict(provenance)} if provenance is not None else {}),
                 **manifest(), "machine": machine()}
-        atomic_write_json(self.root / "manifest.json", data)
+        atomic_write_json(self.root / MANIFEST, data)
         return data
 
     def manifest(self) -> dict:
-        return json.loads((self.root / "manifest.json").read_text())
+        """The manifest; an unreadable or invalid file is an error naming it."""
+        data = read_json(self.root / MANIFEST, "run's manifest",
+                         f"rerun the study into {self.root} to rewrite it, or delete the folder")
+        if not isinstance(data, dict):
+            raise RunFolderError(f"{self.root / MANIFEST} is not a run's manifest (a JSON "
+                                 "object); rerun the study to rewrite it")
+        return data
 
     # ------------------------------------------------------------------ tasks
     def task_path(self, task_id: str) -> Path:
@@ -107,7 +126,8 @@ class RunStore:
         out = record.output
         header = {"task_id": record.task_id, "task": describe(task), "meta": dict(out.meta),
                   "tables": {t: list(cols) for t, cols in out.tables.items()},
-                  "arrays": list(out.arrays)}
+                  "arrays": list(out.arrays),
+                  "provenance": dict(record.provenance) if record.provenance else None}
         entries = {_RECORD: np.array(json.dumps(header, default=_default))}
         for t, cols in out.tables.items():
             for c, v in cols.items():
@@ -142,6 +162,21 @@ class RunStore:
     def is_done(self, task_id: str) -> bool:
         """True if the task's file loads and carries its id (a corrupt file does not count)."""
         return self._load(task_id, header_only=True) is not None
+
+    def headers(self, ids: Iterable[str]) -> dict[str, dict[str, Any]]:
+        """The stored record (task, meta, tables, provenance) of each finished task in
+        ``ids``."""
+        out = {}
+        for i in ids:
+            entries = self._load(i, header_only=True)
+            if entries is not None:
+                out[i] = entries[_RECORD]
+        return out
+
+    def provenance(self, task_id: str) -> dict[str, str] | None:
+        """Evaluator and code hash of the process that computed a finished task (None for a
+        task stored before they were recorded)."""
+        return self._require(task_id)[_RECORD].get("provenance")
 
     def meta(self, task_id: str) -> dict[str, Any]:
         return self._require(task_id)[_RECORD]["meta"]
