@@ -137,3 +137,30 @@ def test_run_with_out_writes_the_html_report(tmp_path):
     assert f"wrote {out / 'report.html'}" in stdout and "%|" not in err  # -q: no progress bar
     html = (out / "report.html").read_text()
     assert "<table>" in html and 'href="assumptions.html#s3-3"' in html
+
+
+def test_run_refuses_a_bad_scheduler_before_creating_out(tmp_path):
+    """A malformed --scheduler fails with a one-line error and leaves no --out folder."""
+    from workbench.cli import main
+
+    out = tmp_path / "never"
+    rc = main(["run", "tracking-demo", "--scheduler", "not a url", "--out", str(out)])
+    assert rc == 2 and not out.exists()
+
+
+def test_run_passes_task_timeout_and_allow_mixed(monkeypatch, tmp_path):
+    """--task-timeout and --allow-mixed reach the runner."""
+    import workbench.study.runner as runner
+    from workbench.cli import main
+
+    seen = {}
+
+    def fake_run(*a, **kw):
+        seen.update(kw)
+        raise runner.ConfigError("stop here")
+
+    monkeypatch.setattr(runner, "run", fake_run)
+    rc = main(["run", "tracking-demo", "--task-timeout", "7.5", "--allow-mixed",
+               "--out", str(tmp_path / "o")])
+    assert rc == 2
+    assert seen["task_timeout_s"] == 7.5 and seen["allow_mixed"] is True

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from workbench.study import config_io
 from workbench.study.config_io import ConfigError
+from workbench.study.io import StorageError
 
 DESCRIPTION = """\
 SAIS Workbench: run the studies, show their configs, build the report site.
@@ -166,6 +167,10 @@ def cmd_run(args) -> int:
         print(estimate(entry, cfg, manifest["n_tasks"], out, args.workers, args.scheduler),
               file=sys.stderr)
         return 0
+    if args.scheduler:  # a malformed or unreachable scheduler fails before --out is created
+        from workbench.study.scheduler import check_scheduler
+
+        check_scheduler(args.scheduler)
     try:
         out = writable_dir("--out", args.out or entry.default_out)
     except ValueError as exc:
@@ -175,7 +180,8 @@ def cmd_run(args) -> int:
 
     try:
         outcome = run(entry, cfg, out, workers=args.workers, scheduler=args.scheduler,
-                      profile=profile, progress=not getattr(args, "quiet", False))
+                      profile=profile, progress=not getattr(args, "quiet", False),
+                      task_timeout_s=args.task_timeout, allow_mixed=args.allow_mixed)
     except StudyInterrupted:
         print("interrupted; rerun the same command to continue", file=sys.stderr)
         return 130
@@ -368,6 +374,12 @@ def parser() -> argparse.ArgumentParser:
                    help="check the config and print the run's manifest (study, seed, config, "
                         "fingerprint, task count) on stdout and the task count with an "
                         "estimated time on stderr, without computing or writing anything")
+    p.add_argument("--task-timeout", type=float, default=None, metavar="SECONDS",
+                   help="stop a task that runs longer and record it as an error (retried on "
+                        "the next run); default: no limit")
+    p.add_argument("--allow-mixed", action="store_true",
+                   help="reuse stored tasks computed by other code or another evaluator "
+                        "(refused by default)")
     _quiet(p, argparse.SUPPRESS)
     p.set_defaults(fn=cmd_run)
 
@@ -405,6 +417,9 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as exc:
             print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
             return 2
+        except StorageError as exc:  # disk full, file-size limit, read-only: names the file
+            print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
+            return 1
 
 
 if __name__ == "__main__":

@@ -56,7 +56,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from workbench.study import provenance
+import workbench.study.provenance as provenance
 from workbench.study.folder import RunFolderError, claim
 from workbench.study.io import StorageError
 from workbench.study.store import RunStore, TaskError, TaskRecord, study_manifest
