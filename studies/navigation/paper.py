@@ -9,7 +9,7 @@ from pathlib import Path
 
 from studies.navigation.config import StudyConfig
 from workbench.scenarios.navigation import NavigationSetup
-from workbench.study.report import Provenance, run_provenance, see
+from workbench.study.report import Provenance, not_compared_row, run_provenance, see
 from workbench.study.spec import PaperRow
 
 # Table I [P]: safety % and RMSE [m] over 100 realisations per variance
@@ -121,12 +121,9 @@ def paper_rows(out: Path) -> list[PaperRow]:
     from studies.navigation import STUDY
     from studies.navigation.findings import NAMES
 
-    prov = run_provenance(STUDY, out, SIZES)
-    if prov is None or not prov.comparable:
-        why = ("its config.toml is unreadable" if prov is None else
-               "; ".join(prov.changes[:3]) + ("; ..." if len(prov.changes) > 3 else ""))
-        return [PaperRow("this run", "Table I", "not compared",
-                         f"custom run: not comparable with {NOT_COMPARABLE} ({why})")]
+    skip = not_compared_row(run_provenance(STUDY, out, SIZES), "Table I", NOT_COMPARABLE)
+    if skip is not None:
+        return [skip]
     cells = json.loads((Path(out) / "summary.json").read_text())["cells"]
     rows = []
     for c in cells:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from studies.tracking_comparison.config import StudyConfig
 from studies.tracking_comparison.methods import Setup
-from workbench.study.report import Provenance, run_provenance
+from workbench.study.report import Provenance, not_compared_row, run_provenance
 from workbench.study.spec import PaperRow
 
 
@@ -115,12 +115,10 @@ def paper_rows(out: Path) -> list[PaperRow]:
     from studies.tracking_comparison import STUDY
     from studies.tracking_comparison.findings import NAMES
 
-    prov = run_provenance(STUDY, out, SIZES)
-    if prov is None or not prov.comparable:
-        why = ("its config.toml is unreadable" if prov is None else
-               "; ".join(prov.changes[:3]) + ("; ..." if len(prov.changes) > 3 else ""))
-        return [PaperRow("this run", "Sec. III rates", "not compared",
-                         f"custom run: not comparable with {NOT_COMPARABLE} ({why})")]
+    skip = not_compared_row(run_provenance(STUDY, out, SIZES), "Sec. III rates",
+                            NOT_COMPARABLE)
+    if skip is not None:
+        return [skip]
     summary = json.loads((Path(out) / "summary.json").read_text())
     ours = {m["method"]: m for m in summary["methods"]}
     rows = []

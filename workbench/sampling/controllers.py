@@ -30,7 +30,7 @@ from scipy.signal import savgol_filter
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
 from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
-from workbench.sampling.kernels.constants import SamplerConstants, scale32
+from workbench.sampling.kernels.constants import FLOAT32_MAX, SamplerConstants, check_scales32
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.sampler import Backend, Precision, SAISBatch, Sampler
 from workbench.sampling.samples import RecordsSamples, SampleTrajectories
@@ -51,7 +51,6 @@ from workbench.validation import (
 )
 
 MAX_ITERATIONS = 1000  # MPPI iterations per step
-FLOAT32_MAX = float(np.finfo(np.float32).max)
 MAX_CANDIDATES = 1001  # RMPPI candidate nominal states
 MAX_CANDIDATE_ROLLOUTS = 2**24  # RMPPI candidate rollouts per step
 
@@ -121,12 +120,8 @@ class MPPIConfig:
                 raise fail("MPPIConfig.smoothing", self.smoothing,
                            "need (window, order) with an odd window <= horizon and order < window")
         one_of("MPPIConfig.precision", self.precision, ("float64", "float32"))
-        if self.precision == "float32":  # sigma^2, lambda, lambda (1 - nu_mix) normal in float32
-            for i, v in enumerate(self.sigma):
-                scale32(f"MPPIConfig.sigma[{i}]", v, power=2)
-            scale32("MPPIConfig.lam", self.lam)
-            if self.nu_mix > 0:
-                scale32("MPPIConfig.lam * (1 - nu_mix)", self.lam * (1.0 - self.nu_mix))
+        if self.precision == "float32":  # the kernels' own float32 rules, checked at once
+            check_scales32("MPPIConfig", self.sigma, self.lam, self.nu_mix)
             if self.crash_cost > FLOAT32_MAX:
                 raise fail("MPPIConfig.crash_cost", self.crash_cost,
                            f"must be at most {FLOAT32_MAX:.4g} for precision 'float32'")

@@ -164,6 +164,19 @@ def provenance(spec: Any, config: Any, out: Path | str | None = None, sizes: Ite
                       config_changes(config, ref, sizes))
 
 
+def not_compared_row(prov: Provenance | None, paper: str, what: str):
+    """The report site's one row for a run whose numbers are not set beside the paper's (a
+    custom run, or a run whose config.toml is unreadable); None for a comparable run."""
+    from workbench.study.spec import PaperRow
+
+    if prov is not None and prov.comparable:
+        return None
+    why = ("its config.toml is unreadable" if prov is None else
+           "; ".join(prov.changes[:3]) + ("; ..." if len(prov.changes) > 3 else ""))
+    return PaperRow("this run", paper, "not compared",
+                    f"custom run: not comparable with {what} ({why})")
+
+
 def run_provenance(spec: Any, out: Path | str, sizes: Iterable[str] = (),
                    reference: str = "paper") -> Provenance | None:
     """:func:`provenance` of the finished run in ``out`` (its config.toml); None when the

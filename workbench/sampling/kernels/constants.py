@@ -21,6 +21,20 @@ _MAX32 = float(np.finfo(np.float32).max)  # 3.40e38
 _BOUNDED = ("u_min", "u_max", "crash_cost", "p", "scene")  # finite in float32
 
 
+FLOAT32_MAX = _MAX32
+
+
+def check_scales32(prefix: str, sigma, lam: float, nu_mix: float) -> None:
+    """Refuse sampling scales a float32 kernel cannot use: sigma^2, lambda and
+    lambda (1 - nu_mix) and their reciprocals must be normal float32 numbers."""
+    for i, v in enumerate(np.ravel(np.asarray(sigma, dtype=float))):
+        scale32(f"{prefix}.sigma[{i}]", v, power=2)
+    scale32(f"{prefix}.lam", lam)
+    lr = float(lam) * (1.0 - float(nu_mix))
+    if lr != 0.0:
+        scale32(f"{prefix}.lam * (1 - nu_mix)", lr)
+
+
 def scale32(name: str, value: float, power: int = 1) -> float:
     """:func:`workbench.validation.scale` for float32: ``value**power`` and its reciprocal are
     normal float32 numbers (value in [tiny^(1/power), tiny^(-1/power)], tiny = 1.18e-38)."""
@@ -81,11 +95,7 @@ class SamplerConstants:
                     and all(a.size == 0 or float(np.max(np.abs(a))) <= _MAX32 for a in big)
                     and self.guard_band <= _MAX32)
         if not fine:  # name the first offending field
-            for i, v in enumerate(sig):
-                scale32(f"SamplerConstants.sigma[{i}]", v, power=2)
-            scale32("SamplerConstants.lam", lam)
-            if lr != 0.0:
-                scale32("SamplerConstants.lam * (1 - nu_mix)", lr)
+            check_scales32("SamplerConstants", sig, lam, self.nu_mix)
             for name, arr in zip(_BOUNDED, big, strict=True):
                 if arr.size and not np.all(np.abs(arr) <= _MAX32):
                     raise fail(f"SamplerConstants.{name}", arr, "must be finite and at most "
