@@ -1,5 +1,6 @@
-"""Tracking benchmarks: BaS-iLQG (full DDP and Gauss-Newton) and AL-iLQG against IPOPT and
-FATROP on the same multiple-shooting NLP, and the ECBF filter step against qpsolvers.
+"""Tracking benchmarks: BaS-iLQG (the default, full DDP with the Gauss-Newton fallback; plain full
+DDP; Gauss-Newton) and AL-iLQG against IPOPT and FATROP on the same multiple-shooting NLP, and the
+ECBF filter step against qpsolvers.
 
 ``records(repeats)`` returns records in the format of ``benchmarks/__main__.py``
 (name, value, unit, baseline, baseline_value, ratio = baseline_value / value, params).
@@ -128,12 +129,21 @@ NLP_TOL = 1e-7  # IPOPT and FATROP, same tolerance (FATROP reports failure at 1e
 #                 hard-constrained problem while at the same optimum)
 
 
+# the iLQG variants timed: the library default and the two it combines
+DEFAULT_VARIANT = "ddp_gn_fallback"  # ILQGOptions(): full DDP, Gauss-Newton fallback
+ILQG_VARIANTS = {DEFAULT_VARIANT: ILQGOptions(),
+                 "ddp": ILQGOptions(gauss_newton_fallback=False),
+                 "gauss_newton": ILQGOptions(second_order=False)}
+
+
 def bench_bas_ilqg_vs_nlp(repeats: int, jit: bool = True) -> list[dict]:
-    """BaS-iLQG (full DDP and Gauss-Newton) vs IPOPT and FATROP on the same multiple-shooting
-    NLP of the barrier-embedded tracking problem (T=150): solver call only, set-up excluded.
-    With ``jit``, IPOPT and FATROP also run with jit-compiled functions
+    """BaS-iLQG (the default variant, plain full DDP and Gauss-Newton) vs IPOPT and FATROP on the
+    same multiple-shooting NLP of the barrier-embedded tracking problem (T=150): solver call only,
+    set-up excluded. With ``jit``, IPOPT and FATROP also run with jit-compiled functions
     (:mod:`benchmarks.nlp_jit`, cached after the first build). Every cost must agree with
-    IPOPT's to 1e-6 relative; the faster iLQG variant is the recommended default when it does."""
+    IPOPT's to 1e-6 relative; the faster iLQG variant is the recommended default when it does.
+    The ``bas_ilqg_default_*`` records name the default variant, its iterations and how many
+    took each kind of step."""
     scene, model = _tracking_scene()
     problem = tracking_problem(model, TrackingWeights(), barrier=BarrierOptions())
     P = tracking_params(problem, scene.reference(), scene.target)
@@ -145,10 +155,11 @@ def bench_bas_ilqg_vs_nlp(repeats: int, jit: bool = True) -> list[dict]:
     if jit:
         for s in ("ipopt", "fatrop"):
             nlp[f"{s}_jit"], jit_facts[s] = jit_nlp(problem, scene.horizon, s, tol=NLP_TOL)
-    ddp_opts, gn_opts = ILQGOptions(second_order=True), ILQGOptions()
-    ilqg(problem, scene.start, U0, P, ddp_opts, passes)  # warm: first call touches pages
-    fns = {"ddp": lambda: ilqg(problem, scene.start, U0, P, ddp_opts, passes),
-           "gauss_newton": lambda: ilqg(problem, scene.start, U0, P, gn_opts, passes)}
+    if ILQGOptions() != ILQG_VARIANTS[DEFAULT_VARIANT]:
+        raise AssertionError("benchmarks.tracking.ILQG_VARIANTS: the library default changed")
+    ilqg(problem, scene.start, U0, P, ILQGOptions(), passes)  # warm: first call touches pages
+    fns = {name: lambda o=o: ilqg(problem, scene.start, U0, P, o, passes)
+           for name, o in ILQG_VARIANTS.items()}
     for name, solver in nlp.items():
         solver.solve(scene.start, U0, P)  # warm
         fns[name] = lambda s=solver: s.solve(scene.start, U0, P)
@@ -159,12 +170,16 @@ def bench_bas_ilqg_vs_nlp(repeats: int, jit: bool = True) -> list[dict]:
     vs_ipopt = {n: abs(c - ref) / abs(ref) for n, c in costs.items()}
     u_diff = {n: float(np.max(np.abs(r.U - U_ref))) for n, (_, r) in res.items()}
     ms = {n: 1e3 * t for n, (t, _) in res.items()}
-    faster = min(("ddp", "gauss_newton"), key=lambda n: ms[n])
-    default = "ddp" if ILQGOptions().second_order else "gauss_newton"
+    faster = min(ILQG_VARIANTS, key=lambda n: ms[n])
+    default = DEFAULT_VARIANT
     verdict = {"library_default": default, "faster_variant": faster,
                "faster_agrees_with_ipopt_1e-6": vs_ipopt[faster] <= 1e-6,
                "recommended_default": faster if vs_ipopt[faster] <= 1e-6 else default,
-               "speedup_of_faster": ms["gauss_newton" if faster == "ddp" else "ddp"] / ms[faster]}
+               "speedup_of_faster": min(ms[n] for n in ILQG_VARIANTS if n != faster)
+               / ms[faster],
+               "default_options": {f: getattr(ILQGOptions(), f) for f in
+                                   ("second_order", "gauss_newton_fallback", "fallback_mu")},
+               "step_counts": {n: res[n][1].step_counts for n in ILQG_VARIANTS}}
     common = {"T": scene.horizon, "nx": problem.nx, "nu": problem.nu,
               "costs": costs, "max_rel_cost_difference": worst,
               "rel_cost_difference_vs_ipopt": vs_ipopt, "max_abs_control_difference_vs_ipopt":
@@ -177,7 +192,8 @@ def bench_bas_ilqg_vs_nlp(repeats: int, jit: bool = True) -> list[dict]:
               "ilqg": "compiled passes + C outer loop, tol_rel 1e-7",
               "time": "solver call only; NLP construction and code generation excluded"}
     out = []
-    for method, label in (("ddp", "bas_ilqg_ddp"), ("gauss_newton", "bas_ilqg_gauss_newton")):
+    for method, label in ((DEFAULT_VARIANT, "bas_ilqg_default"), ("ddp", "bas_ilqg_ddp"),
+                          ("gauss_newton", "bas_ilqg_gauss_newton")):
         for base in ("fatrop_jit", "ipopt_jit", "fatrop", "ipopt"):
             if base not in ms:
                 continue
@@ -185,7 +201,10 @@ def bench_bas_ilqg_vs_nlp(repeats: int, jit: bool = True) -> list[dict]:
             x = ms[base] / ms[method]
             out.append(_record(f"{label}_vs_{base}_tracking_T150", ms[method], "ms",
                                f"{base}_multiple_shooting_solve_ms", ms[base],
-                               {**common, "goal_ratio": goal,
+                               {**common, "ilqg_variant": method,
+                                "ilqg_iterations": res[method][1].iterations,
+                                "ilqg_step_counts": res[method][1].step_counts,
+                                "goal_ratio": goal,
                                 "goal_met": None if goal is None else bool(
                                     x >= goal and vs_ipopt[method] <= 1e-6)}))
     return out

@@ -138,10 +138,13 @@ def test_compiled_passes_equal_numpy_twin(bas_tracking, scene, rng, reg, boxed):
 
 
 def test_whole_solves_agree_across_backends(bas_tracking, scene):
+    """Gauss-Newton, 30 iterations (second order: test_ddp.py compares whole solves, whose
+    rounding differences reach ~4e-5 relative mid-solve in the indefinite phase, same steps)."""
     problem, P = bas_tracking
     U0 = np.zeros((scene.horizon, 2))
-    a = ilqg(problem, scene.start, U0, P, ILQGOptions(backend="compiled", max_iter=30))
-    b = ilqg(problem, scene.start, U0, P, ILQGOptions(backend="numpy", max_iter=30))
+    gn = {"max_iter": 30, "second_order": False}
+    a = ilqg(problem, scene.start, U0, P, ILQGOptions(backend="compiled", **gn))
+    b = ilqg(problem, scene.start, U0, P, ILQGOptions(backend="numpy", **gn))
     assert a.backend == "compiled" and b.backend == "numpy"
     assert a.iterations == b.iterations
     assert a.cost == pytest.approx(b.cost, rel=1e-9)
@@ -201,8 +204,8 @@ def test_solve_options_record_has_the_c_layout(bas_tracking):
     assert fields == tuple((name, getattr(SolveOptions, name).offset,
                             getattr(SolveOptions, name).size) for name, _ in SolveOptions._fields_)
     assert [f[0] for f in fields] == [
-        "max_iter", "reg", "boxed", "second_order", "mu_init", "mu_factor", "mu_min", "mu_max",
-        "z_min", "tol_abs", "tol_rel", "tol_grad"]
+        "max_iter", "reg", "boxed", "second_order", "gn_fallback", "fallback_mu", "mu_init",
+        "mu_factor", "mu_min", "mu_max", "z_min", "tol_abs", "tol_rel", "tol_grad"]
 
 
 @pytest.mark.parametrize("options", [
@@ -212,7 +215,9 @@ def test_solve_options_record_has_the_c_layout(bas_tracking):
     {"z_min": 0.5, "tol_rel": 1e-3},
     {"tol_abs": 50.0},
     {"tol_grad": 0.5, "mu_init": 0.0},
-    {"mu_max": 1.0, "mu_init": 0.9, "second_order": True},
+    {"mu_max": 1.0, "mu_init": 0.9, "second_order": False},
+    {"mu_max": 1.0, "mu_init": 0.9, "gauss_newton_fallback": False},
+    {"fallback_mu": 10.0},
 ], ids=lambda o: ",".join(o))
 def test_compiled_outer_loop_reads_each_option(bas_tracking, scene, options):
     """Each option reaches wb_solve in its own field: with non-default values the C loop takes
@@ -236,6 +241,8 @@ def test_compiled_outer_loop_reads_each_option(bas_tracking, scene, options):
     ({"z_min": False}, "ILQGOptions.z_min = False is invalid: must be a finite number"),
     ({"box_qp": 1}, "ILQGOptions.box_qp = 1 is invalid: must be true or false"),
     ({"second_order": 0}, "ILQGOptions.second_order = 0 is invalid: must be true or false"),
+    ({"gauss_newton_fallback": 1},
+     "ILQGOptions.gauss_newton_fallback = 1 is invalid: must be true or false"),
 ])
 def test_options_reject_bool_numbers_and_numeric_flags(kw, message):
     with pytest.raises(ValueError, match="^" + re.escape(message)):

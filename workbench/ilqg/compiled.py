@@ -32,6 +32,8 @@ class SolveOptions(ctypes.Structure):
         ("reg", ctypes.c_int),  # 0 control-space, 1 state-space regularisation
         ("boxed", ctypes.c_int),  # 1: control limits through the box QP
         ("second_order", ctypes.c_int),  # 1: full DDP
+        ("gn_fallback", ctypes.c_int),  # 1: a failed second-order step redone as Gauss-Newton
+        ("fallback_mu", ctypes.c_double),  # ... failed: not PD for any mu <= fallback_mu
         ("mu_init", ctypes.c_double),
         ("mu_factor", ctypes.c_double),
         ("mu_min", ctypes.c_double),
@@ -229,7 +231,7 @@ class CompiledPasses:
         b["J"][0] = J
         n = len(alphas)
         b["alphas"][:n] = alphas
-        hist = np.empty((options.max_iter, 7))
+        hist = np.empty((options.max_iter, 8))
         self._scene()
         self._c.wb_solve(self.T, a["x0"], a["X"], a["U"], a["J"], a["P"],
                          self._put("umin", umin), self._put("umax", umax),

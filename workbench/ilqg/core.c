@@ -409,6 +409,9 @@ int wb_backward(int T, const double* A, const double* B, const double* lx, const
   F(int, reg)             /* 0 control-space (Quu + mu I), 1 state-space regularisation */ \
   F(int, boxed)           /* 1: control limits through the box QP */ \
   F(int, second_order)    /* 1: full DDP (dynamics' Hessians in the backward pass) */ \
+  F(int, gn_fallback)     /* 1 (second order only): an iteration whose second-order step */ \
+                          /*   fails is redone as a Gauss-Newton one (ILQGOptions) */ \
+  F(double, fallback_mu)  /*   fails: not positive definite for any mu <= fallback_mu */ \
   F(double, mu_init)      /* first regularisation */ \
   F(double, mu_factor)    /* its growth factor (> 1) */ \
   F(double, mu_min)       /* regularisation floor */ \
@@ -445,7 +448,9 @@ int wb_solve_options_layout(long long* out, const char** names) {
 /* The outer loop of workbench/ilqg/solver.py (ilqg, python loop) in C, for small problems where
  * the Python loop costs more than the passes. Keep the two in step; tests compare them.
  * X, U hold the initial (accepted) rollout and are updated in place; *J its cost.
- * hist rows (max_iter, 7): cost, dJ, expected, alpha, mu, grad_norm, accepted.
+ * hist rows (max_iter, 8): cost, dJ, expected, alpha, mu, grad_norm, accepted, step (0
+ * Gauss-Newton, 1 second order, 2 fallback: the second-order step failed and the iteration
+ * was redone as a Gauss-Newton one).
  * out = [stop code (0 max_iter, 1 regularization_limit, 2 gradient, 3 cost_change,
  * 4 line_search_failed), converged, n_hist, final mu]. Work: derivative arrays (7, as
  * wb_derivatives), k2 (T,NU), K2 (T,NU,NX), Xn, Un, ls_out (3). */
@@ -459,7 +464,8 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
   const double f = opt->mu_factor, mu_min = opt->mu_min, mu_max = opt->mu_max;
   const double z_min = opt->z_min;
   const double tol_abs = opt->tol_abs, tol_rel = opt->tol_rel, tol_grad = opt->tol_grad;
-  const int second_order = opt->second_order;
+  const int second_order = opt->second_order, gn_fallback = second_order && opt->gn_fallback;
+  const double mu_cap = opt->fallback_mu < mu_max ? opt->fallback_mu : mu_max;
   double mu = opt->mu_init, delta = 1.0, dV[2];
   int d_valid = 0, stop = 0, converged = 0, n_hist = 0;
   for (int it = 1; it <= max_iter; ++it) {
@@ -467,36 +473,53 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
       wb_derivatives(T, X, U, P, A, B, lx, lu, lxx, luu, lux);
       d_valid = 1;
     }
+    /* the second-order attempt, then (fallback) the Gauss-Newton one from mu0, delta0.
+     * outcome: 0 line-searched, 1 not positive definite up to mu_cap (second order),
+     * 2 regularisation limit, 3 small gradient */
+    const double mu0 = mu, delta0 = delta;
+    int second = second_order, outcome, acc = -1;
+    double kind = second_order ? 1.0 : 0.0, g = 0.0;
     for (;;) {
-      if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k, K,
-                      dV, X, second_order) == 0)
-        break;
-      delta = delta * f > f ? delta * f : f;
-      mu = mu * delta > mu_min ? mu * delta : mu_min;
-      if (mu > mu_max) break;
-    }
-    if (mu > mu_max) { stop = 1; break; }
-    double g = 0.0;
-    for (int t = 0; t < T; ++t) {
-      double m = 0.0;
-      for (int i = 0; i < NU; ++i) {
-        const double r = fabs(k[t * NU + i]) / (fabs(U[t * NU + i]) + 1.0);
-        if (i == 0 || r > m) m = r;
+      outcome = 0;
+      for (;;) {
+        if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k, K,
+                        dV, X, second) == 0)
+          break;
+        delta = delta * f > f ? delta * f : f;
+        mu = mu * delta > mu_min ? mu * delta : mu_min;
+        if (second && gn_fallback && mu > mu_cap) { outcome = 1; break; }
+        if (mu > mu_max) { outcome = 2; break; }
       }
-      g += m;
+      if (outcome == 0) {
+        g = 0.0;
+        for (int t = 0; t < T; ++t) {
+          double m = 0.0;
+          for (int i = 0; i < NU; ++i) {
+            const double r = fabs(k[t * NU + i]) / (fabs(U[t * NU + i]) + 1.0);
+            if (i == 0 || r > m) m = r;
+          }
+          g += m;
+        }
+        g /= T;
+        if (g < tol_grad && mu < 1e-5)
+          outcome = 3;
+        else
+          acc = wb_line_search(T, x0, X, U, k, K, P, *J, dV, alphas, n_alpha, z_min, umin, umax,
+                               Xn, Un, ls);
+      }
+      if (outcome >= 2 || !(second && gn_fallback && (outcome == 1 || acc < 0))) break;
+      second = 0; kind = 2.0; mu = mu0; delta = delta0;
     }
-    g /= T;
-    double* h = hist + (size_t)n_hist * 7;
-    if (g < tol_grad && mu < 1e-5) {
+    if (outcome == 2) { stop = 1; break; }
+    double* h = hist + (size_t)n_hist * 8;
+    if (outcome == 3) {
       delta = delta / f < 1.0 / f ? delta / f : 1.0 / f;
       mu = mu * delta * (mu > mu_min ? 1.0 : 0.0);
-      h[0] = *J; h[1] = h[2] = h[3] = 0.0; h[4] = mu; h[5] = g; h[6] = 0.0;
+      h[0] = *J; h[1] = h[2] = h[3] = 0.0; h[4] = mu; h[5] = g; h[6] = 0.0; h[7] = kind;
       ++n_hist;
       stop = 2; converged = 1;
       break;
     }
-    const int acc = wb_line_search(T, x0, X, U, k, K, P, *J, dV, alphas, n_alpha, z_min, umin,
-                                   umax, Xn, Un, ls);
     if (acc >= 0) {
       const double dJ = *J - ls[0];
       delta = delta / f < 1.0 / f ? delta / f : 1.0 / f;
@@ -506,21 +529,26 @@ void wb_solve(int T, const double* x0, double* X, double* U, double* J, const do
       *J = ls[0];
       d_valid = 0;
       h[0] = *J; h[1] = dJ; h[2] = ls[2]; h[3] = ls[1]; h[4] = mu; h[5] = g; h[6] = 1.0;
+      h[7] = kind;
       ++n_hist;
       const double tol = tol_abs > tol_rel * fabs(*J) ? tol_abs : tol_rel * fabs(*J);
       if (dJ <= tol) { stop = 3; converged = 1; break; }
     } else {
       delta = delta * f > f ? delta * f : f;
       mu = mu * delta > mu_min ? mu * delta : mu_min;
-      h[0] = *J; h[1] = h[2] = h[3] = 0.0; h[4] = mu; h[5] = g; h[6] = 0.0;
+      h[0] = *J; h[1] = h[2] = h[3] = 0.0; h[4] = mu; h[5] = g; h[6] = 0.0; h[7] = kind;
       ++n_hist;
       if (mu > mu_max) { stop = 4; break; }
     }
   }
-  if (!d_valid) { /* gains about the returned trajectory */
+  if (!d_valid) { /* gains about the returned trajectory (Gauss-Newton if second order fails) */
     wb_derivatives(T, X, U, P, A, B, lx, lu, lxx, luu, lux);
-    if (wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k2, K2,
-                    dV, X, second_order) == 0) {
+    int st = wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k2, K2,
+                         dV, X, second_order);
+    if (st != 0 && gn_fallback)
+      st = wb_backward(T, A, B, lx, lu, lxx, luu, lux, U, umin, umax, mu, reg, boxed, k2, K2,
+                       dV, X, 0);
+    if (st == 0) {
       memcpy(k, k2, sizeof(double) * (size_t)T * NU);
       memcpy(K, K2, sizeof(double) * (size_t)T * NU * NX);
     }

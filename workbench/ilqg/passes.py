@@ -46,8 +46,8 @@ class LineSearchResult:
 @dataclass(frozen=True, eq=False, kw_only=True, slots=True)
 class SolveResult:
     """The whole outer loop run in C. ``stop`` is the index of the stop reason in
-    ``solver._STOPS``; ``history`` rows (n, 7): cost, cost change, expected change, alpha, mu,
-    gradient norm, accepted (0/1)."""
+    ``solver._STOPS``; ``history`` rows (n, 8): cost, cost change, expected change, alpha, mu,
+    gradient norm, accepted (0/1), step (index in ``solver.STEPS``)."""
 
     X: np.ndarray
     U: np.ndarray

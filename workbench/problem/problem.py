@@ -20,9 +20,10 @@ margins      x, scene               h (nh)
 ``scene`` is the model's run-time obstacle data (size ``model.n_scene``, possibly 0): the
 barrier-embedded dynamics and the margins depend on it, the costs do not.
 
-iLQG is Gauss-Newton in the dynamics and exact in the costs; full DDP (``ILQGOptions(
-second_order=True)``) adds the dynamics' second derivatives contracted with the value gradient,
-``dyn_hess(x, u, V_x')``, exact from CasADi.
+iLQG's default, full DDP, adds the dynamics' second derivatives contracted with the value
+gradient, ``dyn_hess(x, u, V_x')``, exact from CasADi; Gauss-Newton iLQG
+(``ILQGOptions(second_order=False)``, and the safeguard step of the default) is exact in the
+costs and first order in the dynamics.
 """
 
 from __future__ import annotations
