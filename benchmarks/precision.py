@@ -94,6 +94,8 @@ def _batch_records(repeats: int) -> list[dict]:
              "guard_rerun_batches": g.reruns - g0[3],
              "crash_flags_equal": all(np.array_equal(getattr(a, f), getattr(b, f))
                                       for f in flags),
+             "lanes": {"float64": s64.lib.sais.spec.lanes,
+                       "float32": s32.lib32.sais.spec.lanes},
              "includes": "the sampler call (noise, rollout, costs, float32 guards)"}))
     return out
 

@@ -30,6 +30,7 @@ from benchmarks.sampling import _setup
 from benchmarks.timing import pinned_threads, prepared_kernel, record, round_robin
 from workbench.codegen.toolchain import find_toolchain
 from workbench.sampling.kernels.build import KERNEL_FLAGS
+from workbench.sampling.kernels.emit import vector_bits
 from workbench.sampling.sampler import Sampler, check_batch
 from workbench.sampling.weights import importance_weights, weighted_controls
 from workbench.sim import Disturbance, closed_loop
@@ -49,7 +50,7 @@ def machine() -> dict:
     tc = find_toolchain()
     return {"cpu": cpu_model(), "cpu_flags": cpu_flags(), "cpus": os.cpu_count(),
             "compiler": None if tc is None else tc.describe(),
-            "kernel_flags": list(KERNEL_FLAGS)}
+            "kernel_flags": list(KERNEL_FLAGS), "kernel_vector_bits": vector_bits()}
 
 
 def _threads_list() -> tuple[int, ...]:
@@ -160,7 +161,7 @@ def sais_split_records(repeats: int) -> list[dict]:
         "batch": batch,
     }
     common = {"N": N, "T": T, "obstacles": prob.n_circles, "float": "float64",
-              "floor_lanes": floor.lanes, "kernel_lanes": 4,
+              "floor_lanes": floor.lanes, "kernel_lanes": k.spec.lanes,
               "max_rel_err_floor_vs_kernel": errs["floor"],
               "max_rel_err_floor_group4_vs_kernel": errs["floor_group4"],
               "floor_code": "benchmarks/floor/sais_floor.c:floor_sais", "machine": machine()}
@@ -187,7 +188,8 @@ def sais_split_records(repeats: int) -> list[dict]:
                               "c_floor_sais_rollout_ms", 1e3 * t["floor"],
                               {**common, "threads": th, "x_floor": fl4 / (1e3 * t["floor"]),
                                "note": "the floor with 4 samples per block (one 256-bit "
-                               "vector, the generated kernels' block) instead of 8"}))
+                               "vector, the generated kernels' block without AVX-512) "
+                               "instead of 8"}))
             out.append(record(f"floor_sais_group4_vs_pairwise_N{N}_T{T}_{th}thread", f4, "ms",
                               "c_floor_sais_rollout_ms", 1e3 * t["floor"],
                               {**common, "threads": th,
@@ -239,7 +241,7 @@ def mppi_split_records(repeats: int) -> list[dict]:
         "batch": batch,
     }
     common = {"N": N, "T": T, "obstacles": prob.n_circles, "float": "float64",
-              "floor_lanes": floor.lanes, "kernel_lanes": 4,
+              "floor_lanes": floor.lanes, "kernel_lanes": k.spec.lanes,
               "max_rel_err_floor_vs_kernel": err,
               "floor_code": "benchmarks/floor/sais_floor.c:floor_mppi"}
     out = []

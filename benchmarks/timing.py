@@ -12,7 +12,6 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from workbench.sampling.kernels.build import CompiledKernel
-from workbench.sampling.kernels.emit import LANES
 
 
 def record(name, value, unit, baseline, baseline_value, params, **extra) -> dict:
@@ -100,7 +99,7 @@ def prepared_kernel(k: CompiledKernel, carry0: np.ndarray, consts: dict[str, np.
         raise ValueError(f"{spec.name}: kernels with per-sample lane inputs are not supported")
     carry0 = np.ascontiguousarray(carry0, dtype=float)
     N = carry0.shape[0]
-    Np = -(-N // LANES) * LANES
+    Np = -(-N // spec.lanes) * spec.lanes
     if Np != N:
         carry0 = np.vstack([carry0, np.repeat(carry0[-1:], Np - N, axis=0)])
     T = next(iter(time_in.values())).shape[0]

@@ -105,11 +105,19 @@ class SamplerConstants:
         self.__dict__["_float32_ok"] = True  # checked once per (immutable) instance
 
     def kernel_consts(self) -> dict[str, np.ndarray]:
-        return {"sigma": np.asarray(self.sigma, float),
-                "lr": np.array([self.lam * (1.0 - self.nu_mix)]),
-                "u_min": np.asarray(self.u_min, float), "u_max": np.asarray(self.u_max, float),
-                "crash": np.array([self.crash_cost]),
-                "p": np.asarray(self.p, float), "alpha": np.array([self.alpha]),
-                "clip_cost": np.array([float(self.clip_in_cost)]),
-                "scene": np.asarray(self.scene, float),
-                "guard": np.array([float(self.guard_band)])}
+        """The kernels' const inputs by name (a new dict of read-only arrays, built once per
+        instance: the constants are immutable, and kernels reuse the C pointers of arrays they
+        saw before)."""
+        cached = self.__dict__.get("_kernel_consts")
+        if cached is None:
+            cached = {"sigma": self.sigma, "lr": [self.lam * (1.0 - self.nu_mix)],
+                      "u_min": self.u_min, "u_max": self.u_max, "crash": [self.crash_cost],
+                      "p": self.p, "alpha": [self.alpha], "clip_cost": [float(self.clip_in_cost)],
+                      "scene": self.scene, "guard": [float(self.guard_band)]}
+            sig = np.asarray(self.sigma, dtype=float)
+            cached["inv_var"] = 1.0 / (sig * sig)
+            cached = {k: np.array(v, dtype=float) for k, v in cached.items()}  # copies
+            for a in cached.values():
+                a.flags.writeable = False
+            self.__dict__["_kernel_consts"] = cached
+        return dict(cached)

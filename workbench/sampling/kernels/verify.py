@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-VERIFY_SAMPLES = 5  # one full block of 4 lanes and a padded one
+VERIFY_SAMPLES = 5  # at least; float64 checks max(this, lanes + 1): a full block and a padded one
 VERIFY_STEPS = 3
 VERIFY_RTOL = 1e-9  # the emitted C equals the VM to rounding (in practice bitwise)
 # float32: ~1e-6 measured on well-conditioned points (rounding of ~50 operations per step,
@@ -156,8 +156,8 @@ def verify_kernel(kernel, seed: int = 20261123) -> None:
             spec, rng, spec.lanes + 1, VERIFY_STEPS)
         agree = _agree_f32
     else:
-        carry0, time_in, lane_in, consts, noise = _inputs(spec, rng, VERIFY_SAMPLES,
-                                                          VERIFY_STEPS)
+        carry0, time_in, lane_in, consts, noise = _inputs(
+            spec, rng, max(VERIFY_SAMPLES, spec.lanes + 1), VERIFY_STEPS)
         lane_ref, res_ref = reference_rollout(spec, carry0, time_in, lane_in, consts, noise)
         agree = _agree
     got = kernel(carry0, consts=consts, time_in=time_in, lane_in=lane_in, noise=noise)
