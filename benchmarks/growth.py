@@ -10,6 +10,11 @@ included). Along N and T the map is the paper's 30-circle map; along the circle 
 generated map of that many circles (the kernels are compiled for that many scene slots; compile
 or load time is recorded per count).
 
+Along the circle count, the SAIS batch and the BaS-MPPI step are also timed with the slot-loop
+kernels (:mod:`workbench.sampling.kernels.slots`: the circle slots in a loop instead of unrolled
+into the step, bitwise-equal results), in turn with the straight-line ones, with their compile
+times and library sizes; the report gives both curves, their slopes per circle and the ratio.
+
 ``python -m benchmarks --growth`` runs only these curves; ``growth(cfg, out_dir)`` writes
 ``growth.json`` and ``growth.png`` into ``out_dir``.
 """
@@ -30,6 +35,8 @@ from benchmarks.split import machine
 from benchmarks.timing import pinned_threads, round_robin
 from workbench.codegen import build_counts
 from workbench.sampling.controllers import MPPI, MPPIConfig
+from workbench.sampling.kernels import slots
+from workbench.sampling.kernels.build import load_sampler_library
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.sampler import Sampler, check_batch
 from workbench.sampling.threshold import AlphaRule
@@ -42,11 +49,15 @@ from workbench.validation import fail, integer
 
 log = logging.getLogger("benchmarks.growth")
 
-SERIES = ("sais_batch", "bas_mppi_step", "floor_sais", "sa_rmppi_step")
+SERIES = ("sais_batch", "bas_mppi_step", "floor_sais", "sa_rmppi_step", "sais_batch_loop",
+          "bas_mppi_step_loop")
 LABELS = {"sais_batch": "SAIS batch (noise + rollout + weights + update)",
           "bas_mppi_step": "BaS-MPPI control step",
           "floor_sais": "C floor: SAIS rollout, noise given",
-          "sa_rmppi_step": "SA-RMPPI control step"}
+          "sa_rmppi_step": "SA-RMPPI control step",
+          "sais_batch_loop": "SAIS batch, slot-loop kernels",
+          "bas_mppi_step_loop": "BaS-MPPI control step, slot-loop kernels"}
+LOOP_PAIRS = (("sais_batch", "sais_batch_loop"), ("bas_mppi_step", "bas_mppi_step_loop"))
 
 
 def _ints(name: str, values, minimum: int, maximum: int) -> tuple[int, ...]:
@@ -76,6 +87,7 @@ class GrowthConfig:
     threads: int = 1
     seed: int = 0
     fit_from_circles: int = 10  # the per-circle slope fits counts >= this (all if fewer than 2)
+    loop_kernels: bool = True  # also time the slot-loop kernels along the circle count
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "samples", _ints("GrowthConfig.samples", self.samples, 4,
@@ -92,6 +104,8 @@ class GrowthConfig:
         integer("GrowthConfig.threads", self.threads, 1, 1024)
         integer("GrowthConfig.seed", self.seed, 0)
         integer("GrowthConfig.fit_from_circles", self.fit_from_circles, 1)
+        if not isinstance(self.loop_kernels, bool):
+            raise fail("GrowthConfig.loop_kernels", self.loop_kernels, "must be True or False")
 
 
 def circle_map(n: int, seed: int = 0) -> CircleScene:
@@ -123,9 +137,15 @@ def _plan(sp, T: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return rng.normal(0, 1.0, (T, sp.nu)), rng.normal(0, 1.0, (T, sp.nu, sp.nx))
 
 
-def _point(nav, N: int, T: int, cfg: GrowthConfig, floor, with_step: bool) -> _Point:
+def _point(nav, N: int, T: int, cfg: GrowthConfig, floor, with_step: bool,
+           loop_lib=None, straight_lib=None) -> _Point:
+    """The timed calls of one set-up; ``loop_lib`` (a slot-loop kernel library of the same
+    problem) adds the SAIS batch and the BaS-MPPI step on it; ``straight_lib`` (the
+    straight-line library) replaces the library's default choice in the main series."""
     sp = nav.problem
     sampler = Sampler(sp, "compiled")
+    if straight_lib is not None:
+        sampler.lib = straight_lib
     U, K = _plan(sp, T, cfg.seed)
     c = SamplerConstants(sigma=np.array(nav.mppi.sigma), lam=nav.mppi.lam, nu_mix=0.0,
                          u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=1e6,
@@ -133,13 +153,18 @@ def _point(nav, N: int, T: int, cfg: GrowthConfig, floor, with_step: bool) -> _P
     _, c = check_batch(sp, N, U, c)
     x0 = sp.model.lift(nav.x0)
 
-    def sais(i):
-        b = sampler.sais(x0, x0, U, K, N, c, i)
-        wn, wr = importance_weights(b.S_nom, c.lam), importance_weights(b.S_real, c.lam)
-        return weighted_controls(b.v_nom, wn.w), weighted_controls(b.v_real, wr.w)
+    def sais_on(smp):
+        def sais(i):
+            b = smp.sais(x0, x0, U, K, N, c, i)
+            wn, wr = importance_weights(b.S_nom, c.lam), importance_weights(b.S_real, c.lam)
+            return weighted_controls(b.v_nom, wn.w), weighted_controls(b.v_real, wr.w)
+        return sais
 
+    sais = sais_on(sampler)
     mcfg = MPPIConfig(n_samples=N, horizon=T, sigma=nav.mppi.sigma, lam=nav.mppi.lam)
     mppi = MPPI(sp, nav.goal, mcfg)
+    if straight_lib is not None:
+        mppi.sampler.lib = straight_lib
     state = mppi.initial_state()
     rng = np.random.default_rng(cfg.seed)
     fcall, _ = floor.prepare_sais(FloorProblem.of(sp, c), x0, x0, U, K,
@@ -147,6 +172,15 @@ def _point(nav, N: int, T: int, cfg: GrowthConfig, floor, with_step: bool) -> _P
     pt = _Point(fns={"sais_batch": sais,
                      "bas_mppi_step": lambda i: mppi.step(state, nav.x0, rng),
                      "floor_sais": lambda i: fcall()})
+    if loop_lib is not None:
+        loop_sampler = Sampler(sp, "compiled")
+        loop_sampler.lib = loop_lib  # the same kernels' interface; the slot-loop code
+        loop_mppi = MPPI(sp, nav.goal, mcfg)
+        loop_mppi.sampler.lib = loop_lib
+        loop_state = loop_mppi.initial_state()
+        rng_loop = np.random.default_rng(cfg.seed)
+        pt.fns["sais_batch_loop"] = sais_on(loop_sampler)
+        pt.fns["bas_mppi_step_loop"] = lambda i: loop_mppi.step(loop_state, nav.x0, rng_loop)
     if with_step and cfg.step_steps:
         pt.step = (nav, mcfg)
     return pt
@@ -255,25 +289,36 @@ def _growth(cfg: GrowthConfig, out_dir: Path, floor, base) -> dict:
     previous = _previous_compile(out_dir)
     compile_facts: dict[int, dict] = {}
 
-    def circles_point(n: int) -> _Point:
-        nav = navigation_setup(circle_map(n, cfg.seed))
+    def timed_build(make, old: dict) -> tuple[object, dict]:
+        """(library, facts): compile or load time, cache hit, file size and folder."""
         before = build_counts()["compiled"]
         t0 = time.perf_counter()
-        sampler = Sampler(nav.problem, "compiled")
+        lib = make()
         dt = time.perf_counter() - t0
         compiled = build_counts()["compiled"] > before
-        lib_path = Path(sampler.lib.cdll._name)
+        lib_path = Path(lib.cdll._name)
         facts = {"cache_hit": not compiled, "library_bytes": lib_path.stat().st_size,
                  "library": lib_path.parent.name}
         if compiled:
             facts["compile_s"] = dt
         else:
             facts["load_s"] = dt
-            old = previous.get(n, {})
             if old.get("library") == facts["library"] and "compile_s" in old:
                 facts["compile_s"] = old["compile_s"]  # measured when it was built
+        return lib, facts
+
+    def circles_point(n: int) -> _Point:
+        nav = navigation_setup(circle_map(n, cfg.seed))
+        old = previous.get(n, {})
+        straight_lib, facts = timed_build(
+            lambda: load_sampler_library(nav.problem, slot_loop=False), old)
+        loop_lib = None
+        if cfg.loop_kernels and slots.unsupported_reason(nav.problem) is None:
+            loop_lib, facts["loop"] = timed_build(
+                lambda: load_sampler_library(nav.problem, slot_loop=True), old.get("loop", {}))
         compile_facts[n] = facts
-        return _point(nav, cfg.base_samples, cfg.base_horizon, cfg, floor, False)
+        return _point(nav, cfg.base_samples, cfg.base_horizon, cfg, floor, False, loop_lib,
+                      straight_lib)
 
     run("circles", cfg.circles, circles_point)
     fits = {"samples": _fits(cfg.samples, axes["samples"]["series"]),
@@ -291,6 +336,7 @@ def _growth(cfg: GrowthConfig, out_dir: Path, floor, base) -> dict:
                       "horizon": "time steps T", "circles": "circles (scene slots)"},
             "axes": axes, "compile": {str(k): v for k, v in compile_facts.items()},
             "summary": summary, "labels": LABELS}
+    data["loop_vs_straight"] = loop_comparison(data)
     return data
 
 
@@ -404,11 +450,76 @@ def markdown(data: dict) -> str:
                     f"{m:.3g}" for _, _, m in marg[k]["marginal"]) + " |")
     comp = data.get("compile", {})
     if comp:
+        loops = any("loop" in v for v in comp.values())
         lines += ["", "Kernel library per circle count (compiled for that many scene slots; "
                   "compile time when this or an earlier growth run built it, load time when it "
-                  "came from the code cache):", "",
-                  "| circles | compile [s] | load [s] | library [kB] |", "|---:|---:|---:|---:|"]
+                  "came from the code cache)" + ("; straight-line and slot-loop kernels" if loops
+                                                 else "") + ":", ""]
+        if loops:
+            lines += ["| circles | compile [s] | load [s] | library [kB] | loop: compile [s] | "
+                      "load [s] | library [kB] |", "|---:|---:|---:|---:|---:|---:|---:|"]
+        else:
+            lines += ["| circles | compile [s] | load [s] | library [kB] |",
+                      "|---:|---:|---:|---:|"]
         for n, v in comp.items():
-            lines.append(f"| {n} | {f(v.get('compile_s'), '.1f')} | {f(v.get('load_s'), '.2f')} "
-                         f"| {v['library_bytes'] / 1024:.0f} |")
+            row = (f"| {n} | {f(v.get('compile_s'), '.1f')} | {f(v.get('load_s'), '.2f')} "
+                   f"| {v['library_bytes'] / 1024:.0f} |")
+            if loops:
+                lp = v.get("loop", {})
+                size = lp.get("library_bytes")
+                row += (f" {f(lp.get('compile_s'), '.1f')} | {f(lp.get('load_s'), '.2f')} | "
+                        f"{f(None if size is None else size / 1024, '.0f')} |")
+            lines.append(row)
+    lines += loop_markdown(data)
     return "\n".join(lines) + "\n"
+
+
+def loop_comparison(data: dict) -> list[dict]:
+    """Per circle count: straight-line and slot-loop times (ms) and their ratio (loop /
+    straight-line) for the SAIS batch and the BaS-MPPI step."""
+    a = data["axes"].get("circles", {})
+    ser = a.get("series", {})
+    out = []
+    for i, n in enumerate(a.get("x", [])):
+        row = {"circles": int(n)}
+        for base, loop in LOOP_PAIRS:
+            if len(ser.get(loop, [])) > i and len(ser.get(base, [])) > i:
+                row[base], row[loop] = ser[base][i], ser[loop][i]
+                row[f"{loop}_ratio"] = ser[loop][i] / ser[base][i]
+        out.append(row)
+    return out
+
+
+def loop_markdown(data: dict) -> list[str]:
+    """The slot-loop section of the report: both curves side by side and their slopes."""
+    rows = [r for r in loop_comparison(data) if "sais_batch_loop" in r]
+    if not rows:
+        return []
+    s = data["summary"]
+    cfg = data["config"]
+
+    def f(v, spec=".3g"):
+        return "—" if v is None else format(v, spec)
+
+    lines = ["", "### Slot-loop kernels", "",
+             "The slot-loop kernels (`workbench/sampling/kernels/slots.py`) evaluate the circle "
+             "slots in a loop (code size independent of the number of circles) with results "
+             "bitwise equal to the straight-line kernels'. Timed in turn with them, one thread:",
+             "", "| circles | SAIS batch [ms] | loop [ms] | loop / straight | BaS-MPPI step [ms] | "
+             "loop [ms] | loop / straight |", "|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['circles']} | {f(r.get('sais_batch'))} | "
+                     f"{f(r.get('sais_batch_loop'))} | {f(r.get('sais_batch_loop_ratio'), '.2f')} "
+                     f"| {f(r.get('bas_mppi_step'))} | {f(r.get('bas_mppi_step_loop'))} | "
+                     f"{f(r.get('bas_mppi_step_loop_ratio'), '.2f')} |")
+    lines += ["", f"Slope per circle (least squares over counts >= {cfg['fit_from_circles']}; "
+              "(min): fitted to the fastest repeat):", ""]
+    for base, loop in LOOP_PAIRS:
+        b, lp = s.get(base, {}), s.get(loop, {})
+        lines.append(f"- {LABELS[base]}: straight-line {f(b.get('ms_per_circle'), '.4f')} ms "
+                     f"per circle ((min) {f(b.get('ms_per_circle_minima'), '.4f')}, log-log "
+                     f"exponent {f(b.get('circles_loglog_exponent'), '.2f')}); slot loop "
+                     f"{f(lp.get('ms_per_circle'), '.4f')} ms per circle ((min) "
+                     f"{f(lp.get('ms_per_circle_minima'), '.4f')}, exponent "
+                     f"{f(lp.get('circles_loglog_exponent'), '.2f')})")
+    return lines

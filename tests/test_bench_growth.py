@@ -56,6 +56,8 @@ def test_growth_writes_curves_fits_figure_and_report(tmp_path):
         want = {"sais_batch", "bas_mppi_step", "floor_sais"}
         if axis != "circles":
             want.add("sa_rmppi_step")
+        else:  # the loop-over-circles kernels beside the straight-line ones
+            want |= {"sais_batch_loop", "bas_mppi_step_loop"}
         assert set(a["series"]) == want
         for name, ys in a["series"].items():
             assert len(ys) == len(xs) and all(y > 0 for y in ys), (axis, name)
