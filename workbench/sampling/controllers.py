@@ -19,6 +19,7 @@ the same call exists on every method of :mod:`workbench.sampling.methods`.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 from functools import cache
@@ -32,6 +33,7 @@ from workbench.problem.models import Model
 from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
 from workbench.sampling.kernels.constants import FLOAT32_MAX, SamplerConstants, check_scales32
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.robust_step import CandidateStarts, candidate_free_energies
 from workbench.sampling.sampler import Backend, Precision, SAISBatch, Sampler
 from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
@@ -390,11 +392,19 @@ class RobustMPPI(RecordsSamples):
     gains on the embedded model), RMPPI with plain iLQG gains, or any :class:`FeedbackLaw`.
     :meth:`record_samples` hands out the last SAIS batch's samples: ``real`` from the measured
     state with feedback, ``nominal`` from x*_0 without; ``weights`` the nominal weights (the
-    update of u*), ``weights_real`` the real ones."""
+    update of u*), ``weights_real`` the real ones.
+
+    ``fast`` (default): the gains come from the law's compiled twin when it has one
+    (``fast_gains``, e.g. :meth:`ILQGFeedback.fast_gains`: K_safe in one call) and the step's
+    arithmetic around the sampler batches runs vectorised
+    (:mod:`workbench.sampling.robust_step`): candidate starts compiled, all candidate free
+    energies in one pass, the real system's weighted controls only when they are applied.
+    ``fast=False`` runs :meth:`step_reference`, the step-by-step twin (``feedback.gains``);
+    both return the same numbers, bit for bit."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig(),
                  robust: RMPPIConfig = RMPPIConfig(), feedback: FeedbackLaw | None = None,
-                 threshold: Threshold | None = None):
+                 threshold: Threshold | None = None, fast: bool = True):
         if sp.nx == sp.model.n_physical:
             raise fail("sp.model", sp.model.name, "RMPPI here runs on a barrier-embedded model")
         at_most("RMPPIConfig.candidate_samples", robust.candidate_samples,
@@ -423,6 +433,16 @@ class RobustMPPI(RecordsSamples):
         self._lift_all = FastFunction(sp.model.lift_function, robust.n_candidates, shared=(1,))
         self._W = candidate_weights(robust.n_candidates)
         self._strides = strides(robust.n_candidates)
+        self.fast = flag("RobustMPPI.fast", fast)
+        self._consts_cache: tuple | None = None
+        self._starts = CandidateStarts(sp, self._W)
+        # the candidate batch's per-sample strides, fixed for the controller
+        self._stride_rep = np.repeat(self._strides.astype(float), robust.candidate_samples)
+        self._stride_rep.setflags(write=False)
+        self._smooth = (None if config.smoothing is None
+                        else savgol_matrix(config.horizon, *config.smoothing))
+        if self.fast and hasattr(self.feedback, "fast_gains"):
+            getattr(self.feedback, "compiled", None)  # build the law's compiled twin now
         self.set_scene(None)
 
     @property
@@ -443,7 +463,43 @@ class RobustMPPI(RecordsSamples):
         return RMPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)), x_nom=None, index=0)
 
     def select_nominal(self, state: RMPPIState, xb, rng) -> Selection:
-        """Nominal-state selection (assumptions §9.3) with s = 1 plant step since the last call."""
+        """Nominal-state selection (assumptions §9.3) with s = 1 plant step since the last call
+        (:meth:`select_nominal_reference` with ``fast=False``)."""
+        if not self.fast:
+            return self.select_nominal_reference(state, xb, rng)
+        nc = self.rcfg.n_candidates
+        if state.x_nom is None:
+            return self._first_selection(state, xb)
+        r, cfg, n = self.rcfg, self.cfg, self.sp.model.n_physical
+        starts = self._starts(state.x_nom, state.U[0], xb, self.consts.scene)
+        alpha = self.threshold(starts[:, :n])  # before the batch: its caches are still warm
+        S = self.sampler.candidates(np.repeat(starts, r.candidate_samples, axis=0), state.U,
+                                    self._stride_rep, self.consts,
+                                    int(rng.integers(0, 2**63)))
+        return self._choose(state, starts, candidate_free_energies(S, nc, cfg.lam), alpha)
+
+    def _first_selection(self, state: RMPPIState, xb) -> Selection:
+        n = self.sp.model.n_physical
+        return Selection(x_nom=xb, U=state.U, index=self.rcfg.n_candidates - 1, stride=0,
+                         free_energy=np.zeros(0), alpha=np.zeros(0), fallback=False,
+                         alpha_nominal=float(self.threshold(xb[None, :n])[0]))
+
+    def _choose(self, state: RMPPIState, starts, F, alpha) -> Selection:
+        nc, r = self.rcfg.n_candidates, self.rcfg
+        ok = np.flatnonzero(F < alpha)
+        fallback = ok.size == 0
+        if fallback:
+            i_star = nc // 2 if r.fallback == "propagated" else state.index
+        else:
+            i_star = int(ok.max())
+        s = int(self._strides[i_star])
+        return Selection(x_nom=starts[i_star], U=_shift(state.U, s, self.cfg.tail),
+                         index=i_star, stride=s, free_energy=F, alpha=alpha,
+                         fallback=fallback, alpha_nominal=float(alpha[i_star]))
+
+    def select_nominal_reference(self, state: RMPPIState, xb, rng) -> Selection:
+        """:meth:`select_nominal` step by step (its twin: per-candidate free energies in a
+        Python loop, the mixture, lift and propagation as separate calls)."""
         nc = self.rcfg.n_candidates
         if state.x_nom is None:
             n = self.sp.model.n_physical
@@ -480,10 +536,89 @@ class RobustMPPI(RecordsSamples):
                          alpha_nominal=float(alpha[i_star]))
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
+        """One control step: selection, gains, SAIS batch(es), update (``fast``: the
+        vectorised step, else :meth:`step_reference`)."""
+        if not self.fast:
+            return self.step_reference(state, x, rng)
+        t0 = time.perf_counter()
+        sp, cfg = self.sp, self.cfg
+        xb = _full_state(sp, x, self.consts.scene)
+        _check_plan(state.U, cfg.horizon, sp.nu)
+        sel = self.select_nominal(state, xb, rng)
+        x_nom, U = sel.x_nom, sel.U
+        t1 = time.perf_counter()
+        fb = self.feedback
+        # a law's compiled twin of gains(...) when it has one (ILQGFeedback.fast_gains)
+        gains = getattr(fb, "fast_gains", fb.gains)(x_nom, U, state.gains, sel.stride)
+        K = gains.K
+        t2 = time.perf_counter()
+        alpha = sel.alpha_nominal
+        consts = self._consts_at(alpha)
+        real = self.rcfg.applied == "real"  # the real system's controls are applied
+        U_real = U
+        first = None
+        lam, M = cfg.lam, self._smooth
+        for it in range(cfg.iterations):
+            diag = self.rcfg.diagnostics and it == 0
+            b = self.sampler.sais(xb, x_nom, U, K, cfg.n_samples, consts,
+                                  int(rng.integers(0, 2**63)), diagnostics=diag)
+            first = b if diag else first
+            t3 = time.perf_counter()
+            Wn = importance_weights(b.S_nom, lam)
+            Wr = importance_weights(b.S_real, lam)
+            if Wn.valid:
+                U = weighted_controls(b.v_nom, Wn.w)
+                U = U if M is None else M @ U
+            if real and Wr.valid:
+                U_real = weighted_controls(b.v_real, Wr.w)
+        if self.rcfg.applied == "nominal_feedback":
+            m = sp.model
+            u = np.clip(U[0] + K[0] @ (xb - x_nom), m.u_min, m.u_max)
+        else:
+            u = U_real[0].copy()
+        t4 = time.perf_counter()
+        return self._finish(state, sel, gains, b, Wn, Wr, U, u, xb, consts, first,
+                            (t0, t1, t2, t3, t4))
+
+    def _consts_at(self, alpha: float) -> SamplerConstants:
+        """The controller's constants with the SAIS threshold ``alpha`` (kept while the
+        threshold and the constants stay the same)."""
+        cached = self._consts_cache
+        if cached is not None and cached[0] is self.consts and cached[1] == alpha:
+            return cached[2]
+        c = replace(self.consts, alpha=alpha)
+        self._consts_cache = (self.consts, alpha, c)
+        return c
+
+    def _finish(self, state, sel, gains, b, Wn, Wr, U, u, xb, consts, first, t):
+        t0, t1, t2, t3, t4 = t
+        x_nom, alpha = sel.x_nom, sel.alpha_nominal
+        timing = {"selection": t1 - t0, "k_safe": t2 - t1, "sais": t3 - t2, "update": t4 - t3,
+                  "total": t4 - t0}
+        rec = self.sample_recorder
+        samples = None if rec is None else rec.record(
+            x0=xb, v=b.v_real, crashed=b.crashed_real, weights=Wn.w, scene=consts.scene,
+            x0_nominal=x_nom, v_nominal=b.v_nom, crashed_nominal=b.crashed_nom,
+            weights_real=Wr.w)
+        info = RMPPIInfo(
+            candidate=sel.index, candidate_free_energy=sel.free_energy,
+            candidate_alpha=sel.alpha, fallback_used=sel.fallback,
+            nominal_differs=not bool((x_nom == xb).all()), alpha=alpha,
+            alpha_finite=math.isfinite(alpha) or bool(np.isfinite(sel.alpha).any()),
+            free_energy_nom=Wn.free_energy, free_energy_real=Wr.free_energy, ess_nom=Wn.ess,
+            ess_real=Wr.ess, n_crashed_real=int(np.count_nonzero(b.crashed_real)),
+            n_crashed_nom=int(np.count_nonzero(b.crashed_nom)), ksafe_fallback=gains.fallback,
+            nominal_unsafe=gains.nominal_unsafe, timing=timing, x_nom=x_nom, batch=first,
+            n_samples=self.cfg.n_samples, gains_activity=dict(gains.activity),
+            samples=samples)
+        return RMPPIState(U=U, x_nom=x_nom, index=sel.index, gains=gains), u, info
+
+    def step_reference(self, state: RMPPIState, x, rng: np.random.Generator):
+        """:meth:`step` step by step (its twin; ``fast=False``)."""
         t0 = time.perf_counter()
         xb = _full_state(self.sp, x, self.consts.scene)
         _check_plan(state.U, self.cfg.horizon, self.sp.nu)
-        sel = self.select_nominal(state, xb, rng)
+        sel = self.select_nominal_reference(state, xb, rng)
         x_nom, U = sel.x_nom, sel.U
         t1 = time.perf_counter()
         gains = self.feedback.gains(x_nom, U, state.gains, sel.stride)

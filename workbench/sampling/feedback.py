@@ -32,7 +32,8 @@ from workbench.ilqg import make_passes
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import Model
 from workbench.problem.problem import Problem
-from workbench.validation import as_array, fail, integer, real
+from workbench.sampling.kernels.robust import KSafeKernel, ksafe_library
+from workbench.validation import as_array, fail, flag, integer, real
 
 FALLBACK_REASONS = ("backward_failed", "nonfinite_derivatives", "nonfinite_gains")
 
@@ -122,10 +123,16 @@ class ILQGFeedback:
     K_safe (the β cost shapes the gains through the barrier's curvature), the physical model
     the plain tracking gains of RMPPI. ``nx_full`` is the sampler's state size (gains are
     zero-padded to it).
+
+    :meth:`gains` computes the gains step by step (the passes' own calls from Python);
+    :meth:`fast_gains` computes the same gains in one compiled call
+    (:mod:`workbench.sampling.kernels.robust`, built at its first call when ``compiled`` is
+    True, the default, and a C compiler is available; else it calls :meth:`gains`).
     """
 
     def __init__(self, model: Model, horizon: int, nx_full: int,
-                 weights: FeedbackWeights = FeedbackWeights(), name: str | None = None):
+                 weights: FeedbackWeights = FeedbackWeights(), name: str | None = None,
+                 compiled: bool = True):
         n = model.n_physical
         if len(weights.Q) != n:
             raise fail("FeedbackWeights.Q", weights.Q, f"need {n} entries (the physical state "
@@ -148,13 +155,31 @@ class ILQGFeedback:
         self._P0 = np.zeros((horizon + 1, self.problem.n_p))
         if model.nh:
             self._margins = FastFunction(model.margins_function, horizon + 1, shared=(1,))
+        self._ksafe: KSafeKernel | None = None
+        self._want_compiled = flag("ILQGFeedback.compiled", compiled)  # built on first use
         self.set_scene(None)
+
+    @property
+    def compiled(self) -> bool:
+        """:meth:`fast_gains` runs as one compiled call (builds it when not built yet)."""
+        return self._kernel() is not None
+
+    def _kernel(self) -> KSafeKernel | None:
+        if self._ksafe is None and self._want_compiled:
+            self._want_compiled = False  # one attempt: None without a compiler
+            lib = ksafe_library(self.problem)
+            if lib is not None:
+                self._ksafe = KSafeKernel(self.problem, self.T, lib)
+                self._ksafe.set_scene(self._scene)
+        return self._ksafe
 
     def set_scene(self, scene) -> None:
         """The obstacles the gains are computed in (see
         :meth:`~workbench.problem.Model.scene_vector`; None: the model's own)."""
         self._scene = self.problem.model.scene_vector(scene)
         self.passes.set_scene(self._scene)
+        if self._ksafe is not None:
+            self._ksafe.set_scene(self._scene)
 
     def nominal(self, x_nom: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The clipped open-loop nominal trajectory (X (T+1, nx), U (T, nu))."""
@@ -168,7 +193,25 @@ class ILQGFeedback:
         n = self.problem.model.n_physical
         return self.problem.cost.params(self.T, x_ref=X[:, :n], u_ref=np.vstack([U, U[-1:]]))
 
+    def fast_gains(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
+        """:meth:`gains` in one compiled call (the same numbers); :meth:`gains` itself when
+        the law is not compiled."""
+        k = self._ksafe or self._kernel()
+        if k is None:
+            return self.gains(x_nom, U, previous, stride)
+        U = as_array("U", U, (self.T, self.problem.nu))
+        r = k(np.asarray(x_nom, dtype=float)[: self.problem.nx], U, self.w.mu,
+                        self.w.mu_max)
+        if r.reason == "nonfinite_rollout":  # refused by the tracking parameters' checks
+            return self.gains(x_nom, U, previous, stride)
+        if r.reason is None:
+            return Gains(K=self._pad(r.K), fallback=None, nominal_unsafe=r.unsafe, mu=r.mu)
+        return self._fallback(r.reason, r.unsafe, previous, stride)
+
     def gains(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
+        """Gains about the clipped open-loop rollout of ``U`` from ``x_nom``, step by step;
+        on failure the previous gains shifted by ``stride`` (K = 0 without previous ones) and
+        the reason. :meth:`fast_gains` is the same in one compiled call."""
         U = as_array("U", U, (self.T, self.problem.nu))
         X, Uc = self.nominal(x_nom, U)
         m = self.problem.model
@@ -191,6 +234,11 @@ class ILQGFeedback:
                 mu = max(mu * 10.0, 1e-8)
             else:
                 reason = "backward_failed"
+        return self._fallback(reason, unsafe, previous, stride)
+
+    def _fallback(self, reason: str, unsafe: bool, previous: Gains | None,
+                  stride: int) -> Gains:
+        m = self.problem.model
         if previous is None:
             # no earlier gains to shift: the only honest finite choice left is K = 0, reported
             return Gains(K=np.zeros((self.T, m.nu, self.nx_full)), fallback=reason,
