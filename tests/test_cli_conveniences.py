@@ -44,14 +44,17 @@ def test_version():
     assert rc == 0 and out.strip() == f"workbench {workbench.__version__}"
 
 
-def test_dry_run_prints_the_task_count_and_an_unknown_time_without_a_record(tmp_path):
+def test_dry_run_prints_the_task_count_and_an_unknown_time_without_a_record(tmp_path,
+                                                                             monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no reports/navigation/run.json of an earlier run here
     rc, out, err = call("run", "navigation", "--dry-run", "--out", str(tmp_path / "none"))
     assert rc == 0 and json.loads(out)["n_tasks"] == 281
     assert err.startswith("dry run: 281 tasks; estimated time unknown (no finished run of "
                           "navigation in")
 
 
-def test_dry_run_estimates_from_the_last_runs_time_per_task(tmp_path):
+def test_dry_run_estimates_from_the_last_runs_time_per_task(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no reports/navigation/run.json of an earlier run here
     out = tmp_path / "nav"
     out.mkdir()
     (out / "run.json").write_text(json.dumps({
