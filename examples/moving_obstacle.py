@@ -13,7 +13,9 @@ the README shows. A third run, ``bas_mppi_blind``, is BaS-MPPI never told that t
 (it plans in the scene of time 0): the crash check against the moving scene catches it. The
 controllers hold the current scene fixed over their horizon (no prediction of the obstacle's
 motion): they react to a moving obstacle, they do not anticipate it, so a fast one can still
-hit them (at 0.5-0.7 m/s some seeds crash).
+hit them (at 0.5-0.7 m/s some seeds crash). Outcomes vary with the seed: over the 12 seeds
+3, 5, ..., 25 the blind run crashed in 8 episodes, BaS-MPPI in none and SA-RMPPI in 1; the
+default seed 5 shows the typical case (the blind run crashes, the two told runs do not).
 
 The last line printed is one JSON object: ``steps`` (plant steps per episode), ``crashed`` and
 ``step_ms`` (mean controller time per step) per controller; ``recompiles`` (libraries generated
@@ -78,7 +80,7 @@ def controllers(model: wb.Model) -> dict:
             "bas_mppi_blind": Blind(wb.MPPI(sp, GOAL, MPPI))}
 
 
-def main(seed: int = 3) -> dict:
+def main(seed: int = 5) -> dict:
     model = wb.double_integrator(obstacles=scene_at(0), scene_capacity=CAPACITY)
     ctrls = controllers(model)  # builds (or loads) every library both controllers use
     before = wb.build_counts()

@@ -100,9 +100,10 @@ def test_tutorial_own_model(own_model):
     pat = rf"converged (\w+), min h {NUM}, final error {NUM} m"
     ilqg, bas = (re.match(pat, plans[k]) for k in ("iLQG", "BaS-iLQG"))
     assert ilqg and bas, out
-    # plain iLQG stops on the first circle's boundary; BaS-iLQG keeps a margin and gets there
+    # plain iLQG rides the first circle's boundary (no margin); BaS-iLQG keeps a margin and
+    # gets there
     assert ilqg[1] == bas[1] == "True"
-    assert 0.0 <= float(ilqg[2]) < 0.01 and float(ilqg[3]) > 1.0
+    assert 0.0 <= float(ilqg[2]) < 0.01
     assert float(bas[2]) > 0.05 and float(bas[3]) < 0.05
     drive = re.search(rf"BaS-MPPI undisturbed: crashed (\w+), min h {NUM}, final error {NUM} m, "
                       r"compiled kernels (\w+)", out)
