@@ -78,8 +78,9 @@ def bench_ilqg_iteration(repeats: int) -> dict:
 
 
 def optional_records(repeats: int) -> list[dict]:
-    """Records of the optional benchmark modules (precision, threads, the robust step) when they exist; a module
-    that fails leaves a record naming the error (and its traceback on stderr)."""
+    """Records of the optional benchmark modules (precision, threads, the robust step) when
+    they exist; a module that fails leaves a record naming the error (and its traceback on
+    stderr)."""
     out = []
     for module, fn in (("benchmarks.precision", "bench_precision"),
                        ("benchmarks.threads", "bench_threads"),
