@@ -157,6 +157,61 @@ def nlp_section(records: list[dict]) -> list[str]:
     return out
 
 
+def _yes(ok: bool) -> str:
+    return "met" if ok else "**not met**"
+
+
+def goals_section(records: list[dict]) -> list[str]:
+    """The performance goals against this run's figures, with the bound that limits a goal
+    this design cannot reach (each figure is a ratio measured in the same loop)."""
+    rec = _by_name(records)
+    rows = []
+    r = rec.get("sais_batch_vs_floor_N1024_T100_1thread")
+    if r:
+        p = r["params"]
+        rows.append(f"| SAIS batch, 1 thread, x hand-written C floor | <= {p['goal_x_floor']} "
+                    f"| {p['x_floor']:.2f} | {_yes(p['x_floor'] <= p['goal_x_floor'])} | |")
+    r = rec.get("sais_batch_N1024_T100_1thread_float32")
+    if r and r.get("ratio"):
+        p = r["params"]
+        c = p.get("ceiling_ratio_half_rollout")
+        bound = ("" if c is None else f"at most {c:.2f} if the float32 rollout took exactly "
+                 f"half the float64 one ({p['rollout_float64_ms']:.2f} ms) and the noise "
+                 f"({p['noise_float64_ms']:.2f} ms, drawn in double for pairing), Python "
+                 "call, weights and update stayed")
+        rows.append(f"| float32 SAIS batch speed-up, 1 thread | >= {p['goal_ratio']} | "
+                    f"{r['ratio']:.2f} (kernel alone {p['kernel_ratio']:.2f}) | "
+                    f"{_yes(r['ratio'] >= p['goal_ratio'])} | {bound} |")
+    r = rec.get("sa_rmppi_step_over_sais_batch_N1024_T100_2thread")
+    if r:
+        p = r["params"]
+        lb = p.get("lower_bound_step_over_batch")
+        bound = ("" if lb is None else f"at least {lb:.2f}: the batch plus the candidate "
+                 f"batch ({p['candidates']} rollouts of the whole horizon), everything else "
+                 "free")
+        rows.append(f"| SA-RMPPI step / its SAIS batch, 2 threads | <= "
+                    f"{p['goal_step_over_batch']} | {p['step_over_batch']:.2f} | "
+                    f"{_yes(p['step_over_batch'] <= p['goal_step_over_batch'])} | {bound} |")
+    r = rec.get("threads_sa_rmppi_step_passive_adaptive_load2")
+    if r and r.get("value"):
+        x = r["value"] / r["baseline_value"]
+        goal = 1 / r["params"]["goal_ratio"]
+        rows.append(f"| 2-thread / 1-thread SA-RMPPI step under a load of 2 | <= {goal:.2f} "
+                    f"| {x:.2f} | {_yes(x <= goal + 1e-9)} | |")
+    r = rec.get("bas_ilqg_default_vs_fatrop_jit_tracking_T150")
+    if r and r.get("ratio"):
+        d = r["params"].get("max_rel_cost_difference")
+        agree = "" if d is None else f"; costs agree to {d:.1e} (goal 1e-6)"
+        ok = r["ratio"] >= 10 and (d is None or d <= 1e-6)
+        rows.append(f"| BaS-iLQG (default) speed-up over FATROP with jit | >= 10 | "
+                    f"{r['ratio']:.1f}{agree} | {_yes(ok)} | |")
+    if not rows:
+        return []
+    return ["", "## Performance goals in this run", "",
+            "| goal | target | measured | | what bounds it |", "|---|---:|---:|---|---|",
+            *rows]
+
+
 def report_markdown(records: list[dict], man: dict, growth_md: str | None = None) -> str:
     """The whole report: every ratio is baseline_value / value, both measured in this run."""
     flags = cpu_flags()
@@ -168,6 +223,9 @@ def report_markdown(records: list[dict], man: dict, growth_md: str | None = None
              f"git {str(man.get('git_revision', '?'))[:10]}.", "",
              "| benchmark | value | unit | baseline | baseline value | ratio | notes |",
              "|---|---:|---|---|---:|---:|---|"]
+    goals = goals_section(records)
+    if goals:
+        lines[-2:-2] = [*goals[1:], "", "## Every record", ""]
     for r in records:
         lines.append(f"| {r['name']} | {_fmt(r['value'])} | {r['unit']} | "
                      f"{r['baseline'] or '—'} | {_fmt(r['baseline_value'])} | "

@@ -19,7 +19,8 @@ controller's sampler): ``outside_sampler_calls`` is the step minus both sampler 
 Python and compiled work of the step itself. Records: the fast and the reference step with
 their splits, ``step_over_batch`` = median step / median batch (goal <= 1.25 on 2 threads) and
 the part of the step outside the SAIS call (``outside_sais_ms``: selection with its candidate
-batch + K_safe + update + glue).
+batch + K_safe + update + glue). ``lower_bound_step_over_batch`` = (batch + the candidate
+batch's call) / batch: the ratio if everything but the two sampler calls took no time.
 
 Why step and batch are timed in one loop: pinned to 2 threads, a kernel call waits for a core
 whenever another process holds one, so a step timed minutes apart from a batch (as the older
@@ -220,6 +221,9 @@ def records(repeats: int = 7, steps: int = 80) -> list[dict]:
                  for name in sp}
         outside = {name: split[name]["total"] - split[name]["sais"] for name in split}
         ratio = step / batch
+        # the step can be no faster than its two sampler batches: the candidates' (9 x 64
+        # rollouts of the whole horizon) and the SAIS batch, even with everything else free
+        lower = (batch + split["fast"]["candidates_call"]) / batch
         goal = GOAL_STEP_OVER_BATCH if th == 2 else None
         common = {"N": N, "T": T, "threads": th, "steps": len(t["fast"]),
                   "candidates": "9 x 64", "disturbance_variance": VARIANCE,
@@ -228,6 +232,7 @@ def records(repeats: int = 7, steps: int = 80) -> list[dict]:
                   "outside_sais_ms": outside["fast"],
                   "reference_outside_sais_ms": outside["reference"],
                   "step_over_batch": ratio, "reference_step_over_batch": refstep / batch,
+                  "lower_bound_step_over_batch": lower,
                   "per_step_ratio_median": statistics.median(
                       a / b for a, b in zip(t["fast"], t["batch"], strict=True)),
                   "parts_ms": pieces,
@@ -256,6 +261,7 @@ if __name__ == "__main__":
         print(f"{p['threads']} thread(s): step {r['value']:.3f} ms, reference step "
               f"{p['reference_step_over_batch'] * p['batch_ms']:.3f} ms, SAIS batch "
               f"{p['batch_ms']:.3f} ms; step / batch {p['step_over_batch']:.3f} (reference "
-              f"{p['reference_step_over_batch']:.3f})")
+              f"{p['reference_step_over_batch']:.3f}); lower bound (batch + candidate batch) "
+              f"/ batch {p['lower_bound_step_over_batch']:.3f}")
         for key in ("split_median_ms", "reference_split_median_ms", "parts_ms"):
             print(f"   {key:26s}", json.dumps({k: round(v, 3) for k, v in p[key].items()}))
