@@ -10,10 +10,7 @@ is the same ratio for the bare kernel calls (no guards, no Python wrapping); ``c
 ratio of the calls' median CPU (thread) times. On a machine shared with other work both
 medians shrink the ratio (the float32 kernel, doing more per cycle, loses more to a busy
 sibling core): ``*_ratio_q10`` compare the 10th percentiles of the CPU times, the calls least
-disturbed. ``ceiling_ratio_half_rollout`` (SAIS): the speed-up if the float32 rollout took
-exactly half the float64 one and everything else stayed (the noise is drawn in double in both
-precisions, so paired runs differ only by precision): an upper bound of what this design can
-reach, measured in the same loop.
+disturbed.
 """
 
 from __future__ import annotations
@@ -24,7 +21,6 @@ import time
 import numpy as np
 
 from benchmarks.sampling import _setup
-from benchmarks.timing import prepared_kernel
 from workbench.sampling.kernels.threads import using
 from workbench.sampling.sampler import Sampler, check_batch
 
@@ -60,13 +56,6 @@ def _batch_records(repeats: int) -> list[dict]:
     _, ck = check_batch(sp, N, U, c)
     consts = ck.kernel_consts()
     out = []
-    T_ = U.shape[0]
-    k = s64.lib.sais
-    carry = k.carry.pack(N, x=x0, x_nom=x0)
-    time_in = {"u": U, "K": K.reshape(T_, -1)}
-    given, _, _ = prepared_kernel(k, carry, consts, time_in,
-                                  noise=s64.lib.normals(N, T_, sp.nu, 1))
-    seeded, _, _ = prepared_kernel(k, carry, consts, time_in, seed=1)
     for kind in ("sais", "mppi"):
         if kind == "sais":
             def call(s, i):
@@ -85,23 +74,9 @@ def _batch_records(repeats: int) -> list[dict]:
                 return k(k.carry.pack(N, x=x0), consts=consts, time_in={"u": U}, seed=i)
         g0 = (s32.guard.samples, s32.guard.rechecked, s32.guard.batches, s32.guard.reruns)
         n = max(repeats, 5) * 12
-        calls = {"64": lambda i, f=call: f(s64, i), "32": lambda i, f=call: f(s32, i),
-                 "k64": lambda i, f=bare: f(s64.lib, i),
-                 "k32": lambda i, f=bare: f(s32.lib32, i)}
-        if kind == "sais":
-            calls |= {"k64_given": lambda i: given(), "k64_seeded": lambda i: seeded()}
-        t = _alternate(calls, n)
-        ceiling = {}
-        if kind == "sais":
-            # the speed-up float32 would reach if its rollout took exactly half the float64
-            # rollout (the kernel on given noise) and nothing else changed: the noise is drawn
-            # in double for both (so paired runs differ only by precision), and the Python
-            # call, weights and update do not depend on the precision
-            rollout = t["k64_given"]["wall"]
-            ceiling = {"rollout_float64_ms": 1e3 * rollout,
-                       "noise_float64_ms": 1e3 * (t["k64_seeded"]["wall"] - rollout),
-                       "ceiling_ratio_half_rollout": t["64"]["wall"]
-                       / (t["64"]["wall"] - rollout / 2)}
+        t = _alternate({"64": lambda i, f=call: f(s64, i), "32": lambda i, f=call: f(s32, i),
+                        "k64": lambda i, f=bare: f(s64.lib, i),
+                        "k32": lambda i, f=bare: f(s32.lib32, i)}, n)
         g = s32.guard
         samples, rechecked = g.samples - g0[0], g.rechecked - g0[1]
         a, b = call(s64, 1), call(s32, 1)
@@ -121,7 +96,6 @@ def _batch_records(repeats: int) -> list[dict]:
                                       for f in flags),
              "lanes": {"float64": s64.lib.sais.spec.lanes,
                        "float32": s32.lib32.sais.spec.lanes},
-             **ceiling,
              "includes": "the sampler call (noise, rollout, costs, float32 guards)"}))
     return out
 
@@ -179,7 +153,5 @@ if __name__ == "__main__":
         extra = (f"  kernel {p['kernel_ratio']:.2f}x cpu {p['cpu_ratio']:.2f}x cpu q10 "
                  f"{p['cpu_ratio_q10']:.2f}x kernel cpu q10 {p['kernel_cpu_ratio_q10']:.2f}x "
                  f"rechecked {p['guard_rechecked_fraction']:.3f}" if "kernel_ratio" in p else "")
-        if "ceiling_ratio_half_rollout" in p:
-            extra += f"  ceiling (rollout halved) {p['ceiling_ratio_half_rollout']:.2f}x"
         print(f"{r['name']:44s} float32 {r['value']:8.3f} ms  float64 {r['baseline_value']:8.3f}"
               f" ms  ratio {r['ratio']:.2f}{extra}")

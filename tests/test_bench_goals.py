@@ -14,8 +14,8 @@ def _records(x_floor=1.36, f32=(2.15, 2.41), step=1.52, load=(8.5, 8.4), fatrop=
     return [
         _rec("sais_batch_vs_floor_N1024_T100_1thread", 2.41, 1.78, x_floor=x_floor,
              goal_x_floor=1.5),
-        _rec("sais_batch_N1024_T100_1thread_float32", *f32, goal_ratio=1.8, kernel_ratio=1.27,
-             ceiling_ratio_half_rollout=1.62, rollout_float64_ms=1.85, noise_float64_ms=0.27),
+        _rec("sais_batch_N1024_T100_1thread_float32", *f32, goal_ratio=1.8, kernel_ratio=1.27),
+        _rec("sais_split_rollout_given_noise_N1024_T100_1thread", 1.85, 1.78),
         _rec("sa_rmppi_step_over_sais_batch_N1024_T100_2thread", 2.3, 1.5,
              step_over_batch=step, goal_step_over_batch=1.25, lower_bound_step_over_batch=1.37,
              candidates="9 x 64"),
@@ -33,6 +33,7 @@ def test_goals_judged_from_records_with_bounds():
     lines = goals_section(_records())
     assert _row(lines, "| SAIS batch").split("|")[4].strip() == "met"
     f32 = _row(lines, "| float32")
+    # bound: 2.41 / (2.41 - 1.85 / 2) = 1.62
     assert "**not met**" in f32 and "at most 1.62" in f32 and "| 1.12 (kernel alone 1.27)" in f32
     step = _row(lines, "| SA-RMPPI step")
     assert "**not met**" in step and "at least 1.37" in step and "| 1.52 |" in step
