@@ -502,10 +502,7 @@ class RobustMPPI(RecordsSamples):
         Python loop, the mixture, lift and propagation as separate calls)."""
         nc = self.rcfg.n_candidates
         if state.x_nom is None:
-            n = self.sp.model.n_physical
-            return Selection(x_nom=xb, U=state.U, index=nc - 1, stride=0,
-                             free_energy=np.zeros(0), alpha=np.zeros(0), fallback=False,
-                             alpha_nominal=float(self.threshold(xb[None, :n])[0]))
+            return self._first_selection(state, xb)
         r, cfg, sp = self.rcfg, self.cfg, self.sp
         a0 = state.x_nom
         a1 = self._dyn(a0, state.U[0], self.consts.scene)[0]
@@ -523,17 +520,7 @@ class RobustMPPI(RecordsSamples):
         # exactly,
         # a per-candidate shift only avoids underflow
         F = np.array([free_energy(S_i, cfg.lam) for S_i in S.reshape(nc, M)])
-        alpha = self.threshold(starts[:, :n])
-        ok = np.flatnonzero(F < alpha)
-        fallback = ok.size == 0
-        if fallback:
-            i_star = nc // 2 if r.fallback == "propagated" else state.index
-        else:
-            i_star = int(ok.max())
-        s = int(self._strides[i_star])
-        return Selection(x_nom=starts[i_star], U=_shift(state.U, s, cfg.tail), index=i_star,
-                         stride=s, free_energy=F, alpha=alpha, fallback=fallback,
-                         alpha_nominal=float(alpha[i_star]))
+        return self._choose(state, starts, F, self.threshold(starts[:, :n]))
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         """One control step: selection, gains, SAIS batch(es), update (``fast``: the
@@ -644,25 +631,8 @@ class RobustMPPI(RecordsSamples):
         else:
             u = U_real[0].copy()
         t4 = time.perf_counter()
-        timing = {"selection": t1 - t0, "k_safe": t2 - t1, "sais": t3 - t2, "update": t4 - t3,
-                  "total": t4 - t0}
-        rec = self.sample_recorder
-        samples = None if rec is None else rec.record(
-            x0=xb, v=b.v_real, crashed=b.crashed_real, weights=Wn.w, scene=consts.scene,
-            x0_nominal=x_nom, v_nominal=b.v_nom, crashed_nominal=b.crashed_nom,
-            weights_real=Wr.w)
-        info = RMPPIInfo(
-            candidate=sel.index, candidate_free_energy=sel.free_energy,
-            candidate_alpha=sel.alpha, fallback_used=sel.fallback,
-            nominal_differs=not np.array_equal(x_nom, xb), alpha=alpha,
-            alpha_finite=bool(np.isfinite(alpha) or np.isfinite(sel.alpha).any()),
-            free_energy_nom=Wn.free_energy, free_energy_real=Wr.free_energy, ess_nom=Wn.ess,
-            ess_real=Wr.ess, n_crashed_real=int(b.crashed_real.sum()),
-            n_crashed_nom=int(b.crashed_nom.sum()), ksafe_fallback=gains.fallback,
-            nominal_unsafe=gains.nominal_unsafe, timing=timing, x_nom=x_nom, batch=first,
-            n_samples=self.cfg.n_samples, gains_activity=dict(gains.activity),
-            samples=samples)
-        return RMPPIState(U=U, x_nom=x_nom, index=sel.index, gains=gains), u, info
+        return self._finish(state, sel, gains, b, Wn, Wr, U, u, xb, consts, first,
+                            (t0, t1, t2, t3, t4))
 
 
 def _check_plan(U: np.ndarray, T: int, nu: int) -> None:

@@ -358,6 +358,21 @@ class KernelSpec:
         return tuple(self.step.numel_out(i) for i in range(1, self.step.n_out()))
 
 
+def step_input(spec: KernelSpec, name: str, m: int, k: int) -> str:
+    """C expression of entry ``k`` of the step input ``name`` (``m`` entries) for lane ``l`` of
+    the block at step ``t``, read from where its role keeps it."""
+    role = spec.roles[name]
+    if role == "carry":
+        return f"c{k}[l]"
+    if role == "noise":
+        return f"z{k}[l]"
+    if role == "lane":
+        return f"lin{spec.inputs('lane').index(name)}[((size_t)t*{m}+{k})*N+n0+l]"
+    if role == "time":
+        return f"tin{spec.inputs('time').index(name)}[(size_t)t*{m}+{k}]"
+    return f"cin{spec.inputs('const').index(name)}[{k}]"
+
+
 def emit_kernel(spec: KernelSpec) -> str:
     """C source of ``void <name>(...)`` for the spec (see module docstring for layouts)."""
     step, final = spec.step, spec.final
@@ -369,19 +384,7 @@ def emit_kernel(spec: KernelSpec) -> str:
     wide = set(spec.wide)
 
     def load_step(i: int, nz_: int) -> str:
-        name = step.name_in(i)
-        role = spec.roles[name]
-        if role == "carry":
-            return f"c{nz_}[l]"
-        if role == "noise":
-            return f"z{nz_}[l]"
-        if role == "lane":
-            j, m = lane.index(name), step.numel_in(i)
-            return f"lin{j}[((size_t)t*{m}+{nz_})*N+n0+l]"
-        if role == "time":
-            j, m = time_.index(name), step.numel_in(i)
-            return f"tin{j}[(size_t)t*{m}+{nz_}]"
-        return f"cin{const.index(name)}[{nz_}]"
+        return step_input(spec, step.name_in(i), step.numel_in(i), nz_)
 
     def load_step_f(i: int, nz_: int) -> str | None:
         """Float copies of shared inputs, converted once outside the lane loop."""

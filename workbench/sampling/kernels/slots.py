@@ -41,7 +41,12 @@ import casadi as ca
 
 from workbench.problem.barrier import min_margin
 from workbench.problem.obstacles import SLOT
-from workbench.sampling.kernels.emit import WB_SCHEDULE, KernelSpec, straight_line
+from workbench.sampling.kernels.emit import (
+    WB_SCHEDULE,
+    KernelSpec,
+    step_input,
+    straight_line,
+)
 from workbench.sampling.problem import SamplingProblem
 
 _OPTS = {"cse": True}
@@ -432,19 +437,7 @@ def emit_slot_kernel(sk: SlotKernelSpec) -> str:
     def load_step(i: int, nz_: int) -> str:
         if i >= len(names):  # part B's extra inputs: mid, acc
             return f"md{nz_}[l]" if i == len(names) else f"ac{nz_}[l]"
-        name = names[i]
-        role = spec.roles[name]
-        if role == "carry":
-            return f"c{nz_}[l]"
-        if role == "noise":
-            return f"z{nz_}[l]"
-        if role == "lane":
-            j, m = lane.index(name), step.numel_in(i)
-            return f"lin{j}[((size_t)t*{m}+{nz_})*N+n0+l]"
-        if role == "time":
-            j, m = time_.index(name), step.numel_in(i)
-            return f"tin{j}[(size_t)t*{m}+{nz_}]"
-        return f"cin{const.index(name)}[{nz_}]"
+        return step_input(spec, names[i], step.numel_in(i), nz_)
 
     def store_step(o: int, nz_: int, expr: str) -> str:
         if o == 0:
