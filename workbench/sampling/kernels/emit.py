@@ -373,6 +373,36 @@ def step_input(spec: KernelSpec, name: str, m: int, k: int) -> str:
     return f"cin{spec.inputs('const').index(name)}[{k}]"
 
 
+def step_output(spec: KernelSpec, o: int, k: int, expr: str) -> str:
+    """C statement storing ``expr`` as entry ``k`` of step output ``o``: the carry (o = 0) or
+    the lane output o - 1 at step ``t``."""
+    if o == 0:
+        return f"c{k}[l] = {expr};"
+    m = spec.step.numel_out(o)
+    return f"lout{o - 1}[((size_t)t*{m}+{k})*N+n0+l] = {expr};"
+
+
+def final_input(spec: KernelSpec, name: str, k: int) -> str:
+    """C expression of entry ``k`` of the final Function's input ``name`` (carry or const)."""
+    if name == spec.inputs("carry")[0]:
+        return f"c{k}[l]"
+    return f"cin{spec.inputs('const').index(name)}[{k}]"
+
+
+def result_layout(spec: KernelSpec) -> tuple[list[int], int]:
+    """Offsets of the final Function's outputs in a sample's result row, and the row length."""
+    offsets, acc = [], 0
+    for i in range(spec.final.n_out()):
+        offsets.append(acc)
+        acc += spec.final.numel_out(i)
+    return offsets, acc
+
+
+def result_output(offsets: list[int], nr: int, o: int, k: int, expr: str) -> str:
+    """C statement storing ``expr`` as entry ``k`` of final output ``o`` of lane ``l``."""
+    return f"result[(size_t)(n0+l)*{nr}+{offsets[o] + k}] = {expr};"
+
+
 def emit_kernel(spec: KernelSpec) -> str:
     """C source of ``void <name>(...)`` for the spec (see module docstring for layouts)."""
     step, final = spec.step, spec.final
@@ -411,27 +441,19 @@ def emit_kernel(spec: KernelSpec) -> str:
         return kind
 
     def store_step(o: int, nz_: int, expr: str) -> str:
-        if o == 0:
-            return f"c{nz_}[l] = {expr};"
-        m = step.numel_out(o)
-        return f"lout{o - 1}[((size_t)t*{m}+{nz_})*N+n0+l] = {expr};"
+        return step_output(spec, o, nz_, expr)
 
-    offsets, acc = [], 0
-    for i in range(final.n_out()):
-        offsets.append(acc)
-        acc += final.numel_out(i)
-    nr = acc
+    offsets, nr = result_layout(spec)
 
     def load_final(i: int, nz_: int) -> str:
-        name = final.name_in(i)
-        return f"c{nz_}[l]" if name == carry else f"cin{const.index(name)}[{nz_}]"
+        return final_input(spec, final.name_in(i), nz_)
 
     def load_final_f(i: int, nz_: int) -> str | None:
         name = final.name_in(i)
         return None if name == carry else f"cf{const.index(name)}[{nz_}]"
 
     def store_final(o: int, nz_: int, expr: str) -> str:
-        return f"result[(size_t)(n0+l)*{nr}+{offsets[o] + nz_}] = {expr};"
+        return result_output(offsets, nr, o, nz_, expr)
 
     def level_step(i: int, nz_: int) -> int:
         role = spec.roles[step.name_in(i)]

@@ -44,7 +44,11 @@ from workbench.problem.obstacles import SLOT
 from workbench.sampling.kernels.emit import (
     WB_SCHEDULE,
     KernelSpec,
+    final_input,
+    result_layout,
+    result_output,
     step_input,
+    step_output,
     straight_line,
 )
 from workbench.sampling.problem import SamplingProblem
@@ -425,7 +429,6 @@ def emit_slot_kernel(sk: SlotKernelSpec) -> str:
     if spec.precision != "float64":
         raise SlotLoopUnsupported(f"{spec.name}: slot-loop kernels are float64 only")
     step, final = spec.step, spec.final
-    carry = spec.inputs("carry")[0]
     nc, nz = spec.n_carry, spec.n_noise
     lane, time_, const = spec.inputs("lane"), spec.inputs("time"), spec.inputs("const")
     L = spec.lanes
@@ -440,10 +443,7 @@ def emit_slot_kernel(sk: SlotKernelSpec) -> str:
         return step_input(spec, names[i], step.numel_in(i), nz_)
 
     def store_step(o: int, nz_: int, expr: str) -> str:
-        if o == 0:
-            return f"c{nz_}[l] = {expr};"
-        m = step.numel_out(o)
-        return f"lout{o - 1}[((size_t)t*{m}+{nz_})*N+n0+l] = {expr};"
+        return step_output(spec, o, nz_, expr)
 
     def load_slot(i: int, nz_: int) -> str:
         return (f"md{nz_}[l]", f"sl[{nz_}]", f"ac{nz_}[l]")[i]
@@ -451,18 +451,13 @@ def emit_slot_kernel(sk: SlotKernelSpec) -> str:
     def store_acc(o: int, nz_: int, expr: str) -> str:
         return f"ac{nz_}[l] = {expr};"
 
-    offsets, acc = [], 0
-    for i in range(final.n_out()):
-        offsets.append(acc)
-        acc += final.numel_out(i)
-    nr = acc
+    offsets, nr = result_layout(spec)
 
     def load_final(i: int, nz_: int) -> str:
-        name = final.name_in(i)
-        return f"c{nz_}[l]" if name == carry else f"cin{const.index(name)}[{nz_}]"
+        return final_input(spec, final.name_in(i), nz_)
 
     def store_final(o: int, nz_: int, expr: str) -> str:
-        return f"result[(size_t)(n0+l)*{nr}+{offsets[o] + nz_}] = {expr};"
+        return result_output(offsets, nr, o, nz_, expr)
 
     def store_a(o: int, nz_: int, expr: str) -> str:
         # part A writes the lane outputs (the controls): written from part B, as copies of
