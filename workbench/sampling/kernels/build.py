@@ -37,7 +37,6 @@ import numpy as np
 import workbench.sampling.kernels.slots as slots
 import workbench.sampling.kernels.threads as threads
 from workbench.codegen import CompileError, build_library
-from workbench.problem.barrier import min_margin
 from workbench.sampling.kernels.emit import (  # noqa: F401  (LANES: re-exported)
     LANES,
     PRECISIONS,
@@ -50,6 +49,13 @@ from workbench.sampling.kernels.emit import (  # noqa: F401  (LANES: re-exported
 from workbench.sampling.kernels.layout import Layout
 from workbench.sampling.kernels.vector_math import prelude
 from workbench.sampling.kernels.verify import KernelMismatch, verify_kernel
+from workbench.sampling.kernels.vocabulary import (
+    clip,
+    crashed_flag,
+    kernel_symbols,
+    model_parts,
+    near_crash_flag,
+)
 from workbench.sampling.problem import SamplingProblem
 from workbench.validation import fail
 
@@ -65,45 +71,6 @@ _OPTS = {"cse": True}
 KERNEL_FLAGS = ("-fopenmp", "-march=native", "-fsched-pressure", "-fschedule-insns",
                 "-fno-math-errno", "-fno-builtin-sin", "-fno-builtin-cos")
 KERNEL_FLAGS_F32 = ("-fno-builtin-sinf", "-fno-builtin-cosf")  # added for float32 kernels
-
-
-def _clip(v, lo, hi):
-    return ca.fmin(ca.fmax(v, lo), hi)
-
-
-def _symbols(sp: SamplingProblem):
-    """The const inputs; ``scene`` only when the model has a run-time scene."""
-    nu = sp.nu
-    out = {
-        "sigma": ca.SX.sym("sigma", nu), "lr": ca.SX.sym("lr"),
-        "u_min": ca.SX.sym("u_min", nu), "u_max": ca.SX.sym("u_max", nu),
-        "crash": ca.SX.sym("crash", 1), "p": ca.SX.sym("p", sp.n_p),
-    }
-    if sp.model.n_scene:
-        out["scene"] = ca.SX.sym("scene", sp.model.n_scene)
-    return out
-
-
-def _model_parts(sp: SamplingProblem, c: dict):
-    """dyn (x, v) and margins (x) in the kernel's scene input (or the empty scene)."""
-    fns = sp.functions()
-    s = c.get("scene", ca.SX(0, 1))
-    return (lambda x, v: fns["dyn"](x, v, s)), (lambda x: fns["margins"](x, s)), \
-        fns["q"], fns["phi"]
-
-
-def _crashed(margins, x, eps_h: float, nh: int):
-    """1 if any margin is <= eps_h; built like the barrier's crash rule so CSE shares it."""
-    if nh == 0:
-        return ca.SX(0)
-    return min_margin(margins(x), range(nh)) <= eps_h
-
-
-def _near(margins, x, eps_h: float, nh: int, band):
-    """1 if the smallest margin is within ``band`` of eps_h (the float32 guard)."""
-    if nh == 0:
-        return ca.SX(0)
-    return ca.fabs(min_margin(margins(x), range(nh)) - eps_h) <= band
 
 
 def _f32(precision: str) -> bool:
@@ -145,10 +112,10 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
     """
     nx, nu, nh = sp.nx, sp.nu, sp.model.nh
     f32 = _f32(precision)
-    c = _symbols(sp)
+    c = kernel_symbols(sp)
     if f32:
         c["guard"] = ca.SX.sym("guard")
-    dyn, margins, q, phi = _model_parts(sp, c)
+    dyn, margins, q, phi = model_parts(sp, c)
     carry = ca.SX.sym("carry", nx + 2 + 2 * int(strided) + int(f32))
     z, u_in, u_next = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("u_next", nu)
     x, S, cr = carry[:nx], carry[nx], carry[nx + 1]
@@ -159,10 +126,10 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
         # loads into masked loads, which stops it vectorising the lane loop
         noise = noise * (delay <= 0)
         u = (1.0 - stride) * u_in + stride * u_next
-    v = _clip(u + noise, c["u_min"], c["u_max"])
+    v = clip(u + noise, c["u_min"], c["u_max"])
     eps = v - u
     xn = dyn(x, v)
-    crn = ca.fmax(cr, _crashed(margins, xn, sp.eps_h, nh))
+    crn = ca.fmax(cr, crashed_flag(margins, xn, sp.eps_h, nh))
     inv = 1.0 / (c["sigma"] * c["sigma"])
     lr = 0.5 * c["lr"] * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, eps))
     Sn = S + (q(xn, c["p"]) + c["crash"][0] * crn) + lr
@@ -172,7 +139,8 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
     if f32:
         g = carry[carry.numel() - 1]
         # the crash step and the steps before it (a crashed sample's flag no longer changes)
-        new.append(ca.fmax(g, (1.0 - cr) * _near(margins, xn, sp.eps_h, nh, c["guard"])))
+        near = near_crash_flag(margins, xn, sp.eps_h, nh, c["guard"])
+        new.append(ca.fmax(g, (1.0 - cr) * near))
         res.append(g)
         name += "_f32"
     step = ca.Function(name + "_step", list(ins.values()), [ca.vertcat(*new), v],
@@ -195,11 +163,11 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "floa
     float32 kernel (``<name>_f32``) ends its carry with the guard flag of both systems."""
     nx, nu, nh = sp.nx, sp.nu, sp.model.nh
     f32 = _f32(precision)
-    c = _symbols(sp)
+    c = kernel_symbols(sp)
     if f32:
         c["guard"] = ca.SX.sym("guard")
     c["inv_var"] = ca.SX.sym("inv_var", nu)  # 1 / sigma^2, computed once per batch
-    dyn, margins, q, phi = _model_parts(sp, c)
+    dyn, margins, q, phi = model_parts(sp, c)
     alpha, clip_cost = ca.SX.sym("alpha"), ca.SX.sym("clip_cost")
     carry = ca.SX.sym("carry", 2 * nx + 6 + int(f32))
     z, u, Kv = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("K", nu * nx)
@@ -208,15 +176,15 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "floa
     K = ca.reshape(Kv, nx, nu).T
     eps = c["sigma"] * z
     kfb = ca.mtimes(K, x - xs)
-    vr = _clip(u + eps + kfb, c["u_min"], c["u_max"])
-    vn = _clip(u + eps, c["u_min"], c["u_max"])
+    vr = clip(u + eps + kfb, c["u_min"], c["u_max"])
+    vn = clip(u + eps, c["u_min"], c["u_max"])
     # clip_in_cost (SPEC 10.1): effective (clipped) noise and feedback in lines 8, 9 and 12
     # when 1, the raw ones when 0 (exact 0/1 blends)
     et = clip_cost * (vn - u) + (1.0 - clip_cost) * eps
     kt = clip_cost * (vr - u - (vn - u)) + (1.0 - clip_cost) * kfb
     xn, xsn = dyn(x, vr), dyn(xs, vn)
-    crn = ca.fmax(cr, _crashed(margins, xn, sp.eps_h, nh))
-    cnn = ca.fmax(cn, _crashed(margins, xsn, sp.eps_h, nh))
+    crn = ca.fmax(cr, crashed_flag(margins, xn, sp.eps_h, nh))
+    cnn = ca.fmax(cn, crashed_flag(margins, xsn, sp.eps_h, nh))
     qr = q(xn, c["p"]) + c["crash"][0] * crn
     qn = q(xsn, c["p"]) + c["crash"][0] * cnn
     inv = c["inv_var"]  # a product with 1 / (sigma sigma) would become a division in CasADi
@@ -233,8 +201,8 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "floa
     res = [S_nom, Srf, Snf, Shf, carry[2 * nx + 3], carry[2 * nx + 4], carry[2 * nx + 5]]
     if f32:
         g = carry[2 * nx + 6]
-        near = ca.fmax((1.0 - cr) * _near(margins, xn, sp.eps_h, nh, c["guard"]),
-                       (1.0 - cn) * _near(margins, xsn, sp.eps_h, nh, c["guard"]))
+        near = ca.fmax((1.0 - cr) * near_crash_flag(margins, xn, sp.eps_h, nh, c["guard"]),
+                       (1.0 - cn) * near_crash_flag(margins, xsn, sp.eps_h, nh, c["guard"]))
         new.append(ca.fmax(g, near))
         res.append(g)
         name += "_f32"

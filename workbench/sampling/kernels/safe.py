@@ -52,16 +52,13 @@ from workbench.problem.barrier import min_margin
 from workbench.problem.dcbf import DiscreteCBF, discrete_cbf
 from workbench.sampling.kernels.build import (
     CompiledKernel,
-    _clip,
-    _crashed,
-    _model_parts,
-    _symbols,
     kernel_source,
     load_verified,
     set_threads,
 )
 from workbench.sampling.kernels.emit import EmitError, KernelSpec
 from workbench.sampling.kernels.layout import Layout
+from workbench.sampling.kernels.vocabulary import clip, crashed_flag, kernel_symbols, model_parts
 from workbench.sampling.problem import SamplingProblem
 
 _OPTS = {"cse": True}
@@ -100,7 +97,7 @@ def projection(cbf: DiscreteCBF, x, v0, gamma, scene, lo, hi, enable) -> tuple[c
     acted = enable * (cmin < 0)
     gg = ca.dot(g, g)
     mu = (acted * (-cmin)) / (gg + (gg <= 0))  # 0 when the projection does not act
-    return _clip(v0 + mu * g, lo, hi), acted
+    return clip(v0 + mu * g, lo, hi), acted
 
 
 def projection_function(cbf: DiscreteCBF) -> ca.Function:
@@ -123,21 +120,21 @@ def safe_spec(sp: SamplingProblem, name: str = "wb_safe") -> KernelSpec:
     """The safe-MPPI rollout (see module docstring); lane output ``v`` (v_hat)."""
     nx, nu, nh = sp.nx, sp.nu, sp.model.nh
     cbf = discrete_cbf(sp.model)
-    c = _symbols(sp)
+    c = kernel_symbols(sp)
     project, w_dcbf, gamma = (ca.SX.sym(n) for n in SAFE_CONSTS)
-    dyn, margins, q, phi = _model_parts(sp, c)
+    dyn, margins, q, phi = model_parts(sp, c)
     s = c.get("scene", ca.SX(0, 1))
     carry = ca.SX.sym("carry", nx + 5)
     z, u = ca.SX.sym("z", nu), ca.SX.sym("u", nu)
     x, S, cr, npr, ninf, viol = (carry[:nx], *(carry[nx + i] for i in range(5)))
-    v0 = _clip(u + c["sigma"] * z, c["u_min"], c["u_max"])
+    v0 = clip(u + c["sigma"] * z, c["u_min"], c["u_max"])
     v, acted = projection(cbf, x, v0, gamma, s, c["u_min"], c["u_max"], project)
     ch = cbf.c(x, v, gamma, s)
     infeasible = acted * (min_margin(ch, range(nh)) < -INFEASIBLE_TOL)
     step_viol = ca.sum1(ca.fmax(-ch, 0.0))
     eps = v - u
     xn = dyn(x, v)
-    crn = ca.fmax(cr, _crashed(margins, xn, sp.eps_h, nh))
+    crn = ca.fmax(cr, crashed_flag(margins, xn, sp.eps_h, nh))
     inv = 1.0 / (c["sigma"] * c["sigma"])
     lr = 0.5 * c["lr"] * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, eps))
     Sn = S + (q(xn, c["p"]) + c["crash"][0] * crn) + lr + w_dcbf * step_viol

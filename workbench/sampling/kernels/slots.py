@@ -51,6 +51,7 @@ from workbench.sampling.kernels.emit import (
     step_output,
     straight_line,
 )
+from workbench.sampling.kernels.vocabulary import clip
 from workbench.sampling.problem import SamplingProblem
 
 _OPTS = {"cse": True}
@@ -276,10 +277,6 @@ def _inv_var(ins: dict):
     return ins["inv_var"] if "inv_var" in ins else 1.0 / (ins["sigma"] * ins["sigma"])
 
 
-def _clip(v, lo, hi):
-    return ca.fmin(ca.fmax(v, lo), hi)
-
-
 def _inputs(spec: KernelSpec) -> dict[str, ca.SX]:
     """Fresh symbols named and sized like the step's inputs."""
     st = spec.step
@@ -324,7 +321,7 @@ def mppi_slot_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = F
     a = _inputs(spec)
     noise, u = common(a)
     x = a["carry"][:nx]
-    v = _clip(u + noise, a["u_min"], a["u_max"])
+    v = clip(u + noise, a["u_min"], a["u_max"])
     xn = fns["dyn"](x, v, a["scene"])[:n]
     mids = [v, xn] + ([x[:n]] if gamma else [])
     part_a = ca.Function(spec.name + "_a", list(a.values()), [ca.vertcat(*mids), v],
@@ -376,8 +373,8 @@ def sais_slot_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = 
     K = ca.reshape(a["K"], nx, nu).T
     eps = a["sigma"] * a["z"]
     kfb = ca.mtimes(K, x - xs)
-    vr = _clip(a["u"] + eps + kfb, a["u_min"], a["u_max"])
-    vn = _clip(a["u"] + eps, a["u_min"], a["u_max"])
+    vr = clip(a["u"] + eps + kfb, a["u_min"], a["u_max"])
+    vn = clip(a["u"] + eps, a["u_min"], a["u_max"])
     xn, xsn = fns["dyn"](x, vr, a["scene"])[:n], fns["dyn"](xs, vn, a["scene"])[:n]
     mids = [vr, vn, kfb, xn, xsn] + ([x[:n], xs[:n]] if gamma else [])
     part_a = ca.Function(spec.name + "_a", list(a.values()), [ca.vertcat(*mids), vn, vr],
