@@ -80,7 +80,10 @@ def row_major_functions(problem: Problem) -> list[ca.Function]:
     return out
 
 
-def _macros(problem: Problem, fns: list[ca.Function]) -> str:
+def core_macros(problem: Problem, fns: list[ca.Function]) -> str:
+    """The C definitions core.c is compiled against: ``NX``, ``NU``, ``NP`` (at least 1),
+    ``NH``, the CasADi work-array sizes ``WB_SZ_ARG``/``RES``/``IW``/``W`` (the largest over
+    ``fns``, at least 6, 6, 1, 1) and the structural nonzeros of A = dF/dx and B = dF/du."""
     sz = {
         "ARG": max([6, *(f.sz_arg() for f in fns)]),
         "RES": max([6, *(f.sz_res() for f in fns)]),
@@ -105,13 +108,22 @@ def _jacobian_patterns(problem: Problem) -> str:
     return "\n".join(out) + "\n"
 
 
+def core_source(problem: Problem, fns: list[ca.Function]) -> str:
+    """The C text compiled after the generated ``fns`` (:func:`row_major_functions`):
+    :func:`core_macros`, then core.c (``wb_call`` with the current scene ``wb_scene``, the
+    passes ``wb_forward``, ``wb_derivatives``, ``wb_box_qp``, ``wb_backward``,
+    ``wb_line_search`` and the outer loop ``wb_solve``). Another library may append C that
+    calls them (:mod:`workbench.sampling.kernels.robust`)."""
+    core = resources.files("workbench.ilqg").joinpath("core.c").read_text()
+    return core_macros(problem, fns) + core
+
+
 def problem_library(problem: Problem) -> Library | None:
     """The problem's compiled library (cached on disk and per process); None without a compiler."""
     if problem.fingerprint not in _LIBS:
         fns = row_major_functions(problem)
-        core = resources.files("workbench.ilqg").joinpath("core.c").read_text()
         lib = build_library(f"ilqg_{problem.model.name.replace('+', '_')}", fns,
-                            _macros(problem, fns) + core)
+                            core_source(problem, fns))
         if lib is not None:
             _declare(lib.cdll)
         _LIBS[problem.fingerprint] = lib

@@ -3,8 +3,9 @@ tracking parameters, the derivative evaluation and the backward pass with its re
 retries (:class:`~workbench.sampling.feedback.ILQGFeedback`).
 
 The library holds the problem's row-major Functions and the iLQG passes of
-:mod:`workbench.ilqg.compiled` (the same generated code and ``core.c``, compiled with the same
-flags) plus ``wb_ksafe``, which chains them exactly as ``ILQGFeedback.gains`` does in
+:mod:`workbench.ilqg.compiled` (:func:`~workbench.ilqg.compiled.row_major_functions` and
+:func:`~workbench.ilqg.compiled.core_source`: the same generated code and ``core.c``, compiled
+with the same flags) plus ``wb_ksafe``, which chains them exactly as ``ILQGFeedback.gains`` does in
 Python: the clipped open-loop rollout (the states of ``wb_forward`` without a policy),
 min_t min_i h_i(X_t) <= 0 (NaN never counts as unsafe, as ``np.min`` propagates it), the
 parameters x_ref = X (physical part), u_ref = (U, U_{T-1}), every other block 0, the
@@ -17,13 +18,12 @@ from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass
-from importlib import resources
 
 import casadi as ca
 import numpy as np
 
 from workbench.codegen import Library, build_library
-from workbench.ilqg.compiled import _macros, row_major_functions
+from workbench.ilqg.compiled import core_source, row_major_functions
 from workbench.problem.problem import Problem
 from workbench.validation import fail
 
@@ -117,9 +117,8 @@ def ksafe_library(problem: Problem) -> Library | None:
     compiler."""
     if problem.fingerprint not in _LIBS:
         fns = row_major_functions(problem)
-        core = resources.files("workbench.ilqg").joinpath("core.c").read_text()
         lib = build_library(f"ksafe_{problem.model.name.replace('+', '_')}", fns,
-                            _macros(problem, fns) + core + KSAFE_SOURCE)
+                            core_source(problem, fns) + KSAFE_SOURCE)
         if lib is not None:
             i, d = ctypes.c_int, ctypes.c_double
             f = lib.cdll.wb_ksafe
