@@ -45,6 +45,9 @@ def _kkt_matrix(H: np.ndarray, E: np.ndarray) -> np.ndarray:
     return M
 
 
+_CHUNK = 16  # states per batched row-Jacobian call
+
+
 def _solve_kkt(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """M z = rhs; least squares when the held rows are dependent (M singular). Any z with
     M z = rhs has the same control part (H is positive definite), so a direct solve whose
@@ -58,6 +61,24 @@ def _solve_kkt(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     except np.linalg.LinAlgError:
         pass
     return np.linalg.lstsq(M, rhs, rcond=None)[0]
+
+
+def _solve_kkt_batch(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """:func:`_solve_kkt` of each M (N, n, n), rhs (N, n, m), with the same direct solve,
+    residual test and least-squares fallback."""
+    try:
+        z = np.linalg.solve(M, rhs)
+    except np.linalg.LinAlgError:  # one M is singular: each on its own
+        return np.array([_solve_kkt(m, r) for m, r in zip(M, rhs, strict=True)])
+    with np.errstate(invalid="ignore", over="ignore"):
+        tol = 1e-10 * np.fmax(np.fmax(1.0, np.abs(rhs).max(axis=(1, 2))),
+                              np.abs(M).max(axis=(1, 2)))
+        resid = np.abs(M @ z - rhs).max(axis=(1, 2))
+        ok = np.isfinite(z).all(axis=(1, 2)) & (
+            resid <= tol * np.fmax(1.0, np.abs(z).max(axis=(1, 2))))
+    for i in np.flatnonzero(~ok):
+        z[i] = np.linalg.lstsq(M[i], rhs[i], rcond=None)[0]
+    return z
 
 
 @dataclass(frozen=True)
@@ -74,6 +95,11 @@ class FilterSensitivity:
     soft: tuple[int, ...]
     box_upper: tuple[int, ...]
     box_lower: tuple[int, ...]
+
+
+def _pair(sens: FilterSensitivity | None) -> tuple[np.ndarray, bool] | None:
+    """(gain, infeasible: some row violated) of a sensitivity."""
+    return None if sens is None else (sens.gain, bool(sens.soft))
 
 
 class ECBFFeedback:
@@ -136,9 +162,11 @@ class ECBFFeedback:
         an, bn = a / norm, b / norm
         rows = ca.Function("ecbf_rows_normalised", [x, s], [an, bn], {"cse": True})
         self._rows = FastFunction(rows, horizon, shared=(1,))
-        self._jac = FastFunction(ca.Function(
-            "ecbf_row_jacobians", [x, s],
-            [an, bn, ca.jacobian(ca.vec(an), x), ca.jacobian(bn, x)], {"cse": True}))
+        jac = ca.Function("ecbf_row_jacobians", [x, s],
+                          [an, bn, ca.jacobian(ca.vec(an), x), ca.jacobian(bn, x)], {"cse": True})
+        self._jac = FastFunction(jac)
+        self._chunk = min(horizon, _CHUNK)
+        self._jac_batch = FastFunction(jac, self._chunk, shared=(1,))
         self.set_scene(None)
 
     def set_scene(self, scene) -> None:
@@ -209,7 +237,11 @@ class ECBFFeedback:
         qp = self.solve(a, b, u_ref)
         if qp is None:
             return None
-        _, hard, soft, upper, lower = qp
+        return self._held(a, b, da, db, u_ref, K, *qp[1:])
+
+    def _held(self, a, b, da, db, u_ref, K, hard, soft, upper, lower) -> FilterSensitivity:
+        """d pi/dx from the rows and their Jacobians at x and the QP's active set there (hard,
+        upper, lower: lists, shortened in place as multipliers drop rows and bounds)."""
         for _ in range(self.nh + 2 * self.nu + 1):
             M, u, nu_h, nu_u, nu_l = self._kkt(a, b, u_ref, hard, soft, upper, lower)
             # a merely touched box bound is left to the sampler's clip; a row pulling the wrong
@@ -260,6 +292,17 @@ class ECBFFeedback:
         return M, u, mult[:nh_], mult[nh_ : nh_ + len(upper)], mult[nh_ + len(upper) :]
 
     def gains(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
+        """The gains (see the class): the QP of every active step solved by daqp as in
+        :meth:`solve`, the row Jacobians and the KKT solves batched over the steps; equal to
+        :meth:`gains_reference` (which runs :meth:`sensitivity` step by step)."""
+        return self._gains(x_nom, U, previous, stride, fast=True)
+
+    def gains_reference(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
+        """The gains with :meth:`sensitivity` called at each active step (the slow twin of
+        :meth:`gains`)."""
+        return self._gains(x_nom, U, previous, stride, fast=False)
+
+    def _gains(self, x_nom, U, previous, stride, fast: bool) -> Gains:
         U = as_array("U", U, (self.T, self.nu))
         shape = (self.T, self.nu, self.nx_full)
         g = self.tracking.gains(x_nom, U, None, stride)
@@ -278,17 +321,23 @@ class ECBFFeedback:
         active = (violation > self.opt.eps_abs).any(axis=1)
         infeasible = np.zeros(self.T, bool)
         reason = None
-        for k in np.flatnonzero(active):
-            sens = self.sensitivity(X[k], Uc[k], g.K[k])
+        ks = np.flatnonzero(active)
+        if fast:  # (gain, infeasible) or None per active step
+            rows = self._row_batch(X[ks])
+            steps = self._sensitivities(rows, Uc[ks], g.K[ks])
+        else:  # lazily: a non-finite gain stops the loop
+            steps = (_pair(self.sensitivity(X[k], Uc[k], g.K[k])) for k in ks)
+        for j, (k, sens) in enumerate(zip(ks, steps, strict=True)):
             if sens is None:  # hard mode, infeasible: clip(u_ref), the tracking gain
                 infeasible[k] = True
                 continue
-            infeasible[k] = bool(sens.soft)
-            if not np.all(np.isfinite(sens.gain)):
-                finite = all(np.all(np.isfinite(r)) for r in self.rows(X[k]))
+            gain, infeasible[k] = sens
+            if not np.all(np.isfinite(gain)):
+                at = [r[j] for r in rows] if fast else self.rows(X[k])
+                finite = all(np.all(np.isfinite(r)) for r in at)
                 reason = "nonfinite_gains" if finite else "nonfinite_derivatives"
                 break
-            K[k] = sens.gain
+            K[k] = gain
         activity = {"ecbf_active": float(active.mean()),
                     "ecbf_infeasible": float(infeasible.mean())}
         if reason is not None:
@@ -296,3 +345,150 @@ class ECBFFeedback:
                          nominal_unsafe=g.nominal_unsafe, mu=np.nan, activity=activity)
         return Gains(K=pad_gains(K, self.nx_full), fallback=None, nominal_unsafe=g.nominal_unsafe,
                      mu=g.mu, activity=activity)
+
+    def _row_batch(self, X: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`rows` at each state of X (m, nx), stacked: (m, nh, nu), (m, nh),
+        (m, nh, nu, nx), (m, nh, nx)."""
+        nh, nu, nx, c, m = self.nh, self.nu, self.nx, self._chunk, X.shape[0]
+        a, b = np.empty((m, nh, nu)), np.empty((m, nh))
+        da, db = np.empty((m, nh, nu, nx)), np.empty((m, nh, nx))
+        for s in range(0, m, c):
+            chunk = X[s : s + c]
+            n = chunk.shape[0]
+            if n < c:  # pad with the last state (its results are not used)
+                chunk = np.vstack([chunk, np.repeat(chunk[-1:], c - n, axis=0)])
+            oa, ob, oda, odb = self._jac_batch(chunk, self._scene)
+            a[s : s + n] = oa.reshape(c, nu, nh)[:n].transpose(0, 2, 1)
+            b[s : s + n] = ob.reshape(c, nh)[:n]
+            da[s : s + n] = oda.reshape(c, nx, nu, nh)[:n].transpose(0, 3, 2, 1)
+            db[s : s + n] = odb.reshape(c, nx, nh)[:n].transpose(0, 2, 1)
+        return a, b, da, db
+
+    def _active_sets(self, a, b, U_ref) -> tuple[np.ndarray, ...]:
+        """:meth:`solve`'s active sets at m steps (rows a (m, nh, nu), b (m, nh), references
+        U_ref (m, nu)) as masks: hard, soft rows (m, nh), controls at the upper / lower bound
+        (m, nu), and where solve() returns None (m,). daqp on solve()'s data, the steps with
+        the same number of kept rows set up together; anything but a clean daqp answer goes
+        through solve() itself."""
+        m, o, nu = self.model, self.opt, self.nu
+        lo, hi = m.u_min, m.u_max
+        low = np.where(a > 0, a * lo, np.where(a < 0, a * hi, 0.0)).sum(axis=2)
+        keep = ~(b < low - 1e-9)
+        n_keep = keep.sum(axis=1)
+        hard, soft = np.zeros(keep.shape, bool), np.zeros(keep.shape, bool)
+        upper, lower = np.zeros(U_ref.shape, bool), np.zeros(U_ref.shape, bool)
+        none, retry = np.zeros(len(a), bool), []
+        soft_mode = o.mode != "hard"
+        for n in np.unique(n_keep):
+            js = np.flatnonzero(n_keep == n)
+            N, col = js.size, js[:, None]
+            kept = np.nonzero(keep[js])[1].reshape(N, n)
+            inf = np.full(n, np.inf)
+            f = np.empty((N, nu + n * soft_mode))
+            f[:, :nu] = -2.0 * U_ref[js]
+            if soft_mode:
+                ns = n
+                H = np.diag(np.concatenate([np.full(nu, 2.0),
+                                            np.full(n, 2.0 * o.slack_quadratic)]))
+                up = np.concatenate([hi, inf, inf])
+                A = np.zeros((N, n, nu + n))
+                A[:, :, nu:] = np.eye(n)
+                f[:, nu:] = o.slack_linear
+                low_b = np.zeros((N, nu + 2 * n))
+            else:
+                ns, H, up = 0, 2.0 * np.eye(nu), np.concatenate([hi, inf])
+                A = np.zeros((N, n, nu))
+                low_b = np.empty((N, nu + n))
+            A[:, :, :nu] = a[col, kept]
+            low_b[:, :nu], low_b[:, nu + ns :] = lo, b[col, kept]
+            z, lam = np.empty(f.shape), np.empty(low_b.shape)
+            flag = np.empty(N, int)
+            for r in range(N):
+                zr, _, flag[r], info = daqp.solve(H, f[r], A[r], up, low_b[r],
+                                                  np.zeros(up.size, dtype=np.int32))
+                z[r], lam[r] = zr, info["lam"]
+            ok = (flag == 1) | (flag == 2)
+            ok &= np.isfinite(z).all(axis=1) & np.isfinite(lam).all(axis=1)
+            # daqp's working set: lam > 0 at an upper bound, lam < 0 at a lower one
+            on = lam[:, nu + ns :] < 0
+            zero_slack = lam[:, nu : nu + ns] < 0 if ns else np.ones((N, n), bool)
+            rows = np.broadcast_to(col, kept.shape)
+            hard[rows[ok], kept[ok]] = (on & zero_slack)[ok]
+            soft[rows[ok], kept[ok]] = (on & ~zero_slack)[ok]
+            upper[js[ok]], lower[js[ok]] = lam[ok, :nu] > 0, lam[ok, :nu] < 0
+            retry.extend(js[~ok])
+        for j in sorted(retry):  # daqp failed: solve() itself (OSQP, or None), in step order
+            qp = self.solve(a[j], b[j], U_ref[j])
+            if qp is None:
+                none[j] = True
+                continue
+            for mask, idx in zip((hard, soft, upper, lower), qp[1:], strict=True):
+                mask[j, np.asarray(idx, dtype=int)] = True
+        return hard, soft, upper, lower, none
+
+    def _sensitivities(self, rows, U_ref, K) -> list:
+        """(gain, infeasible) or None per step, as :meth:`sensitivity` with references U_ref
+        (m, nu), tracking gains K (m, nu, nx) and rows from :meth:`_row_batch`: the same QPs,
+        then the KKT solves of steps with the same shape of active set batched; a step whose
+        multipliers drop a bound or row goes through the per-step solves."""
+        sets = self._active_sets(rows[0], rows[1], U_ref)
+        none = sets[-1]
+        counts = np.stack([s.sum(axis=1) for s in sets[:4]], axis=1)
+        out: list = [None] * len(U_ref)
+        groups: dict[tuple[int, ...], list[int]] = {}
+        for j in np.flatnonzero(~none):
+            groups.setdefault(tuple(counts[j]), []).append(j)
+        for key, js in groups.items():
+            J = np.array(js)
+            idx = [np.nonzero(s[J])[1].reshape(len(J), c) for s, c in zip(sets, key, strict=False)]
+            gains = self._kkt_batch(rows, J, *idx, U_ref[J], K[J])
+            for r, j in enumerate(J):
+                if gains[r] is None:  # a bound or row dropped: the per-step law
+                    held = [list(i[r]) for i in idx]
+                    out[j] = _pair(self._held(*(v[j] for v in rows), U_ref[j], K[j], held[0],
+                                              idx[1][r], held[2], held[3]))
+                else:
+                    out[j] = (gains[r], key[1] > 0)
+        return out
+
+    def _kkt_batch(self, rows, J, hard, soft, upper, lower, U_ref, K) -> list:
+        """The gains of :meth:`sensitivity` for steps J with active sets of one shape (index
+        arrays (N, count)); None where the multipliers would drop a bound or row."""
+        a, b, da, db = rows
+        nu, nx, o, N = self.nu, self.nx, self.opt, len(J)
+        L, rho = o.slack_linear, o.slack_quadratic
+        col = J[:, None]
+        eye = np.eye(nu)
+        E = np.concatenate([a[col, hard], -eye[upper], eye[lower]], axis=1)
+        e = np.concatenate([b[col, hard], -self.model.u_max[upper], self.model.u_min[lower]],
+                           axis=1)
+        H = np.broadcast_to(2.0 * eye, (N, nu, nu))
+        g = 2.0 * U_ref
+        a_s, b_s = a[col, soft], b[col, soft]
+        if soft.shape[1]:
+            H = H + (2.0 * rho * a_s).transpose(0, 2, 1) @ a_s
+            g = g + (a_s.transpose(0, 2, 1) @ (L + 2.0 * rho * b_s)[..., None])[..., 0]
+        q = E.shape[1]
+        M = np.zeros((N, nu + q, nu + q))
+        M[:, :nu, :nu], M[:, :nu, nu:], M[:, nu:, :nu] = H, -E.transpose(0, 2, 1), E
+        z = _solve_kkt_batch(M, np.concatenate([g, e], axis=1)[..., None])[..., 0]
+        u, mult, nh_, nup = z[:, :nu], z[:, nu:], hard.shape[1], upper.shape[1]
+        nu_h, nu_u, nu_l = mult[:, :nh_], mult[:, nh_ : nh_ + nup], mult[:, nh_ + nup :]
+        small = (1e-9 * np.fmax(1.0, np.abs(U_ref).max(axis=1)))[:, None]
+        drop = ((nu_u <= small).any(axis=1) | (nu_l <= small).any(axis=1)
+                | (nu_h < -small).any(axis=1))
+        R = np.zeros((N, nu + q, nx))
+        R[:, :nu] = -2.0 * K
+        da_h, db_h = da[col, hard], db[col, hard]
+        for r in range(nh_):
+            R[:, :nu] -= nu_h[:, r, None, None] * da_h[:, r]
+        da_s, db_s = da[col, soft], db[col, soft]
+        for r in range(soft.shape[1]):
+            s_r = b_s[:, r] - np.einsum("ki,ki->k", a_s[:, r], u)  # the slack
+            du = db_s[:, r] - np.einsum("ki,kix->kx", u, da_s[:, r])
+            R[:, :nu] -= (L + 2.0 * rho * s_r)[:, None, None] * da_s[:, r] + 2.0 * rho * (
+                a_s[:, r, :, None] * du[:, None, :])
+        for r in range(nh_):
+            R[:, nu + r] = np.einsum("ki,kix->kx", u, da_h[:, r]) - db_h[:, r]
+        G = _solve_kkt_batch(M, -R)[:, :nu]
+        return [None if d else G[i] for i, d in enumerate(drop)]
