@@ -433,35 +433,42 @@ class ECBFFeedback:
         multipliers drop a bound or row goes through the per-step solves."""
         sets = self._active_sets(rows[0], rows[1], U_ref)
         none = sets[-1]
-        counts = np.stack([s.sum(axis=1) for s in sets[:4]], axis=1)
+        # box bounds as one block (upper, then lower, as sensitivity() holds them)
+        box = np.concatenate([sets[2], sets[3]], axis=1)
+        counts = np.stack([sets[0].sum(axis=1), sets[1].sum(axis=1), box.sum(axis=1)], axis=1)
         out: list = [None] * len(U_ref)
         groups: dict[tuple[int, ...], list[int]] = {}
         for j in np.flatnonzero(~none):
             groups.setdefault(tuple(counts[j]), []).append(j)
         for key, js in groups.items():
             J = np.array(js)
-            idx = [np.nonzero(s[J])[1].reshape(len(J), c) for s, c in zip(sets, key, strict=False)]
+            idx = [np.nonzero(s[J])[1].reshape(len(J), c)
+                   for s, c in zip((sets[0], sets[1], box), key, strict=True)]
             gains = self._kkt_batch(rows, J, *idx, U_ref[J], K[J])
             for r, j in enumerate(J):
                 if gains[r] is None:  # a bound or row dropped: the per-step law
-                    held = [list(i[r]) for i in idx]
-                    out[j] = _pair(self._held(*(v[j] for v in rows), U_ref[j], K[j], held[0],
-                                              idx[1][r], held[2], held[3]))
+                    bounds = idx[2][r]
+                    out[j] = _pair(self._held(
+                        *(v[j] for v in rows), U_ref[j], K[j], list(idx[0][r]), idx[1][r],
+                        list(bounds[bounds < self.nu]), list(bounds[bounds >= self.nu] - self.nu)))
                 else:
                     out[j] = (gains[r], key[1] > 0)
         return out
 
-    def _kkt_batch(self, rows, J, hard, soft, upper, lower, U_ref, K) -> list:
+    def _kkt_batch(self, rows, J, hard, soft, box, U_ref, K) -> list:
         """The gains of :meth:`sensitivity` for steps J with active sets of one shape (index
-        arrays (N, count)); None where the multipliers would drop a bound or row."""
+        arrays (N, count); box: j for u_j at its upper bound, nu + j at its lower one, upper
+        first); None where the multipliers would drop a bound or row."""
         a, b, da, db = rows
         nu, nx, o, N = self.nu, self.nx, self.opt, len(J)
         L, rho = o.slack_linear, o.slack_quadratic
         col = J[:, None]
         eye = np.eye(nu)
-        E = np.concatenate([a[col, hard], -eye[upper], eye[lower]], axis=1)
-        e = np.concatenate([b[col, hard], -self.model.u_max[upper], self.model.u_min[lower]],
-                           axis=1)
+        at_upper, j_box = box < nu, box % nu
+        E = np.concatenate([a[col, hard], np.where(at_upper[..., None], -eye[j_box],
+                                                   eye[j_box])], axis=1)
+        e = np.concatenate([b[col, hard], np.where(at_upper, -self.model.u_max[j_box],
+                                                   self.model.u_min[j_box])], axis=1)
         H = np.broadcast_to(2.0 * eye, (N, nu, nu))
         g = 2.0 * U_ref
         a_s, b_s = a[col, soft], b[col, soft]
@@ -472,11 +479,10 @@ class ECBFFeedback:
         M = np.zeros((N, nu + q, nu + q))
         M[:, :nu, :nu], M[:, :nu, nu:], M[:, nu:, :nu] = H, -E.transpose(0, 2, 1), E
         z = _solve_kkt_batch(M, np.concatenate([g, e], axis=1)[..., None])[..., 0]
-        u, mult, nh_, nup = z[:, :nu], z[:, nu:], hard.shape[1], upper.shape[1]
-        nu_h, nu_u, nu_l = mult[:, :nh_], mult[:, nh_ : nh_ + nup], mult[:, nh_ + nup :]
+        u, mult, nh_ = z[:, :nu], z[:, nu:], hard.shape[1]
+        nu_h, nu_box = mult[:, :nh_], mult[:, nh_:]
         small = (1e-9 * np.fmax(1.0, np.abs(U_ref).max(axis=1)))[:, None]
-        drop = ((nu_u <= small).any(axis=1) | (nu_l <= small).any(axis=1)
-                | (nu_h < -small).any(axis=1))
+        drop = (nu_box <= small).any(axis=1) | (nu_h < -small).any(axis=1)
         R = np.zeros((N, nu + q, nx))
         R[:, :nu] = -2.0 * K
         da_h, db_h = da[col, hard], db[col, hard]
