@@ -185,17 +185,6 @@ def goals_section(records: list[dict]) -> list[str]:
                      f"({b64:.2f} ms) with its rollout ({roll['value']:.2f} ms, split above) "
                      "halved and its noise (drawn in double in both precisions for pairing) "
                      "and Python call unchanged")
-        ro = p.get("rollout_ms")
-        if ro:
-            # the rest of the float32 call (noise, Python call, guards) that 1.8 would allow
-            # with this run's float32 rollout, against what it costs now
-            b32 = r["value"]
-            allowed = r["baseline_value"] / p["goal_ratio"] - ro["float32"]
-            bound += (f"{'; ' if bound else ''}the float32 rollout alone is "
-                      f"{p['rollout_ratio']:.2f}x faster (fed the same noise), so "
-                      f"{p['goal_ratio']} leaves {allowed:.2f} ms for the rest of the float32 "
-                      f"call (noise, Python call, guards), which takes "
-                      f"{b32 - ro['float32']:.2f} ms now")
         alt = p.get("alternated_ratio")
         alt_txt = "" if alt is None else f"; call by call in alternation {alt:.2f}"
         rows.append(f"| float32 SAIS batch speed-up, 1 thread | >= {p['goal_ratio']} | "

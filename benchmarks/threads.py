@@ -13,7 +13,7 @@ policy is read when the OpenMP runtime loads):
 
 and, in each, the medians of a SAIS batch (N = 256, T = 40 and N = 1024, T = 100, the sampler
 call) and of the SA-RMPPI control step (navigation map, N = 1024, T = 100, 9 x 64 candidates)
-with ``set_threads(1)`` and ``set_threads(2)``, alternated in blocks so load changes hit both.
+with ``set_threads(1)`` and ``set_threads(2)``, alternated call by call so load changes hit both.
 Record value = the 2-thread median, baseline = the 1-thread median, ratio = baseline / value
 (1 = no difference; below 1/1.3 = 0.77 the 2-thread setting is more than 1.3x slower).
 """
@@ -40,6 +40,14 @@ def _busy(n: int) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
+def _order(i: int) -> tuple[int, int]:
+    """The thread counts of round i: 1 then 2, then 2 then 1, ... Under load, a call either
+    runs through or loses the core for a whole scheduler time slice (two configurations that
+    both ran on 1 thread, timed in blocks of 8 calls, differed 2.2x in one run); alternating
+    call by call lets both counts meet the same phases of the other processes."""
+    return (1, 2) if i % 2 == 0 else (2, 1)
+
+
 def _measure(adaptive: bool, repeats: int) -> dict:
     """Runs in the child process: medians (ms) of 1- and 2-thread calls."""
     import casadi as ca
@@ -61,14 +69,13 @@ def _measure(adaptive: bool, repeats: int) -> dict:
     for N, T in ((256, 40), (1024, 100)):
         times: dict[int, list[float]] = {1: [], 2: []}
         ran = used.setdefault(f"sais_N{N}_T{T}", {1: [], 2: []})
-        for b in range(blocks):
-            for n in (1, 2):
+        for i in range(8 * blocks):
+            for n in _order(i):
                 set_threads(n, adaptive=adaptive)
-                for i in range(8):
-                    t0 = time.perf_counter()
-                    sampler.sais(x0, x0, U[:T], K[:T], N, c, 100 * b + i)
-                    times[n].append(time.perf_counter() - t0)
-                    ran[n].append(get())
+                t0 = time.perf_counter()
+                sampler.sais(x0, x0, U[:T], K[:T], N, c, i)
+                times[n].append(time.perf_counter() - t0)
+                ran[n].append(get())
         out[f"sais_N{N}_T{T}"] = {n: 1e3 * statistics.median(v) for n, v in times.items()}
     ctrl = nav.controller("sa_rmppi", threshold=ConstantThreshold(2e4))
     f = FastFunction(ca.Function("plant", [nav.plant.x, nav.plant.u], [nav.plant.x_next]))
@@ -78,17 +85,16 @@ def _measure(adaptive: bool, repeats: int) -> dict:
     ran = used.setdefault("sa_rmppi_step", {1: [], 2: []})
     for _ in range(5):  # warm-up: the feedback law's first solve
         state, u, _info = ctrl.step(state, x, rng)
-    for _b in range(blocks):
-        for n in (1, 2):
+    for i in range(6 * blocks):
+        for n in _order(i):
             set_threads(n, adaptive=adaptive)
-            for _ in range(6):
-                t0 = time.perf_counter()
-                state, u, _info = ctrl.step(state, x, rng)
-                steps[n].append(time.perf_counter() - t0)
-                ran[n].append(get())
-                x = f(x, u)[0]
-                if np.linalg.norm(x[:2] - nav.goal[:2]) < 1.0:  # start over near the goal
-                    state, x = ctrl.initial_state(nav.x0), np.asarray(nav.x0, float)
+            t0 = time.perf_counter()
+            state, u, _info = ctrl.step(state, x, rng)
+            steps[n].append(time.perf_counter() - t0)
+            ran[n].append(get())
+            x = f(x, u)[0]
+            if np.linalg.norm(x[:2] - nav.goal[:2]) < 1.0:  # start over near the goal
+                state, x = ctrl.initial_state(nav.x0), np.asarray(nav.x0, float)
     out["sa_rmppi_step"] = {n: 1e3 * statistics.median(v) for n, v in steps.items()}
     # the share of calls (of the last kernel call of a step) that ran on 2 threads
     return {k: {**v, "two_thread_share": float(np.mean(np.array(used[k][2]) == 2))}
