@@ -71,3 +71,16 @@ def test_float32_row_gives_the_alternated_figure():
     f32 = _row(goals_section(recs), "| float32")
     assert "| 1.50 (kernel alone 1.27; call by call in alternation 1.28) |" in f32
     assert "at most" in f32  # the bound is still stated
+
+
+def test_float32_bound_uses_the_rollout_share_of_the_split_call():
+    recs = _records()
+    # split: batch 2.41 = call 2.31 + weights 0.04 + update 0.06; rollout 1.85 of the 2.31 ms call
+    recs += [_rec("sais_split_weights_N1024_T100_1thread", 0.04, 1.78),
+             _rec("sais_split_update_N1024_T100_1thread", 0.06, 1.78)]
+    f32 = _row(goals_section(recs), "| float32")
+    # 1 / (1 - 1.85 / 2.31 / 2) = 1.67; without the weights and update it would be 1.62
+    assert "at most 1.67" in f32 and "(80 % of the call" in f32
+    # a rollout timed above the whole call (load between the two) caps the share at 1
+    recs[2]["value"] = 3.2
+    assert "at most 2.00" in _row(goals_section(recs), "| float32")
