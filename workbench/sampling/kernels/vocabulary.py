@@ -4,8 +4,6 @@ The MPPI, SAIS and candidate kernels (:mod:`workbench.sampling.kernels.build`), 
 forms (:mod:`~workbench.sampling.kernels.slots`) and the safe-MPPI kernel
 (:mod:`~workbench.sampling.kernels.safe`) build their step Functions from these, so the same
 input names, control clip and crash rule appear in each (and CSE shares them within a step).
-Each builds exactly the expression graph it did as a private helper of ``build.py``: the
-generated C does not depend on where it lives.
 """
 
 from __future__ import annotations
