@@ -26,11 +26,11 @@ other work on a shared machine).
 from __future__ import annotations
 
 import statistics
-import time
 
 import numpy as np
 
 from benchmarks.sampling import _setup
+from benchmarks.timing import samples_in_turn
 from workbench.sampling.kernels.threads import using
 from workbench.sampling.sampler import Sampler, check_batch
 
@@ -46,21 +46,9 @@ def _record(name, value, unit, baseline, baseline_value, params) -> dict:
 def _alternate(calls: dict, n: int, block: int = 1, warm: int = 0) -> dict[str, dict[str, float]]:
     """Median wall and CPU (thread) time and the CPU time's 10th percentile of each call: the
     calls in turn n times, each turn ``warm`` untimed then ``block`` timed calls of one."""
-    wall: dict[str, list[float]] = {k: [] for k in calls}
-    cpu: dict[str, list[float]] = {k: [] for k in calls}
-    i = 0
-    for _ in range(n):
-        for k, f in calls.items():
-            for j in range(warm + block):
-                t0, c0 = time.perf_counter(), time.thread_time()
-                f(i)
-                dc, dw = time.thread_time() - c0, time.perf_counter() - t0
-                i += 1
-                if j >= warm:
-                    cpu[k].append(dc)
-                    wall[k].append(dw)
-    return {k: {"wall": statistics.median(wall[k]), "cpu": statistics.median(cpu[k]),
-                "cpu_q10": float(np.quantile(cpu[k], 0.1))} for k in calls}
+    t = samples_in_turn(calls, n, block, warmup=0, warm=warm)
+    return {k: {"wall": statistics.median(w), "cpu": statistics.median(c),
+                "cpu_q10": float(np.quantile(c, 0.1))} for k, (w, c) in t.items()}
 
 
 def _batch_records(repeats: int) -> list[dict]:

@@ -21,25 +21,34 @@ def record(name, value, unit, baseline, baseline_value, params, **extra) -> dict
             "baseline_value": baseline_value, "ratio": ratio, "params": params, **extra}
 
 
-def round_robin(fns: dict[str, Callable[[int], object]], repeats: int, block: int = 1,
-                warmup: int = 1, with_min: bool = False, warm: int = 0):
-    """Median seconds of each ``fn(i)``, the functions timed in turn (``block`` calls of each per
-    round, ``repeats`` rounds) so that load changes hit all of them alike. ``warmup`` untimed
-    rounds first (first-call page faults, OpenMP start-up); ``warm`` untimed calls at the start
-    of every block (the first calls after another function run with its data out of the caches:
-    measured up to 1.5x slower for a 2 ms kernel after the SAIS batch). ``with_min``: also the
-    minimum (the least disturbed call; returns (medians, minima))."""
-    times: dict[str, list[float]] = {n: [] for n in fns}
+def samples_in_turn(fns: dict[str, Callable[[int], object]], repeats: int, block: int = 1,
+                    warmup: int = 1, warm: int = 0) -> dict[str, tuple[list[float], list[float]]]:
+    """Wall and CPU (thread) seconds of every timed call of each ``fn(i)``, the functions
+    timed in turn (``block`` calls of each per round, ``repeats`` rounds) so that load changes
+    hit all of them alike. ``warmup`` untimed rounds first (first-call page faults, OpenMP
+    start-up); ``warm`` untimed calls at the start of every block (the first calls after
+    another function run with its data out of the caches: measured up to 1.5x slower for a
+    2 ms kernel after the SAIS batch)."""
+    out: dict[str, tuple[list[float], list[float]]] = {n: ([], []) for n in fns}
     i = 0
     for r in range(warmup + repeats):
         for name, fn in fns.items():
             for j in range(warm + block):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.thread_time()
                 fn(i)
-                dt = time.perf_counter() - t0
+                dc, dw = time.thread_time() - c0, time.perf_counter() - t0
                 if r >= warmup and j >= warm:
-                    times[name].append(dt)
+                    out[name][0].append(dw)
+                    out[name][1].append(dc)
                 i += 1
+    return out
+
+
+def round_robin(fns: dict[str, Callable[[int], object]], repeats: int, block: int = 1,
+                warmup: int = 1, with_min: bool = False, warm: int = 0):
+    """Median seconds of each ``fn(i)`` timed by :func:`samples_in_turn`. ``with_min``: also
+    the minimum (the least disturbed call; returns (medians, minima))."""
+    times = {n: w for n, (w, _) in samples_in_turn(fns, repeats, block, warmup, warm).items()}
     med = {n: statistics.median(t) for n, t in times.items()}
     return (med, {n: min(t) for n, t in times.items()}) if with_min else med
 
