@@ -1,7 +1,8 @@
 """A scene of your own circles through SA-RMPPI.
 
 Five circles between start and goal (``CircleScene``), the navigation set-up on it (double
-integrator, barrier state, sampling costs of SPEC 8.2), SA-RMPPI with K_safe from BaS-iLQG whose
+integrator, barrier state, sampling costs of
+assumptions §8.2), SA-RMPPI with K_safe from BaS-iLQG whose
 feedback weights are sized from the model (``FeedbackWeights.for_model``), its selection
 threshold calibrated once on this map (``nav.threshold``: one undisturbed episode), then one
 disturbed episode (velocity variance 10) against BaS-MPPI with the same disturbance.

@@ -25,7 +25,7 @@ def scene() -> TrackingScene:
 
 
 def bas_tracking_problem(scene: TrackingScene, q_beta=1e-2, options: BarrierOptions | None = None):
-    """BaS-iLQG problem of SPEC 6.1 on the tracking scene, with its parameter array."""
+    """BaS-iLQG problem of assumptions §6.1 on the tracking scene, with its parameter array."""
     model = embed_barrier(double_integrator(obstacles=(scene.obstacle,), u_limit=scene.u_limit),
                           options)
     cost = quadratic_tracking(model, Q=TRACK_Q, R=TRACK_R, S=TRACK_S, q_beta=q_beta, s_beta=0.05)

@@ -1,4 +1,4 @@
-"""Plant disturbance models (SPEC 2.3), crash detection on the true plant, plants of other
+"""Plant disturbance models (assumptions §2.3), crash detection on the true plant, plants of other
 state sizes."""
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ def test_class8_single_integrator_closed_loop_disturbs_the_positions():
     u = np.array([1.0, -0.5])
     ep = closed_loop(_Hold(u), plant, np.zeros(2), 4000, np.random.default_rng(0),
                      np.random.default_rng(1), Disturbance(10.0))
-    W = np.diff(ep.X, axis=0) - 0.02 * u  # SPEC 2.4: w = dt xi on the position
+    W = np.diff(ep.X, axis=0) - 0.02 * u  # assumptions §2.4: w = dt xi on the position
     np.testing.assert_allclose(W.std(axis=0), 0.02 * np.sqrt(10.0), rtol=0.05)
 
 

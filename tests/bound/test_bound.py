@@ -1,4 +1,4 @@
-"""Lemma-1 estimators (issue 12, SPEC 11.2-11.3): closed forms, the diagnostic kernels against
+"""Lemma-1 estimators (assumptions §11.2-11.3): closed forms, the diagnostic kernels against
 the NumPy/CasADi twins, T1 on the navigation map, and bad input."""
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def linear_gaussian(T=10, dt=0.1, lam=1.0, sigma=3.0, u=0.5, x0=(1.0, 0.0), Q=(1
 
     System: x_{k+1} = A x_k + B (u_k + ε_k), ε_k ~ N(0, σ²) i.i.d. (a double integrator, one
     input), cost S = Σ_{k=1}^T x_kᵀ Q x_k + x_Tᵀ Q_f x_T + λ Σ_k (½ u_kᵀ Σ⁻¹ u_k + u_kᵀ Σ⁻¹ ε_k)
-    (state cost + the likelihood ratio of SPEC 11.2 item 2), F = −λ log E[exp(−S/λ)].
+    (state cost + the likelihood ratio of assumptions §11.2 item 2), F = −λ log E[exp(−S/λ)].
 
     Stack e = (ε_0..ε_{T−1}) ~ N(0, Σ̄), Σ̄ = σ² I. Then x_k = a_k + G_k e (a_k the noise-free
     rollout, G_k = [A^{k−1}B, ..., B, 0...]), so S(e) = ½ eᵀ H e + gᵀ e + c with
@@ -174,7 +174,7 @@ def test_lipschitz_constants_of_a_quadratic_cost_equal_the_analytic_ones(quadrat
     assert L.L_q == pytest.approx(max(gq), rel=1e-12)
     assert L.L_phi == pytest.approx(max(gp), rel=1e-12)
     assert (L.points_q, L.points_phi, L.excluded_q) == (5 * T * N, 5 * N, 0)
-    # SPEC 11.2's analytic bound for the quadratic part: 2 |Q| (max_k |x* - g| + R)
+    # assumptions §11.2's analytic bound for the quadratic part: 2 |Q| (max_k |x* - g| + R)
     R = tube_radius(X, Xs, 4).R
     bound = Wq.max() * (np.linalg.norm(Xs[1:] - g[None, :, None], axis=1).max() + R)
     assert L.L_q <= bound * (1 + 1e-12)
@@ -383,8 +383,8 @@ def test_augmented_space_constants_are_the_analytic_ones(scene):
 
 @pytest.fixture(scope="module")
 def nav_small():
-    """The SPEC 3.2 map with a smaller batch (N = 256, T = 50, sigma = 2) so that real samples
-    stay safe on some steps; alpha = 0 makes every selection fall back to the propagated
+    """The assumptions §3.2 map with a smaller batch (N = 256, T = 50, sigma = 2) so that real
+    samples stay safe on some steps; alpha = 0 makes every selection fall back to the propagated
     nominal, so the nominal state differs from the real one after the first step."""
     nav = navigation_setup()
     nav = replace(nav, mppi=MPPIConfig(n_samples=256, horizon=50, sigma=(2.0, 2.0), lam=10.0))

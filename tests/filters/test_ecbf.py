@@ -1,5 +1,5 @@
-"""ECBF safety filter (SPEC 7): Lie derivatives, closed forms, a second QP solver, infeasibility;
-interrupts, non-finite and wrongly shaped inputs."""
+"""ECBF safety filter (assumptions §7): Lie derivatives, closed forms, a second QP solver,
+infeasibility; interrupts, non-finite and wrongly shaped inputs."""
 
 from __future__ import annotations
 
@@ -222,7 +222,7 @@ def _rotating_plane(obstacle: Circle, w: float = 0.7, dt: float = 0.05) -> Model
 
 
 def test_degree_one_row_includes_lf_h_closed_form(rng):
-    """Issue 8 item 4: a degree-1 row is L_g h u >= -gamma h - L_f h. On the rotating plane
+    """A degree-1 row is L_g h u >= -gamma h - L_f h. On the rotating plane
     L_f h = 2 d^T Omega p, L_g h = 2 d (d = p - c): checked against that closed form."""
     c, w = Circle((1.0, -0.5), 0.8), 0.7
     model = _rotating_plane(c, w)
@@ -241,7 +241,7 @@ def test_degree_one_row_includes_lf_h_closed_form(rng):
 
 
 def test_zoh_double_integrator_is_relative_degree_two_closed_form(rng):
-    """Issue 8 item 4: u enters the ZOH double integrator's first difference only through the
+    """u enters the ZOH double integrator's first difference only through the
     1/2 dt^2 u term, so the margin is degree 2. Read as xdot = (F - x)/dt: f = [v, 0],
     g = [dt/2 I, I], so L_f h = 2 d.v, L_g h = dt d, L_f^2 h = 2|v|^2, L_g L_f h = dt v + 2 d,
     and the row is (L_g L_f h + k1 L_g h) u >= -L_f^2 h - k1 L_f h - k0 h."""

@@ -1,4 +1,4 @@
-"""AL-iLQG (SPEC 6.2) on the tracking scene, against IPOPT with the hard constraint."""
+"""AL-iLQG (assumptions §6.2) on the tracking scene, against IPOPT with the hard constraint."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""BaS-iLQG on the tracking scene of SPEC 3.3 against IPOPT on the same embedded problem."""
+"""BaS-iLQG on the tracking scene of assumptions §3.3 against IPOPT on the same embedded problem."""
 
 from __future__ import annotations
 

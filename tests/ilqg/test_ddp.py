@@ -113,8 +113,8 @@ def test_ddp_whole_solve_agrees_across_backends(bas_tracking, scene):
 
 @pytest.mark.parametrize("q_beta", [1e-2, 1.0])
 def test_ddp_tracking_converges_in_few_iterations_to_the_ipopt_optimum(scene, q_beta):
-    """SPEC 3.3 scene, T=150: full DDP needs <= 50 iterations (Gauss-Newton iLQG: 80-115) and
-    ends at IPOPT's optimum."""
+    """assumptions §3.3 scene, T=150: full DDP needs <= 50 iterations (Gauss-Newton iLQG: 80-115)
+    and ends at IPOPT's optimum."""
     problem, P = bas_tracking_problem(scene, q_beta=q_beta)
     U0 = np.zeros((scene.horizon, 2))
     ddp = ilqg(problem, scene.start, U0, P, ILQGOptions(second_order=True))

@@ -86,7 +86,8 @@ def test_cost_derivatives_match_finite_differences(name, rng):
 
 
 def test_embedded_jacobian_matches_spec_formula(rng):
-    """SPEC 4.4: the beta row of F_bar_x and F_bar_u in closed form (inverse barrier, gamma)."""
+    """assumptions §4.4: the beta row of F_bar_x and F_bar_u in closed form (inverse barrier,
+    gamma)."""
     gamma = 0.3
     base = double_integrator(obstacles=OBST)
     model = embed_barrier(base, BarrierOptions(gamma=gamma))
@@ -111,7 +112,7 @@ def test_embedded_jacobian_matches_spec_formula(rng):
     np.testing.assert_allclose(A[4, :4], row_x, rtol=1e-12)
     assert A[4, 4] == pytest.approx(-gamma)
     np.testing.assert_allclose(B[4], row_u, atol=1e-15)
-    assert np.all(row_u == 0)  # Euler: h(F(x,u)) does not depend on u (SPEC 2.2)
+    assert np.all(row_u == 0)  # Euler: h(F(x,u)) does not depend on u (assumptions §2.2)
 
 
 def test_barrier_state_follows_margins_and_crash_rule(rng):
@@ -183,7 +184,7 @@ def test_fingerprint_is_stable_and_sensitive(scene):
 
 
 def test_hessian_override_replaces_exact_state_hessian():
-    """Gauss-Newton replacements (SPEC 6.2) enter lxx; gradients stay exact."""
+    """Gauss-Newton replacements (assumptions §6.2) enter lxx; gradients stay exact."""
     import dataclasses
 
     model = double_integrator(obstacles=OBST, runtime_obstacles=False)  # a cost in h needs them

@@ -1,4 +1,4 @@
-"""The free-energy bound study (issue 12, part 3) on its tiny profile: runs end to end, every
+"""The free-energy bound study on its tiny profile: runs end to end, every
 summary number recomputed here from the tidy per-step table, the table's checks recomputed from
 its own estimator columns, claims printed iff they hold, resume, bad config fails at start."""
 

@@ -1,4 +1,4 @@
-"""The navigation study (issue 11): config validation naming the field, common random numbers
+"""The navigation study: config validation naming the field, common random numbers
 across controllers, report numbers recomputed from the tidy data, and the tiny profile on the
 study framework (interrupt + resume, 1 / 2 workers / Dask byte-identical tidy data)."""
 

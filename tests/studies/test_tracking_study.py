@@ -258,7 +258,7 @@ def test_same_bytes_in_process_with_two_workers_and_on_a_dask_cluster(tiny_run, 
 
 
 def test_sigint_during_ecbf_tasks_then_rerun_equals_an_uninterrupted_run(tmp_path):
-    """Issue 9, class 1: a real SIGINT while ECBF tasks run in the study's own process (where
+    """A real SIGINT while ECBF tasks run in the study's own process (where
     the QP solver may swallow the interrupt) stops the run within seconds; the rerun gives the
     same bytes as an uninterrupted run, so no silently altered task was recorded."""
     import signal

@@ -245,7 +245,7 @@ def test_the_browser_check_catches_what_it_should(browser, cli_reports, tmp_path
     shutil.copytree(root / "tracking_demo", copy / "tracking_demo")
     md = copy / "tracking_demo" / "report.md"
     md.write_text(md.read_text() + "\n![gone](missing.png)\n\n[data](gone.csv)\n\n"
-                  "[see](../assumptions.html#s99-9)\n\nPrice: \\$x_1\\$ and SPEC 3.3, and "
+                  "[see](../assumptions.html#s99-9)\n\nPrice: \\$x_1\\$ and SPEC §3.3, and "
                   "a result of nan.\n")
     problems, _, _ = check_site(browser, build_site(copy, discover()))
     assert any("image does not load" in p and "missing.png" in p for p in problems)

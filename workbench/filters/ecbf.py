@@ -257,7 +257,7 @@ def ecbf_rows(model: Model, options: ECBFOptions = ECBFOptions()) -> ECBFRows:
 
 
 class ECBFFilter:
-    """The ECBF-QP safety filter with one OSQP workspace, set up once (DESIGN principle 5).
+    """The ECBF-QP safety filter with one OSQP workspace, set up once.
 
     Variables z = [u (nu); delta (nh)] in soft mode, z = u in hard mode. Constraint rows:
     ECBF rows a_i u (+ delta_i) >= b_i; delta_i >= 0 (soft); u_min <= u <= u_max.

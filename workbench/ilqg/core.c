@@ -1,4 +1,4 @@
-/* iLQG passes in C (SPEC 5), compiled together with the CasADi-generated problem functions.
+/* iLQG passes in C (assumptions §5), compiled together with the CasADi-generated problem functions.
  *
  * Included after the generated code and a block of macros written by workbench/ilqg/compiled.py:
  *   NX NU NP NH              dimensions
@@ -71,7 +71,7 @@ double wb_forward(int T, const double* x0, const double* X, const double* U, con
   return J + l;
 }
 
-/* Line search over the step sizes (SPEC 5.3): returns the index of the first accepted alpha
+/* Line search over the step sizes (assumptions §5.3): returns the index of the first accepted alpha
  * (z = actual / expected decrease > z_min, finite cost) or -1. out = (J_new, alpha, expected). */
 int wb_line_search(int T, const double* x0, const double* X, const double* U, const double* k,
                    const double* K, const double* P, double J, const double* dV,

@@ -1,4 +1,4 @@
-"""The optimal-control problem, built once and shared by every method (DESIGN principle 1).
+"""The optimal-control problem, built once and shared by every method.
 
 A :class:`Problem` turns a :class:`~workbench.problem.Model` and a
 :class:`~workbench.problem.Cost` into CasADi Functions with named inputs and outputs and exact

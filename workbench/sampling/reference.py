@@ -69,7 +69,7 @@ class _NumpyModel:
 
 def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
                    model_backend: str = "auto", delay=None) -> dict[str, np.ndarray]:
-    """MPPI rollouts (SPEC 8.1 + 4.6). X0 (N,nx), U (T,nu) or (N,T,nu) per-sample controls,
+    """MPPI rollouts (assumptions §8.1 + 4.6). X0 (N,nx), U (T,nu) or (N,T,nu) per-sample controls,
     Z (N,T,nu) standard normals, delay (N,) leading noise-free steps per sample.
     Returns S (N,), crashed (N,), v (N,T,nu), X (N,T+1,nx)."""
     X0 = np.asarray(X0, float)
@@ -100,11 +100,12 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
 
 def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
                    model_backend: str = "auto", pure_costs: bool = False) -> dict[str, np.ndarray]:
-    """Algorithm 1 (SPEC 10.1) with clip_in_cost: real samples with feedback K_k (x - x*), nominal
-    samples without, the same noise for both. X0, Xs0 (N,nx) real and nominal starts, U (T,nu),
-    K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces they are made of and the
+    """Algorithm 1 (assumptions §10.1) with clip_in_cost: real samples with feedback
+    K_k (x - x*), nominal samples without, the same noise for both. X0, Xs0 (N,nx) real and
+    nominal starts, U (T,nu), K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces
+    they are made of and the
     trajectories X, X_nom (N,T+1,nx); with ``pure_costs`` also the pure state costs Sx_real,
-    Sx_nom (Σq + φ without crash cost, SPEC 11.2 item 1)."""
+    Sx_nom (Σq + φ without crash cost, assumptions §11.2 item 1)."""
     N, T = Z.shape[0], Z.shape[1]
     m = _model(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
@@ -127,7 +128,7 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
         cr |= m.crashed(X[:, t + 1], sp.eps_h)
         cn |= m.crashed(Xs[:, t + 1], sp.eps_h)
         q_r, q_n = m.cost(m.q, X[:, t + 1], c.p), m.cost(m.q, Xs[:, t + 1], c.p)
-        Sx_real += q_r  # pure state costs (SPEC 11.2 item 1)
+        Sx_real += q_r  # pure state costs (assumptions §11.2 item 1)
         Sx_nom += q_n
         qr = q_r + c.crash_cost * cr
         qn = q_n + c.crash_cost * cn

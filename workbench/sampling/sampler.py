@@ -93,7 +93,7 @@ class SAISBatch:
 
 @dataclass(frozen=True, kw_only=True)
 class SAISDiagBatch(SAISBatch):
-    """A SAIS batch with the diagnostics of SPEC 11.2: both systems' state trajectories
+    """A SAIS batch with the diagnostics of assumptions §11.2: both systems' state trajectories
     (T+1, nx, N), k = 0..T (lane-major like v), and the pure state costs
     Sx = sum_{k=1}^T q(x_k) + phi(x_T) (no crash, control or feedback cost), real and nominal."""
 
@@ -101,7 +101,7 @@ class SAISDiagBatch(SAISBatch):
     X_nom: np.ndarray  # (T+1, nx, N) nominal samples
     Sx_real: np.ndarray  # (N,)
     Sx_nom: np.ndarray  # (N,)
-    # the call's inputs, so that an independent batch can be drawn (SPEC 11.2, 11.3 T2)
+    # the call's inputs, so that an independent batch can be drawn (assumptions §11.2, 11.3 T2)
     U: np.ndarray  # (T, nu) importance-sampling sequence
     K: np.ndarray  # (T, nu, nx) feedback gains
     consts: SamplerConstants

@@ -68,7 +68,7 @@ def _small_navigation(center, dt: float = 0.02):
 
 
 def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkeypatch):
-    """Issue 9 acceptance: a sampler library swapped with another problem's (hash updated in
+    """A sampler library swapped with another problem's (hash updated in
     the manifest) is detected and rebuilt; the rebuilt kernels equal the twin."""
     import shutil
 

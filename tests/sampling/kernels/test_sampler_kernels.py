@@ -1,11 +1,11 @@
-"""Generated sampler kernels against the NumPy twin fed the same noise (issues 4 and 8).
+"""Generated sampler kernels against the NumPy twin fed the same noise.
 
 Every output is compared element by element with a relative tolerance (:data:`RTOL`), on scenes
 where most samples stay safe, some crash (real only, nominal only, both), controls clip at both
 bounds, the SAIS feedback gains are nonzero (barrier-state column included) and alpha binds on
 some samples only. The tests count that their inputs reach each of these branches, and a
 mutation check shows the comparison fails when the twin drops the feedback term, a
-likelihood-ratio term or the alpha clamp of Algorithm 1 (SPEC 10.1).
+likelihood-ratio term or the alpha clamp of Algorithm 1 (assumptions §10.1).
 
 Kernels are called through :class:`workbench.sampling.sampler.Sampler` only; the twin gets the
 kernel's noise from ``lib.normals`` (the kernel draws it from the same seed).
@@ -303,8 +303,9 @@ def test_kernel_comparison_detects_a_mutated_twin(sais_setup, mutant):
 
 
 def test_kernel_comparison_detects_raw_noise_in_the_cost(sais_setup):
-    """clip_in_cost (SPEC 10.1 lines 6-7): a twin using the raw noise and feedback in lines 8, 9
-    and 12 instead of the clipped ones disagrees with the kernel on S_hat, S_real and LR."""
+    """clip_in_cost (assumptions §10.1 lines 6-7): a twin using the raw noise and feedback in
+    lines 8, 9 and 12 instead of the clipped ones disagrees with the kernel on S_hat, S_real and
+    LR."""
     sp, _, case, batch, _ = sais_setup
     err = sais_mismatch(batch, twin_sais(sp, case, replace(case.c, clip_in_cost=False)))
     assert not agrees(err)

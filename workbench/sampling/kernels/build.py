@@ -103,9 +103,9 @@ def layouts(sp: SamplingProblem, kernel: str,
 
 def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
               precision: str = "float64") -> KernelSpec:
-    """MPPI rollout (SPEC 8.1 with the crash rule of 4.6).
+    """MPPI rollout (assumptions §8.1 with the crash rule of 4.6).
 
-    ``strided`` (RMPPI candidates, SPEC 9.3) adds per-sample ``delay`` and ``stride`` s in
+    ``strided`` (RMPPI candidates, assumptions §9.3) adds per-sample ``delay`` and ``stride`` s in
     {0, 1} as carry entries after the crash flag: the sample follows u_{min(t+s, T-1)} (time
     input ``u_next`` holds the shifted sequence) and draws no noise while delay > 0. A float32
     kernel (named ``<name>_f32``) ends its carry with the guard flag.
@@ -154,12 +154,12 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
 
 
 def candidate_spec(sp: SamplingProblem, precision: str = "float64") -> KernelSpec:
-    """RMPPI candidate evaluation (SPEC 9.3): strided MPPI rollouts, no feedback."""
+    """RMPPI candidate evaluation (assumptions §9.3): strided MPPI rollouts, no feedback."""
     return mppi_spec(sp, "wb_candidates", strided=True, precision=precision)
 
 
 def sais_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "float64") -> KernelSpec:
-    """The SAIS dual rollout of Algorithm 1 (SPEC 10.1); clip_in_cost is a run-time input. A
+    """The SAIS dual rollout of Algorithm 1 (assumptions §10.1); clip_in_cost is a run-time input. A
     float32 kernel (``<name>_f32``) ends its carry with the guard flag of both systems."""
     nx, nu, nh = sp.nx, sp.nu, sp.model.nh
     f32 = _f32(precision)
@@ -178,7 +178,7 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "floa
     kfb = ca.mtimes(K, x - xs)
     vr = clip(u + eps + kfb, c["u_min"], c["u_max"])
     vn = clip(u + eps, c["u_min"], c["u_max"])
-    # clip_in_cost (SPEC 10.1): effective (clipped) noise and feedback in lines 8, 9 and 12
+    # clip_in_cost (assumptions §10.1): effective (clipped) noise and feedback in lines 8, 9 and 12
     # when 1, the raw ones when 0 (exact 0/1 blends)
     et = clip_cost * (vn - u) + (1.0 - clip_cost) * eps
     kt = clip_cost * (vr - u - (vn - u)) + (1.0 - clip_cost) * kfb

@@ -66,7 +66,7 @@ class SamplerConstants:
     crash_cost: float
     p: np.ndarray  # cost parameters (the goal state)
     alpha: float = np.inf  # RMPPI threshold (SAIS only)
-    clip_in_cost: bool = True  # SPEC 10.1: clipped noise and feedback in lines 8, 9, 12
+    clip_in_cost: bool = True  # assumptions §10.1: clipped noise and feedback in lines 8, 9, 12
     # the obstacles (flat, model.n_scene; empty when the model has no run-time scene)
     scene: np.ndarray = field(default_factory=lambda: np.zeros(0))
     guard_band: float = GUARD_BAND  # float32 kernels only (see GUARD_BAND)

@@ -1,4 +1,4 @@
-"""Diagnostic kernels for the Lemma-1 checks (SPEC 11.2), in their own cached library.
+"""Diagnostic kernels for the Lemma-1 checks (assumptions §11.2), in their own cached library.
 
 * ``wb_sais_diag`` — the SAIS dual rollout of :func:`~workbench.sampling.kernels.build.sais_spec`
   unchanged (its step Function is called inside this one, so every SAIS output is bitwise the
@@ -13,7 +13,7 @@
   q(lift(y), p) is the state cost as a function of the *physical* state y (β = B(h(y)), which is
   what β is on every sample with γ = 0); gradients are CasADi's exact ones, norms Euclidean in
   the physical state. ``wb_cost_gradients_aug`` does the same in the augmented state x̄ = [x; β]
-  (β a coordinate, segments and norms in x̄), SPEC 11.2 item 5's alternative.
+  (β a coordinate, segments and norms in x̄), assumptions §11.2 item 5's alternative.
 
 The main sampler library is left alone: this library is built on first use of diagnostics, so
 plain SAIS calls neither compile nor run anything extra.
@@ -40,7 +40,7 @@ from workbench.sampling.kernels.layout import Layout
 from workbench.sampling.problem import SamplingProblem
 
 _OPTS = {"cse": True}
-SEGMENT_POINTS = (0.0, 0.25, 0.5, 0.75, 1.0)  # SPEC 11.2 item 6
+SEGMENT_POINTS = (0.0, 0.25, 0.5, 0.75, 1.0)  # assumptions §11.2 item 6
 GRADIENT_RESULTS = ("L2_q", "L2_phi", "sec2_q", "sec2_phi", "excluded_q", "excluded_phi",
                     "points_q", "points_phi")
 

@@ -1,4 +1,4 @@
-"""Emit batched C kernels from CasADi SX Functions (DESIGN "Code generation and speed").
+"""Emit batched C kernels from CasADi SX Functions.
 
 A kernel rolls a per-sample, per-time ``step`` Function over N samples and T steps. The emitter
 walks the step's SX instruction list and writes it as straight-line C inside a loop over a block
