@@ -18,7 +18,7 @@ BLOCK = re.compile(r"(?:<!-- example: ([\w-]+) -->\s*)?```(\w+)\n(.*?)```", re.S
 
 # the README's marked blocks, each run by a test of this file
 CHAINS = {"unicycle": ("unicycle", "unicycle-sampling", "unicycle-robust")}
-ALONE = ("circle-scene", "navigation", "study-runner")
+ALONE = ("circle-scene", "navigation", "study-runner", "method-registry")
 PACKAGE = ("toy-study", "toy-study-profile")  # a study package's files: written, then run
 KNOWN = {*CHAINS["unicycle"], *ALONE, *PACKAGE}
 
@@ -145,3 +145,18 @@ def test_wb_ilqg_is_the_solver_even_after_the_subpackage_is_imported():
 
     assert wb.ilqg is ilqg and "ilqg" in wb.__all__
     assert importlib.import_module("workbench.ilqg").__name__ == "workbench.ilqg"
+
+
+def test_method_registry_example_registers_a_method_that_builds_and_is_tuned():
+    from workbench.scenarios import methods as registry
+    from workbench.scenarios.tuned import space
+
+    try:
+        scope = run_block("method-registry", {"__name__": "__readme__"})
+        ctrl = scope["ctrl"]
+        assert "hot_mppi" in registry.names() and registry.markers()["hot_mppi"] == "d"
+        assert ctrl.cfg.lam == 2.0 * scope["wb"].SYSTEMS["unicycle"].lam
+        assert [p.name for p in space("hot_mppi")][-1] == "hot_mppi.lam_scale"
+    finally:
+        if "hot_mppi" in registry.names():
+            registry.unregister("hot_mppi")

@@ -60,9 +60,10 @@ _EXPORTS = {
     "workbench.sim": ("Disturbance", "Episode", "closed_loop", "scene_sequence"),
     "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "TrackingScene"),
     "workbench.scenarios.navigation": ("NavigationSetup", "navigation_setup"),
-    "workbench.scenarios.methods": ("METHODS", "MethodSettings"),
+    "workbench.scenarios.methods": ("MethodSettings", "MethodSpec", "register_method",
+                                    "method_names"),
     "workbench.problem.vehicles": ("kinematic_bicycle", "planar_quadrotor", "unicycle"),
-    "workbench.scenarios.systems": ("SYSTEMS", "System", "system"),
+    "workbench.scenarios.systems": ("SYSTEMS", "System", "register_system", "system"),
     "workbench.scenarios.maps": ("MAP_FAMILIES", "GeneratedMap", "MapDifficulty", "MapFamily",
                                  "difficulty", "generate"),
     "workbench.scenarios.tuned": ("ControllerSettings", "Tuned", "tuned"),
@@ -145,9 +146,15 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
         difficulty,
         generate,
     )
+    from workbench.scenarios.methods import (
+        MethodSettings,
+        MethodSpec,
+        method_names,
+        register_method,
+    )
     from workbench.scenarios.navigation import NavigationSetup, navigation_setup
     from workbench.scenarios.scenes import CircleScene, NavigationScene, TrackingScene
-    from workbench.scenarios.systems import SYSTEMS, System, system
+    from workbench.scenarios.systems import SYSTEMS, System, register_system, system
     from workbench.scenarios.tuned import ControllerSettings, Tuned, tuned
     from workbench.sim import Disturbance, Episode, closed_loop, scene_sequence
     from workbench.study.stats import pooled_paired

@@ -55,16 +55,6 @@ examples:
   workbench report /tmp/bas5                          # /tmp/bas5/report.html (any run folder)
 """
 
-MODELS = {
-    "double_integrator": "planar double integrator, state (px, py, vx, vy), control (ax, ay); "
-                         "workbench.double_integrator(obstacles=..., u_limit=..., dt=...)",
-    "single_integrator": "planar single integrator, state (px, py), control (vx, vy); "
-                         "workbench.single_integrator(...)",
-    "your own": "any discrete-time CasADi SX model: workbench.Model.from_expressions("
-                "name, x, u, x_next, dt=..., h=...) (README: Bring your own model)",
-}
-
-
 def registry() -> dict:
     from workbench.study.spec import registry as load
 
@@ -118,18 +108,30 @@ def terminal_logging(quiet: bool = False):
 
 # ----------------------------------------------------------------------------- subcommands
 def cmd_list(args) -> int:
-    from workbench.scenarios.navigation import CONTROLLERS
+    from workbench.problem.catalogue import MODELS
+    from workbench.scenarios import methods
+    from workbench.scenarios.systems import SYSTEMS
 
     reg = registry()
     print("studies (workbench run NAME [--profile P]):")
     for e in reg.values():
         print(f"  {e.name:15s} profiles: {', '.join(e.profiles):18s} -> {e.default_out}")
         print(textwrap.indent(textwrap.fill(e.description, 80), " " * 18))
-    print("\ncontrollers (workbench.scenarios.navigation.navigation_setup().controller(NAME)):")
-    print("  " + ", ".join(CONTROLLERS))
+    print("\nmethods (navigation_setup(system=...).controller(NAME)):")
+    for s in methods.methods():
+        kind = f"robust, {s.feedback} feedback" if s.robust else "sampling"
+        print(f"  {s.name:15s} {s.label} ({kind}): {s.mechanism}")
+    print("\nsystems (navigation_setup(system=NAME)):")
+    for sysm in SYSTEMS.values():
+        print(f"  {sysm.name:18s} {sysm.label}; disturbed states {', '.join(sysm.disturbed)}")
     print("\nmodels:")
-    for name, text in MODELS.items():
-        print(f"  {name:18s} " + textwrap.fill(text, 78, subsequent_indent=" " * 21))
+    for name, entry in MODELS.items():
+        print(f"  {name:18s} " + textwrap.fill(f"{entry.text}; {entry.call}", 78,
+                                               subsequent_indent=" " * 21))
+    print(f"  {'your own':18s} " + textwrap.fill(
+        "any discrete-time CasADi SX model: workbench.Model.from_expressions(name, x, u, "
+        "x_next, dt=..., h=...) (README: Bring your own model)", 78,
+        subsequent_indent=" " * 21))
     return 0
 
 

@@ -8,7 +8,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from numbers import Integral
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol, runtime_checkable
 
 import casadi as ca
 import numpy as np
@@ -313,10 +313,32 @@ def disturbed_states(plant: Model) -> tuple[int, ...]:
     return tuple(int(i) for i in np.flatnonzero(gain >= 0.5 * gain.max()))
 
 
-class Controller(Protocol):
-    def initial_state(self, x0: np.ndarray): ...
+@runtime_checkable
+class StepInfo(Protocol):
+    """What every controller's step reports: ``stats``, a
+    :class:`~workbench.sampling.step_stats.StepStats` (samples, collision-free samples, ESS,
+    and how often each safety mechanism acted)."""
 
-    def step(self, state, x: np.ndarray, rng: np.random.Generator): ...
+    @property
+    def stats(self) -> Any: ...
+
+
+@runtime_checkable
+class Controller(Protocol):
+    """The step protocol every controller follows (all methods of the registry do, which a test
+    checks): ``initial_state(x0)`` -> its state; ``step(state, x, rng)`` -> ``(state, u,
+    info)`` with ``info`` a :class:`StepInfo`; ``set_scene(scene)``: the obstacles of the next
+    steps (a scene vector or circles); ``record_samples(k, keep)``: keep ``k`` sample
+    trajectories per step in the info (0: none)."""
+
+    def initial_state(self, x0: np.ndarray | None = None) -> Any: ...
+
+    def step(self, state: Any, x: np.ndarray,
+             rng: np.random.Generator) -> tuple[Any, np.ndarray, StepInfo]: ...
+
+    def set_scene(self, scene: Any) -> None: ...
+
+    def record_samples(self, k: int = 64, keep: Any = "spread") -> None: ...
 
 
 @dataclass(frozen=True)
@@ -357,9 +379,10 @@ def scene_sequence(scenes: Sequence) -> Callable[[int], object]:
     return at
 
 
-def closed_loop(controller, plant: Model, x0, steps: int, rng_controller: np.random.Generator,
-                rng_plant: np.random.Generator, disturbance: Disturbance = Disturbance(),
-                keep_infos: bool = True, scene: SceneInput = None,
+def closed_loop(controller: Controller, plant: Model, x0, steps: int,
+                rng_controller: np.random.Generator, rng_plant: np.random.Generator,
+                disturbance: Disturbance = Disturbance(), keep_infos: bool = True,
+                scene: SceneInput = None,
                 stop_at_goal: float | None = None, goal=None) -> Episode:
     """Run ``controller`` on the plant x+ = F(x, u) + w for ``steps`` steps; stop at a crash
     (min_i h_i <= 0 on the true plant, in the scene of that time). w acts on

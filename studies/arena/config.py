@@ -8,7 +8,7 @@ from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.maps import MapFamily, generate
-from workbench.scenarios.methods import METHODS, MethodSettings
+from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.systems import SYSTEMS
 from workbench.sim import DISTURBANCE_MODELS, Disturbance
 from workbench.study.tuning import TuningBudget
@@ -104,7 +104,7 @@ class ArenaConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "controllers",
-                           _names("controllers", self.controllers, METHODS, "controller"))
+                           _names("controllers", self.controllers, names(), "controller"))
         object.__setattr__(self, "systems",
                            _names("systems", self.systems, tuple(SYSTEMS), "system"))
         object.__setattr__(self, "tunings", _names("tunings", self.tunings, TUNINGS, "tuning"))

@@ -17,7 +17,7 @@ import numpy as np
 from workbench.sampling.controllers import RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.scenarios.maps import GeneratedMap, MapFamily, generate, scaled
-from workbench.scenarios.methods import FEEDBACK, ROBUST_METHODS, build
+from workbench.scenarios.methods import build, method
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.scenarios.systems import System, system
 from workbench.scenarios.tuned import ControllerSettings
@@ -82,9 +82,9 @@ def controller(where: Where, c: Controls):
     undisturbed episode seeded with ``c.calibration_seed``)."""
     nav = setup(where, c.settings)
     s = c.settings
-    threshold = (nav.threshold(s.rule, FEEDBACK[c.name], c.robust, c.feedback,
+    threshold = (nav.threshold(s.rule, method(c.name).feedback, c.robust, c.feedback,
                                c.calibration_seed, s.methods)
-                 if c.name in ROBUST_METHODS else None)
+                 if method(c.name).robust else None)
     return build(nav, c.name, c.settings.methods, threshold=threshold, robust=c.robust,
                  weights=c.feedback)
 

@@ -13,12 +13,10 @@ import numpy as np
 
 from studies.arena.findings import verdict
 from studies.arena.summary import ALL, ArenaSummary
-from workbench.scenarios.methods import MECHANISM, NAMES
+from workbench.scenarios.methods import labels, markers, method
 from workbench.scenarios.systems import system
 from workbench.study import md_table, png_bytes
 from workbench.study.io import atomic_write_bytes, atomic_write_text
-
-MARKERS = dict(zip(NAMES, "os^vDP*Xhp", strict=True))
 
 
 def frontier_figure(s: ArenaSummary) -> bytes:
@@ -31,9 +29,9 @@ def frontier_figure(s: ArenaSummary) -> bytes:
         for b in (b for b in s.leaderboard if b.system == sysname):
             ax.errorbar([b.mean_step_ms], [100 * b.safety],
                         yerr=[[100 * (b.safety - b.ci_low)], [100 * (b.ci_high - b.safety)]],
-                        marker=MARKERS[b.controller], capsize=3, ls="none",
+                        marker=markers()[b.controller], capsize=3, ls="none",
                         mfc="none" if b.tuning == "tuned" else None,
-                        label=f"{NAMES[b.controller]} ({b.tuning})")
+                        label=f"{labels()[b.controller]} ({b.tuning})")
         ax.set_xscale("log")
         ax.set_xlabel("compute time per control step [ms] (log)")
         ax.set_ylabel("safety: episodes without a crash [%]")
@@ -53,7 +51,7 @@ def difficulty_figure(s: ArenaSummary) -> bytes:
                              squeeze=False)
     for ax, sysname in zip(axes[0], systems, strict=True):
         keys = sorted({(c.controller, c.tuning) for c in s.cells if c.system == sysname},
-                      key=lambda k: (list(NAMES).index(k[0]), k[1]))
+                      key=lambda k: (list(labels()).index(k[0]), k[1]))
         for ctrl, tuning in keys:
             per = {}
             for c in s.cells:
@@ -62,9 +60,9 @@ def difficulty_figure(s: ArenaSummary) -> bytes:
                     per[c.map] = (safe + c.safety * c.n, n + c.n)
             maps = sorted(per, key=lambda m: bottleneck.get(m, np.nan))
             ax.plot([bottleneck.get(m, np.nan) for m in maps],
-                    [100 * per[m][0] / per[m][1] for m in maps], marker=MARKERS[ctrl],
+                    [100 * per[m][0] / per[m][1] for m in maps], marker=markers()[ctrl],
                     ls="-", lw=0.8, mfc="none" if tuning == "tuned" else None,
-                    label=f"{NAMES[ctrl]} ({tuning})")
+                    label=f"{labels()[ctrl]} ({tuning})")
         ax.set_xlabel("map bottleneck: least clearance on the widest path [m]")
         ax.set_ylabel("safety on the map [%]")
         ax.set_ylim(-3, 103)
@@ -88,8 +86,8 @@ def _p(p: float | None) -> str:
 
 
 def leaderboard_table(s: ArenaSummary) -> list[str]:
-    rows = [[system(b.system).label, b.tuning, b.rank, NAMES[b.controller],
-             MECHANISM[b.controller], b.n, _pct(b.safety, b.ci_low, b.ci_high),
+    rows = [[system(b.system).label, b.tuning, b.rank, labels()[b.controller],
+             method(b.controller).mechanism, b.n, _pct(b.safety, b.ci_low, b.ci_high),
              _pct(b.success), f"{b.mean_step_ms:.2f}"] for b in s.leaderboard]
     return md_table(["system", "tuning", "rank", "controller", "mechanism", "episodes",
                      "safety % [95%]", "success %", "ms / step"], rows)
@@ -127,7 +125,7 @@ def tuned_table(s: ArenaSummary) -> list[str]:
 
 
 def cells_table(s: ArenaSummary) -> list[str]:
-    rows = [[c.system, c.map, c.disturbance, c.tuning, NAMES[c.controller], c.n,
+    rows = [[c.system, c.map, c.disturbance, c.tuning, labels()[c.controller], c.n,
              _pct(c.safety, c.ci_low, c.ci_high), _pct(c.success, c.success_low, c.success_high),
              f"{c.final_error:.2f}", f"{c.mean_step_ms:.2f}",
              ", ".join(f"{k} {100 * v:.1f} %" for k, v in c.activity.items()) or "–"]

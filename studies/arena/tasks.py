@@ -16,7 +16,7 @@ import numpy as np
 from studies.arena.config import RESULT_VERSION, ArenaConfig, DisturbanceSpec
 from studies.arena.episodes import Controls, Where, capacity, run_episode
 from workbench.scenarios.maps import MAP_FAMILIES, MapFamily
-from workbench.scenarios.methods import SLOWEST_FIRST
+from workbench.scenarios.methods import slowest_first
 from workbench.scenarios.systems import SYSTEMS, system
 from workbench.scenarios.tuned import ControllerSettings, tuned
 from workbench.study import TaskContext, TaskOutput
@@ -117,7 +117,8 @@ def plan(config: ArenaConfig) -> Plan:
              for d in config.disturbances for t in config.tunings for c in config.controllers
              for j in range(config.realisations)]
     # slow controllers first; within one, a (system, map) stays together (cached set-ups)
-    tasks.sort(key=lambda t: (SLOWEST_FIRST.index(t.controller), t.system, t.family, t.map_seed,
+    order = slowest_first()
+    tasks.sort(key=lambda t: (order.index(t.controller), t.system, t.family, t.map_seed,
                               t.tuning, t.disturbance, t.realisation))
     return Plan(tuple(tasks))
 

@@ -21,7 +21,7 @@ import numpy as np
 from studies.arena.config import RESULT_VERSION, ArenaConfig
 from studies.arena.episodes import Controls, run_episode
 from studies.arena.tasks import hand_settings, system_values, where
-from workbench.scenarios.methods import METHODS
+from workbench.scenarios.methods import names
 from workbench.scenarios.systems import SYSTEMS, system
 from workbench.scenarios.tuned import SHIPPED, Tuned, shipped, space
 from workbench.study import TaskContext, TaskOutput, to_jsonable
@@ -40,7 +40,7 @@ class TuningTask:
     controller: str
 
     def stream_key(self) -> tuple[int, int]:
-        return list(SYSTEMS).index(self.system), METHODS.index(self.controller)
+        return list(SYSTEMS).index(self.system), names().index(self.controller)
 
 
 def training(config: ArenaConfig) -> list[tuple[str, int]]:

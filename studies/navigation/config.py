@@ -8,7 +8,8 @@ from studies.navigation.scene import MapSpec
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule
-from workbench.scenarios.navigation import CONTROLLERS, TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
+from workbench.scenarios.methods import method
+from workbench.scenarios.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
 from workbench.validation import (
     MAX_STEPS,
     MAX_TASKS,
@@ -20,7 +21,9 @@ from workbench.validation import (
     real,
 )
 
-ROBUST = ("sa_rmppi", "rmppi")  # controllers that use an alpha rule
+# Table I's controllers and their two ablations, in the report's order
+CONTROLLERS = ("bas_mppi", "sa_rmppi", "rmppi", "mppi_crash")
+ROBUST = tuple(c for c in CONTROLLERS if method(c).robust)  # controllers that use an alpha rule
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
 DEFAULT_RULE = AlphaRule(kappa=0.1)  # [A] chosen by an activation sweep; see sweep_rules
 

@@ -10,7 +10,7 @@ from studies.navigation.scene import MapSpec
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule
-from workbench.scenarios.methods import METHODS, MethodSettings
+from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
 from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, real
 
@@ -33,7 +33,7 @@ class StudyConfig:
 
     Size limits (checked here): at most 10^7 tasks per run, 10^7 steps per episode."""
 
-    controllers: tuple[str, ...] = METHODS
+    controllers: tuple[str, ...] = field(default_factory=names)  # every registered method
     variances: tuple[float, ...] = (10.0, 50.0, 100.0)
     realisations: int = 30
     steps: int = 1000
@@ -49,15 +49,15 @@ class StudyConfig:
     calibration_seed: int = 0
 
     def __post_init__(self) -> None:
-        ctrls = self.controllers
+        ctrls, known = self.controllers, names()
         if isinstance(ctrls, str) or not hasattr(ctrls, "__iter__") or len(ctrls) == 0:
-            raise fail("controllers", ctrls, f"must be a non-empty subset of {METHODS}")
+            raise fail("controllers", ctrls, f"must be a non-empty subset of {known}")
         for c in ctrls:
-            if c not in METHODS:
-                raise fail("controllers", c, f"unknown controller; allowed values are {METHODS}")
+            if c not in known:
+                raise fail("controllers", c, f"unknown controller; allowed values are {known}")
         if len(set(ctrls)) != len(ctrls):
             raise fail("controllers", ctrls, "must not repeat a controller")
-        object.__setattr__(self, "controllers", tuple(c for c in METHODS if c in ctrls))
+        object.__setattr__(self, "controllers", tuple(c for c in known if c in ctrls))
         object.__setattr__(self, "variances", _variances("variances", self.variances))
         for name, lo, hi in (("realisations", 1, MAX_TASKS), ("steps", 1, MAX_STEPS),
                              ("seed", 0, None), ("calibration_seed", 0, None)):

@@ -13,11 +13,9 @@ import numpy as np
 
 from studies.sampling_safety.findings import frontier, most_collision_free, verdicts
 from studies.sampling_safety.summary import SamplingSafetySummary
-from workbench.scenarios.methods import MECHANISM, NAMES
+from workbench.scenarios.methods import labels, markers, method
 from workbench.study import md_table, png_bytes
 from workbench.study.io import atomic_write_bytes, atomic_write_text
-
-MARKERS = dict(zip(NAMES, "os^vDP*Xhp", strict=True))
 
 
 def frontier_figure(s: SamplingSafetySummary) -> bytes:
@@ -29,8 +27,8 @@ def frontier_figure(s: SamplingSafetySummary) -> bytes:
         for c in (c for c in s.cells if c.variance == v):
             ax.errorbar([c.mean_step_ms], [100 * c.safety],
                         yerr=[[100 * (c.safety - c.ci_low)], [100 * (c.ci_high - c.safety)]],
-                        marker=MARKERS[c.controller], capsize=3, ls="none",
-                        label=NAMES[c.controller])
+                        marker=markers()[c.controller], capsize=3, ls="none",
+                        label=labels()[c.controller])
         front, _ = frontier(s, v)
         ax.plot([c.mean_step_ms for c in front], [100 * c.safety for c in front], "--",
                 color="0.5", lw=1, zorder=0)
@@ -49,7 +47,7 @@ def frontier_figure(s: SamplingSafetySummary) -> bytes:
 def samples_figure(s: SamplingSafetySummary) -> bytes:
     """Collision-free sample fraction (95 % t-interval over realisations) per controller."""
     vs = s.config["variances"]
-    ctrls = [c for c in NAMES if any(x.controller == c for x in s.cells)]
+    ctrls = [c for c in labels() if any(x.controller == c for x in s.cells)]
     fig, ax = plt.subplots(figsize=(max(6.0, 0.9 * len(ctrls) * len(vs)), 4.2))
     w = 0.8 / len(vs)
     for k, v in enumerate(vs):
@@ -60,7 +58,7 @@ def samples_figure(s: SamplingSafetySummary) -> bytes:
         err = np.nan_to_num(np.vstack([y - lo, hi - y]))
         ax.bar(np.arange(len(ctrls)) + (k - (len(vs) - 1) / 2) * w, y, w, yerr=err,
                capsize=2, label=f"variance {v:g}")
-    ax.set_xticks(np.arange(len(ctrls)), [NAMES[c] for c in ctrls], rotation=30, ha="right",
+    ax.set_xticks(np.arange(len(ctrls)), [labels()[c] for c in ctrls], rotation=30, ha="right",
                   fontsize=8)
     ax.set_xlabel("controller")
     ax.set_ylabel("collision-free samples per step [%]")
@@ -87,12 +85,13 @@ def _num(x: float, lo: float, hi: float, d: int = 1) -> str:
 
 
 def cells_table(s: SamplingSafetySummary) -> list[str]:
-    rows = [[NAMES[c.controller], f"{c.variance:g}", c.n, _pct(c.safety, c.ci_low, c.ci_high, 0),
+    order = list(labels())
+    rows = [[labels()[c.controller], f"{c.variance:g}", c.n, _pct(c.safety, c.ci_low, c.ci_high, 0),
              _pct(c.collision_free_sample_fraction, c.cf_low, c.cf_high),
              _num(c.ess_mean, c.ess_low, c.ess_high), f"{c.mean_step_ms:.2f}",
              _num(c.final_error.mean, c.final_error_low, c.final_error_high, 3),
              f"{100 * c.reached.value:.0f}"]
-            for c in sorted(s.cells, key=lambda c: (c.variance, list(NAMES).index(c.controller)))]
+            for c in sorted(s.cells, key=lambda c: (c.variance, order.index(c.controller)))]
     return md_table(["controller", "variance", "n", "safety % [95%]",
                      "collision-free samples % [95%]", "ESS [95%]", "ms / step",
                      "final error, safe [m] [95%]", "reached 1 m %"], rows)
@@ -100,9 +99,9 @@ def cells_table(s: SamplingSafetySummary) -> list[str]:
 
 def activity_table(s: SamplingSafetySummary) -> list[str]:
     rows = []
-    for c in sorted(s.cells, key=lambda c: (list(NAMES).index(c.controller), c.variance)):
+    for c in sorted(s.cells, key=lambda c: (list(labels()).index(c.controller), c.variance)):
         if c.activity:
-            rows.append([NAMES[c.controller], f"{c.variance:g}",
+            rows.append([labels()[c.controller], f"{c.variance:g}",
                          ", ".join(f"{k} {100 * v:.1f} %" for k, v in c.activity.items())])
     return md_table(["controller", "variance", "mechanism activity (mean over steps)"], rows)
 
@@ -113,12 +112,12 @@ def paired_table(s: SamplingSafetySummary, ref: str) -> list[str]:
         if p.second != ref:
             continue
         f = s.pair_fraction(p.first, ref, p.variance)
-        rows.append([NAMES[p.first], f"{p.variance:g}", p.n, f"{p.b} / {p.c}",
+        rows.append([labels()[p.first], f"{p.variance:g}", p.n, f"{p.b} / {p.c}",
                      f"{100 * p.difference:+.0f} [{100 * p.low:+.0f}, {100 * p.high:+.0f}]",
                      f"{p.p_value:.2g}",
                      f"{100 * f.difference:+.1f} [{100 * f.low:+.1f}, {100 * f.high:+.1f}]"
                      if f and np.isfinite(f.low) else "–"])
-    return md_table(["controller", "variance", "n", f"only it safe / only {NAMES[ref]} safe",
+    return md_table(["controller", "variance", "n", f"only it safe / only {labels()[ref]} safe",
                      "safety difference, points [95%]", "McNemar p",
                      "collision-free samples difference, points [95%]"], rows)
 
@@ -131,15 +130,15 @@ def answers(s: SamplingSafetySummary) -> list[str]:
         if best is None:
             continue
         out.append(
-            f"- Variance {v:g}: the most collision-free samples are {NAMES[best.controller]}'s "
+            f"- Variance {v:g}: the most collision-free samples are {labels()[best.controller]}'s "
             f"({_pct(best.collision_free_sample_fraction, best.cf_low, best.cf_high)} %), "
-            + (f"ahead of {NAMES[second.controller]} "
+            + (f"ahead of {labels()[second.controller]} "
                f"({_pct(second.collision_free_sample_fraction, second.cf_low, second.cf_high)} %)"
                f" with {'disjoint' if sep else 'overlapping'} intervals. " if second else ". ")
-            + f"Safest per millisecond: {NAMES[eff.controller]} "
+            + f"Safest per millisecond: {labels()[eff.controller]} "
             f"({_pct(eff.safety, eff.ci_low, eff.ci_high, 0)} % safe at "
             f"{eff.mean_step_ms:.2f} ms). Not dominated in (safety, ms): "
-            + ", ".join(f"{NAMES[c.controller]} ({100 * c.safety:.0f} %, "
+            + ", ".join(f"{labels()[c.controller]} ({100 * c.safety:.0f} %, "
                         f"{c.mean_step_ms:.2f} ms)" for c in front) + ".")
     return out
 
@@ -185,7 +184,7 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         "## Paired against BaS-MPPI", "", *paired_table(s, "bas_mppi"), "",
         "## Paired against SA-RMPPI", "", *paired_table(s, "sa_rmppi"), "",
         "## The methods", "",
-        *md_table(["controller", "mechanism"], [[NAMES[c], MECHANISM[c]]
+        *md_table(["controller", "mechanism"], [[labels()[c], method(c).mechanism]
                                                 for c in cfg["controllers"]]), "",
         "Data: `episodes.parquet/.csv` (one row per realisation), `timing.parquet/.csv` "
         "(compute time, not reproducible), `activity.parquet/.csv` (mechanism activity per "

@@ -152,10 +152,11 @@ def summary(finished) -> Summary:
     mechanism activity, with intervals), paired tests, the verdicts on the paper's claim (1),
     and one console line per cell."""
     from studies.sampling_safety.findings import verdicts
-    from workbench.scenarios.methods import NAMES
+    from workbench.scenarios.methods import labels
 
     s = summarise(finished.config, finished.store)
-    lines = tuple(f"{NAMES[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
+    names = labels()
+    lines = tuple(f"{names[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
                   f"[{100 * c.ci_low:.0f}, {100 * c.ci_high:.0f}]  collision-free samples "
                   f"{100 * c.collision_free_sample_fraction:5.1f} %  ESS {c.ess_mean:7.1f}  "
                   f"{c.mean_step_ms:6.2f} ms/step" for c in s.cells)

@@ -19,14 +19,7 @@ from workbench.sampling.calibration import calibrate
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.threshold import AlphaRule, Threshold
-from workbench.scenarios.methods import (
-    FEEDBACK,
-    ROBUST_METHODS,
-    SLOWEST_FIRST,
-    MethodSettings,
-    build,
-    feedback_law,
-)
+from workbench.scenarios.methods import MethodSettings, build, feedback_law, method, slowest_first
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
@@ -78,9 +71,10 @@ def prepare(config: StudyConfig, out=None) -> Thresholds:
     s = Settings.of(config)
     nav = setup(s)
     return {name: calibrate(s.rule, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi,
-                            feedback_law(nav, FEEDBACK[name], s.methods, s.feedback), s.robust,
+                            feedback_law(nav, method(name).feedback or "", s.methods,
+                                         s.feedback), s.robust,
                             seed=config.calibration_seed)
-            for name in config.controllers if name in ROBUST_METHODS}
+            for name in config.controllers if method(name).robust}
 
 
 _CONTROLLERS: dict = {}
@@ -147,8 +141,9 @@ class Plan:
 def plan(config: StudyConfig) -> Plan:
     cells = {(c, v): tuple(Realisation(c, v, j) for j in range(config.realisations))
              for v in config.variances for c in config.controllers}
+    order = slowest_first()
     tasks = sorted((t for ts in cells.values() for t in ts),
-                   key=lambda t: (SLOWEST_FIRST.index(t.controller), t.variance, t.realisation))
+                   key=lambda t: (order.index(t.controller), t.variance, t.realisation))
     return Plan(tuple(tasks), cells)
 
 

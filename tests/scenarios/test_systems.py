@@ -9,20 +9,18 @@ import dataclasses
 import casadi as ca
 import numpy as np
 import pytest
+from method_runs import check_method_runs  # tests/scenarios/method_runs.py
 
 import workbench as wb
 from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.sampling.problem import goal_costs, navigation_costs
 from workbench.scenarios import SYSTEMS, CircleScene, NavigationScene, System, system
-from workbench.scenarios.methods import METHODS
+from workbench.scenarios.methods import names
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
 SMALL = CircleScene(((5.0, 5.0, 1.0), (3.0, 7.0, 0.8)), start=(1.0, 1.0), goal=(9.0, 9.0))
-ACTIVITY = {"tube_mppi": "nominal_reset", "cbf_projection": "projected",
-            "shield_mppi": "shield_acted", "gatekeeper": "backup_used", "sais_al": "al_active",
-            "sais_ecbf": "ecbf_active", "sa_rmppi": "nominal_differs"}
 
 
 @pytest.fixture(scope="module")
@@ -34,21 +32,12 @@ def navs():
     return out
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", names())
 @pytest.mark.parametrize("name", list(SYSTEMS))
 def test_every_method_runs_on_every_system(navs, name, method):
     nav, s = navs[name], SYSTEMS[name]
     assert nav.system is s and nav.plant.nx == len(nav.x0) == len(nav.goal)
-    ctrl = nav.controller(method, rule=wb.AlphaRule(kappa=0.1, calibration_steps=10))
-    dist = Disturbance(1.0 * s.level_scale, states=s.disturbed)
-    ep = closed_loop(ctrl, nav.plant, nav.x0, 3, np.random.default_rng(0),
-                     np.random.default_rng(1), dist)
-    assert ep.U.shape == (3, nav.plant.nu) and np.all(np.isfinite(ep.X))
-    st = ep.infos[-1].stats
-    assert st.n_samples == 64 and 0 <= st.n_collision_free <= 64 and st.ess >= 1.0
-    if method in ACTIVITY:
-        assert ACTIVITY[method] in st.activity
-    assert all(0.0 <= v <= 1.0 for v in st.activity.values())
+    check_method_runs(nav, method, steps=3, level=1.0 * s.level_scale, states=s.disturbed)
 
 
 @pytest.mark.parametrize("name", ["unicycle", "bicycle"])

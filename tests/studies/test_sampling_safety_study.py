@@ -15,7 +15,7 @@ from studies.sampling_safety import STUDY
 from studies.sampling_safety.findings import verdicts
 from studies.sampling_safety.summary import mean_interval
 from studies.sampling_safety.tasks import Settings, setup
-from workbench.scenarios.methods import METHODS
+from workbench.scenarios.methods import names
 from workbench.study import Rate, RunStore
 from workbench.study.runner import profile_config, resolve_config
 from workbench.study.runner import run as run_study
@@ -44,8 +44,8 @@ def test_bad_config_names_the_field(overrides, field):
 
 def test_profiles_cover_every_method():
     for profile in ("tiny", "quick", "paper"):
-        assert resolve_config(STUDY, profile).controllers == METHODS
-    assert len(METHODS) >= 7
+        assert resolve_config(STUDY, profile).controllers == names()
+    assert len(names()) >= 7
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_summary_fields_and_numbers_are_the_data(tiny_run):
     ep, timing = store.table("episodes"), store.table("timing")
     data = json.loads((out / "summary.json").read_text())
     cells = data["cells"]
-    assert len({c["controller"] for c in cells}) == len(METHODS)
+    assert len({c["controller"] for c in cells}) == len(names())
     for c in cells:
         assert CELL_FIELDS <= set(c)
         rows = ep[(ep["controller"] == c["controller"]) & (ep["variance"] == c["variance"])]

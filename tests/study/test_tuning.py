@@ -10,7 +10,7 @@ import pytest
 
 from workbench.sampling.controllers import MPPIConfig
 from workbench.sampling.threshold import AlphaRule
-from workbench.scenarios.methods import METHODS, MethodSettings
+from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.tuned import ControllerSettings, shipped, space
 from workbench.study.tuning import Param, TuningBudget, tune
 
@@ -86,7 +86,7 @@ def test_tuned_values_enter_the_settings():
     with pytest.raises(ValueError, match=r"^params\.lam"):
         BASE.with_values("bas_mppi", {"lam": 1e6})
     # every method's hand values lie in its own search space
-    for m in METHODS:
+    for m in names():
         vals = BASE.values(m)
         assert set(vals) == {p.name for p in space(m)}
         assert all(p.contains(vals[p.name]) for p in space(m))

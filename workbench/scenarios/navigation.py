@@ -12,10 +12,12 @@ import numpy as np
 from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.models import Model, margin_violation
 from workbench.sampling.calibration import calibrate
-from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
+from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, physical_model
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
 from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
 from workbench.sampling.threshold import AlphaRule, Threshold
+from workbench.scenarios import methods as registry
+from workbench.scenarios.methods import MethodSettings
 from workbench.scenarios.scenes import CircleScene, NavigationScene
 from workbench.scenarios.systems import SYSTEMS, System
 from workbench.scenarios.systems import TUNED_LAMBDA as TUNED_LAMBDA
@@ -23,8 +25,6 @@ from workbench.scenarios.systems import TUNED_Q_BETA as TUNED_Q_BETA
 from workbench.scenarios.systems import TUNED_SIGMA as TUNED_SIGMA
 from workbench.scenarios.systems import system as system_named
 from workbench.validation import fail, one_of
-
-CONTROLLERS = ("bas_mppi", "sa_rmppi", "rmppi", "mppi_crash")
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,48 +72,38 @@ class NavigationSetup:
     def threshold(self, rule: AlphaRule = AlphaRule(), feedback: str = "bas_ilqg",
                   robust: RMPPIConfig = RMPPIConfig(),
                   weights: FeedbackWeights | None = None, seed: int = 0,
-                  settings=None) -> Threshold:
+                  settings: MethodSettings | None = None) -> Threshold:
         """The selection threshold of ``rule`` on this map (:func:`calibrate`: one undisturbed
         episode of the robust controller with this feedback, seeded with ``seed``).
         ``feedback``: "bas_ilqg" (K_safe), "ilqg", "al_ilqg" or "ecbf" (see
         :func:`workbench.scenarios.methods.feedback_law`); ``settings``: the methods' options
-        (a :class:`~workbench.scenarios.methods.MethodSettings`; default options when None)."""
-        from workbench.scenarios.methods import MethodSettings, feedback_law
-
-        law = feedback_law(self, feedback, settings or MethodSettings(),
-                           weights=self._weights(weights))
+        (default options when None)."""
+        law = registry.feedback_law(self, feedback, settings, weights=self._weights(weights))
         return calibrate(rule, self.problem, self.goal, self.plant, self.x0, self.mppi, law,
                          robust, seed=seed, progress=self.progress())
 
     def controller(self, name: str, rule: AlphaRule = AlphaRule(),
                    robust: RMPPIConfig = RMPPIConfig(),
                    weights: FeedbackWeights | None = None, seed: int = 0,
-                   threshold: Threshold | None = None):
-        """One of :data:`CONTROLLERS`: BaS-MPPI, SA-RMPPI, RMPPI (plain iLQG feedback) or MPPI
-        with a crash cost only, or any other safe-sampling method of
-        :data:`workbench.scenarios.methods.METHODS` (default options; use
-        :func:`workbench.scenarios.methods.build` to set them). The robust ones use
-        ``threshold``; without one, they calibrate ``rule`` here (:meth:`threshold`, on the
-        controller itself, seeded with ``seed``): pass a threshold computed once when you build
-        many controllers. ``weights``: tracking weights of the feedback laws (default: the
+                   threshold: Threshold | None = None,
+                   settings: MethodSettings | None = None):
+        """The registered method ``name`` (:func:`workbench.scenarios.methods.names`) with
+        ``settings`` (default options when None; see
+        :func:`workbench.scenarios.methods.build`). The robust ones use ``threshold``;
+        without one, they calibrate ``rule`` here (:meth:`threshold`, on the controller itself,
+        seeded with ``seed``): pass a threshold computed once when you build many
+        controllers. ``weights``: tracking weights of the feedback laws (default: the
         system's)."""
-        from workbench.scenarios.methods import FEEDBACK, METHODS, build
-
-        one_of("controller", name, METHODS)
+        spec = registry.method(name)
         weights = self._weights(weights)
-        if name not in CONTROLLERS:
-            if name in FEEDBACK and threshold is None:
-                threshold = self.threshold(rule, FEEDBACK[name], robust, weights, seed)
-            return build(self, name, threshold=threshold, robust=robust, weights=weights)
-        if name == "bas_mppi":
-            return MPPI(self.problem, self.goal, self.mppi)
-        if name == "mppi_crash":
-            return MPPI(self.physical_problem(), self.goal, self.mppi)
-        kind = "bas_ilqg" if name == "sa_rmppi" else "ilqg"
-        if threshold is None:
-            threshold = self.threshold(rule, kind, robust, weights, seed)
-        return RobustMPPI(self.problem, self.goal, self.mppi, robust,
-                          self.feedback(kind, weights), threshold)
+        if spec.robust and threshold is None:
+            why = spec.missing(self, weights)
+            if why is not None:
+                raise fail("controller", name, why)
+            threshold = self.threshold(rule, spec.feedback or "", robust, weights, seed,
+                                       settings)
+        return registry.build(self, name, settings, threshold=threshold, robust=robust,
+                              weights=weights)
 
 
 def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,

@@ -329,4 +329,23 @@ def system(name: str) -> System:
     return SYSTEMS[name]
 
 
-__all__ = ["SYSTEMS", "TUNED_LAMBDA", "TUNED_Q_BETA", "TUNED_SIGMA", "System", "system"]
+def register_system(sysm: System) -> System:
+    """Add ``sysm`` to :data:`SYSTEMS` under its name (which must be new); returns it. Every
+    method, study and the command line's ``workbench list`` then offer it."""
+    if not isinstance(sysm, System):
+        raise fail("system", sysm, "must be a System")
+    if sysm.name in SYSTEMS:
+        raise fail("System.name", sysm.name, "is registered already")
+    SYSTEMS[sysm.name] = sysm
+    return sysm
+
+
+def unregister_system(name: str) -> System:
+    """Remove the system ``name`` (e.g. a test's own); returns it."""
+    sysm = system(name)
+    del SYSTEMS[name]
+    return sysm
+
+
+__all__ = ["SYSTEMS", "TUNED_LAMBDA", "TUNED_Q_BETA", "TUNED_SIGMA", "System", "register_system",
+           "system", "unregister_system"]

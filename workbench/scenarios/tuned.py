@@ -21,26 +21,21 @@ from pathlib import Path
 
 from workbench.sampling.controllers import MPPIConfig
 from workbench.sampling.threshold import AlphaRule
-from workbench.scenarios.methods import METHODS, ROBUST_METHODS, MethodSettings
+from workbench.scenarios.methods import MethodSettings, method
 from workbench.study.tuning import Param, TuningBudget
-from workbench.validation import fail, one_of
+from workbench.validation import fail
 
 SHIPPED = Path(__file__).with_name("tuned.json")
 
 COMMON = (Param("sigma_scale", 0.25, 4.0), Param("lam", 0.3, 100.0))
-OWN: dict[str, tuple[Param, ...]] = {
-    "tube_mppi": (Param("tube.threshold", -100.0, 20.0, log=False),),
-    "cbf_projection": (Param("cbf_projection.gamma", 0.02, 1.0),),
-    "shield_mppi": (Param("shield.w_dcbf", 10.0, 1e5),),
-    "gatekeeper": (Param("gatekeeper.horizon", 20, 120, log=False, integer=True),),
-}
 KAPPA = Param("kappa", 0.01, 1.0)
 
 
 def space(controller: str) -> tuple[Param, ...]:
-    """The parameters tuning may change for ``controller``."""
-    one_of("controller", controller, METHODS)
-    return COMMON + ((KAPPA,) if controller in ROBUST_METHODS else ()) + OWN.get(controller, ())
+    """The parameters tuning may change for ``controller``: :data:`COMMON`, :data:`KAPPA` for
+    a robust method, and the method's own (:attr:`MethodSpec.tunable`)."""
+    spec = method(controller)
+    return COMMON + ((KAPPA,) if spec.robust else ()) + spec.tunable
 
 
 @dataclass(frozen=True)
@@ -56,12 +51,12 @@ class ControllerSettings:
     def values(self, controller: str) -> dict[str, float]:
         """The current values of ``space(controller)`` (sigma_scale relative to ``base``
         sigma is 1 by definition: the hand-tuned point)."""
+        spec = method(controller)
         out = {"sigma_scale": 1.0, "lam": float(self.sampler.lam)}
-        if controller in ROBUST_METHODS:
+        if spec.robust:
             out["kappa"] = float(self.rule.kappa)
-        for p in OWN.get(controller, ()):
-            group, name = p.name.split(".")
-            out[p.name] = float(getattr(getattr(self.methods, group), name))
+        for p in spec.tunable:
+            out[p.name] = float(getattr(self.methods.options(spec), p.name.split(".")[1]))
         return out
 
     def with_values(self, controller: str, params: dict[str, float]) -> ControllerSettings:
@@ -79,14 +74,13 @@ class ControllerSettings:
             lam=float(params.get("lam", s.lam)))
         rule = (dataclasses.replace(self.rule, kappa=float(params["kappa"]))
                 if "kappa" in params else self.rule)
-        methods = self.methods
+        methods, spec = self.methods, method(controller)
         for k, v in params.items():
             if "." in k:
-                group, name = k.split(".")
-                sub = getattr(methods, group)  # the MethodSettings field of that name
+                name = k.split(".")[1]
+                sub = methods.options(spec)  # the method's own options
                 value = round(v) if isinstance(getattr(sub, name), int) else float(v)
-                methods = dataclasses.replace(
-                    methods, **{group: dataclasses.replace(sub, **{name: value})})
+                methods = methods.with_options(spec, dataclasses.replace(sub, **{name: value}))
         return ControllerSettings(sampler, self.q_beta, rule, methods)
 
 
