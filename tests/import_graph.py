@@ -10,6 +10,8 @@ Count the cycles (strongly connected groups of more than one module, or a module
 itself) from the repository root::
 
     python tests/import_graph.py workbench studies benchmarks
+
+(``--type-checking`` counts the imports under ``if TYPE_CHECKING:`` too.)
 """
 
 from __future__ import annotations
@@ -35,26 +37,28 @@ def _is_type_checking(test: ast.expr) -> bool:
         isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
 
 
-def import_nodes(tree: ast.AST, top_level_only: bool = False) -> list[ast.Import | ast.ImportFrom]:
-    """The import statements that run: all of them (or only module-level ones), without the
-    body of any ``if TYPE_CHECKING:`` block (its ``else`` branch runs, so it is kept)."""
+def import_nodes(tree: ast.AST, top_level_only: bool = False,
+                 type_checking: bool = False) -> list[ast.Import | ast.ImportFrom]:
+    """The import statements of a module: all of them, or (``top_level_only``) those outside
+    functions and classes. The body of an ``if TYPE_CHECKING:`` block never runs, so it is left
+    out unless ``type_checking`` (its ``else`` branch runs, so it is always kept)."""
     out: list[ast.Import | ast.ImportFrom] = []
+    scopes = ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef | ast.Lambda
 
-    def visit(node: ast.AST, depth: int) -> None:
+    def visit(node: ast.AST) -> None:
         if isinstance(node, ast.Import | ast.ImportFrom):
             out.append(node)
             return
-        if isinstance(node, ast.If) and _is_type_checking(node.test):
+        if top_level_only and isinstance(node, scopes):
+            return
+        if isinstance(node, ast.If) and _is_type_checking(node.test) and not type_checking:
             children: list[ast.AST] = list(node.orelse)
         else:
             children = list(ast.iter_child_nodes(node))
-        scopes = ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef | ast.Lambda
-        if top_level_only and isinstance(node, scopes):
-            return
         for child in children:
-            visit(child, depth + 1)
+            visit(child)
 
-    visit(tree, 0)
+    visit(tree)
     return out
 
 
@@ -67,11 +71,13 @@ def _absolute(node: ast.ImportFrom, name: str, is_package: bool) -> str:
     return ".".join([*base, *([node.module] if node.module else [])])
 
 
-def imports(path: Path, name: str, top_level_only: bool = False) -> set[str]:
-    """Every module name that the file at path (module ``name``) imports when it runs."""
+def imports(path: Path, name: str, top_level_only: bool = False,
+            type_checking: bool = False) -> set[str]:
+    """Every module name that the file at path (module ``name``) imports when it runs (with
+    ``type_checking``: also under ``if TYPE_CHECKING:``)."""
     tree = ast.parse(path.read_text())
     out: set[str] = set()
-    for node in import_nodes(tree, top_level_only):
+    for node in import_nodes(tree, top_level_only, type_checking):
         if isinstance(node, ast.Import):
             out |= {a.name for a in node.names}
         else:
@@ -81,9 +87,10 @@ def imports(path: Path, name: str, top_level_only: bool = False) -> set[str]:
     return out
 
 
-def graph(mods: Mapping[str, Path], top_level_only: bool = False) -> dict[str, set[str]]:
+def graph(mods: Mapping[str, Path], top_level_only: bool = False,
+          type_checking: bool = False) -> dict[str, set[str]]:
     """Module -> the known modules it imports (itself excluded)."""
-    return {n: {i for i in imports(p, n, top_level_only) if i in mods and i != n}
+    return {n: {i for i in imports(p, n, top_level_only, type_checking) if i in mods and i != n}
             for n, p in mods.items()}
 
 
@@ -145,8 +152,10 @@ def describe(groups: list[list[str]], edges: Mapping[str, Iterable[str]]) -> str
 
 def main(argv: list[str]) -> int:
     root = Path(__file__).parents[1]
-    packages = argv or ["workbench", "studies", "benchmarks"]
-    edges = graph(modules(root, packages))
+    type_checking = "--type-checking" in argv
+    packages = [a for a in argv if not a.startswith("--")] or ["workbench", "studies",
+                                                               "benchmarks"]
+    edges = graph(modules(root, packages), type_checking=type_checking)
     for package in packages:
         found = [g for g in cycles(edges) if g[0].split(".")[0] == package]
         print(f"{package}: {len(found)} import cycle(s)")
