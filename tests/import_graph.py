@@ -62,7 +62,9 @@ def import_nodes(tree: ast.AST, top_level_only: bool = False,
     return out
 
 
-def _absolute(node: ast.ImportFrom, name: str, is_package: bool) -> str:
+def absolute(node: ast.ImportFrom, name: str, is_package: bool) -> str:
+    """The absolute name of the module of ``from ... import`` in module ``name`` (a package's
+    ``__init__`` when ``is_package``)."""
     if node.level == 0:
         return node.module or ""
     base = name.split(".")
@@ -81,7 +83,7 @@ def imports(path: Path, name: str, top_level_only: bool = False,
         if isinstance(node, ast.Import):
             out |= {a.name for a in node.names}
         else:
-            module = _absolute(node, name, path.name == "__init__.py")
+            module = absolute(node, name, path.name == "__init__.py")
             out.add(module)
             out |= {f"{module}.{a.name}" for a in node.names}
     return out

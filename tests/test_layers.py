@@ -14,6 +14,7 @@ either way within a layer); the upward rule checks them too. Count the cycles wi
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 import import_graph  # tests/import_graph.py
@@ -53,6 +54,34 @@ def check_no_cycle(root: Path, packages) -> None:
     edges = import_graph.graph(import_graph.modules(root, packages))
     found = import_graph.cycles(edges)
     assert not found, f"{len(found)} import cycle(s):\n" + import_graph.describe(found, edges)
+
+
+def private_imports(root: Path, packages, importers: tuple[str, ...] = ("",)) -> list[str]:
+    """Every ``from m import _name`` in a module of ``packages`` under ``root`` whose name
+    starts with one of ``importers``, where ``m`` is another module of those packages (a helper
+    that another module needs should be public)."""
+    mods = import_graph.modules(root, packages)
+    out = []
+    for name, path in mods.items():
+        if not name.startswith(importers):
+            continue
+        for node in import_graph.import_nodes(ast.parse(path.read_text()), type_checking=True):
+            if isinstance(node, ast.ImportFrom):
+                module = import_graph.absolute(node, name, path.name == "__init__.py")
+                out += [f"{name} imports {module}.{a.name}" for a in node.names
+                        if module in mods and module != name and a.name.startswith("_")
+                        and not a.name.endswith("__")]
+    return out
+
+
+def test_no_study_module_imports_a_private_name_of_another():
+    assert not private_imports(REPO, PACKAGES, ("studies.", "workbench.study."))
+
+
+def test_a_planted_private_import_is_reported(tmp_path):
+    root = _package(tmp_path, {"__init__.py": "", "a.py": "def _f():\n    return 1\n",
+                               "b.py": "def g():\n    from .a import _f\n    return _f()\n"})
+    assert private_imports(root, ["pkg"]) == ["pkg.b imports pkg.a._f"]
 
 
 def test_nothing_imports_upward_and_the_library_imports_no_study_or_benchmark():
