@@ -147,7 +147,7 @@ def run(controllers=("sa_rmppi",), variances=(10.0, 100.0), realisations: int = 
         steps: int = 1000, seed: int = 2026, goal_radius: float = 1.0, threads: int = 1,
         control: bool = True, log=print) -> dict:
     """The paired episodes and their summary (see module docstring)."""
-    from workbench.sampling.kernels.build import set_threads
+    from workbench.sampling.kernels.library import set_threads
 
     set_threads(threads, adaptive=False)
     nav = navigation_setup()

@@ -29,8 +29,7 @@ from benchmarks.floor import FloorProblem, cpu_flags, cpu_model, load_floor
 from benchmarks.sampling import _setup
 from benchmarks.timing import pinned_threads, prepared_kernel, record, round_robin
 from workbench.codegen.toolchain import find_toolchain
-from workbench.sampling.kernels.build import KERNEL_FLAGS
-from workbench.sampling.kernels.emit import vector_bits
+from workbench.sampling.kernels.flags import KERNEL_FLAGS, vector_bits
 from workbench.sampling.sampler import Sampler, check_batch
 from workbench.sampling.weights import importance_weights, weighted_controls
 from workbench.sim import Disturbance, closed_loop

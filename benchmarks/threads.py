@@ -55,7 +55,7 @@ def _measure(adaptive: bool, repeats: int) -> dict:
 
     from benchmarks.sampling import _setup
     from workbench.codegen.fastcall import FastFunction
-    from workbench.sampling.kernels.build import set_threads
+    from workbench.sampling.kernels.library import set_threads
     from workbench.sampling.sampler import Sampler
     from workbench.sampling.threshold import ConstantThreshold
 

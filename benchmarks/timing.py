@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from workbench.sampling.kernels.build import CompiledKernel
+from workbench.sampling.kernels.compiled import CompiledKernel
 
 
 def record(name, value, unit, baseline, baseline_value, params, **extra) -> dict:
@@ -64,17 +64,17 @@ def pinned_threads(n: int, *setters: Callable[[int], object]) -> Iterator[None]:
     except ImportError:  # a library without the thread policy
         using = None
     if using is None:
-        from workbench.sampling.kernels import build
+        from workbench.sampling.kernels import library
 
-        previous = build.get_threads()
-        build.set_threads(n)
+        previous = library.get_threads()
+        library.set_threads(n)
         for s in setters:
             s(n)
         try:
             yield
         finally:
             if previous is not None:
-                build.set_threads(previous)
+                library.set_threads(previous)
         return
     with using(n, adaptive=False):
         for s in setters:

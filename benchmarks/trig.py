@@ -17,8 +17,9 @@ from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.models import Model, double_integrator
 from workbench.problem.obstacles import circle_margins
 from workbench.sampling import SamplingProblem
-from workbench.sampling.kernels.build import KERNEL_FLAGS, SamplerLibrary, load_sampler_library
 from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.kernels.flags import KERNEL_FLAGS
+from workbench.sampling.kernels.library import SamplerLibrary, load_sampler_library
 from workbench.sampling.kernels.vector_math import MAX_ULP, unavailable
 from workbench.scenarios.scenes import NavigationScene
 

@@ -81,7 +81,7 @@ def test_set_threads_reaches_every_library_loaded_before_and_after():
     import pytest
 
     from workbench import sampling
-    from workbench.sampling.kernels.build import sampler_library
+    from workbench.sampling.kernels.library import sampler_library
     from workbench.scenarios.navigation import navigation_setup
     from workbench.scenarios.scenes import CircleScene
 

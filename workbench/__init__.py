@@ -56,7 +56,7 @@ _EXPORTS = {
     "workbench.sampling.threshold": ("AlphaRule", "ConstantThreshold", "ProgressThreshold",
                                      "make_threshold"),
     "workbench.sampling.calibration": ("calibrate", "calibration_trace"),
-    "workbench.sampling.kernels.build": ("get_threads", "set_threads"),
+    "workbench.sampling.kernels.library": ("get_threads", "set_threads"),
     "workbench.sim": ("Disturbance", "Episode", "closed_loop", "scene_sequence"),
     "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "TrackingScene"),
     "workbench.scenarios.navigation": ("NavigationSetup", "navigation_setup"),
@@ -134,7 +134,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.sampling.calibration import calibrate, calibration_trace
     from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
     from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
-    from workbench.sampling.kernels.build import get_threads, set_threads
+    from workbench.sampling.kernels.library import get_threads, set_threads
     from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
     from workbench.sampling.samples import SampleTrajectories
     from workbench.sampling.threshold import AlphaRule, make_threshold

@@ -19,9 +19,9 @@ import numpy as np
 
 from benchmarks.timing import prepare_openmp
 from workbench.codegen import build_library
-from workbench.sampling.kernels.build import KERNEL_FLAGS
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.emit import rng_source
+from workbench.sampling.kernels.flags import KERNEL_FLAGS
 from workbench.sampling.numpy_model import numpy_navigation_twin
 from workbench.sampling.problem import SamplingProblem
 from workbench.validation import fail, integer

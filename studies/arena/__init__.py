@@ -14,7 +14,7 @@ STUDY = StudySpec(
     config_type=ArenaConfig,
     directory=Path(__file__).parent,
     tasks="studies.arena.tasks:declare",
-    summarise="studies.arena.summary:summary",
+    summarise="studies.arena.report:summary",
     report="studies.arena.report:report",
     figure="frontier.png",
 )

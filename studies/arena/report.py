@@ -12,11 +12,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from studies.arena.findings import verdict
-from studies.arena.summary import ALL, ArenaSummary
+from studies.arena.summary import ALL, ArenaSummary, summarise
 from workbench.scenarios.methods import labels, markers, method
 from workbench.scenarios.systems import system
-from workbench.study import md_table, png_bytes
+from workbench.study import md_table, png_bytes, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.spec import Summary
 
 
 def frontier_figure(s: ArenaSummary) -> bytes:
@@ -133,6 +134,17 @@ def cells_table(s: ArenaSummary) -> list[str]:
     return md_table(["system", "map", "disturbance", "tuning", "controller", "n",
                      "safety % [95%]", "success % [95%]", "final error [m]", "ms / step",
                      "mechanism activity"], rows)
+
+
+def summary(finished) -> Summary:
+    """summary.json: cells, pooled comparisons, leaderboards, maps with their difficulty, the
+    tuned parameters and budget, and the verdict on the paper's claim (i)."""
+    s = summarise(finished.config, finished.store)
+    lines = tuple(f"{b.system:18s} {b.tuning:5s} #{b.rank} {b.controller:14s} safety "
+                  f"{100 * b.safety:5.1f} % [{100 * b.ci_low:.0f}, {100 * b.ci_high:.0f}]  "
+                  f"success {100 * b.success:5.1f} %  {b.mean_step_ms:6.2f} ms/step"
+                  for b in s.leaderboard)
+    return Summary({**to_jsonable(s), "verdict": to_jsonable(verdict(s))}, s, lines)
 
 
 def report(finished, summ) -> Path:

@@ -22,8 +22,7 @@ import pandas as pd
 from studies.arena.episodes import arena_map
 from studies.arena.tasks import family
 from workbench.scenarios.tuned import shipped, space
-from workbench.study import Rate, to_jsonable
-from workbench.study.spec import Summary
+from workbench.study import Rate
 from workbench.study.stats import paired_counts, pooled_paired
 
 ALL = "all"  # the disturbance label of comparisons pooled over every disturbance
@@ -249,16 +248,3 @@ def summarise(config, store) -> ArenaSummary:
     return ArenaSummary(config.as_dict(), tuple(cells), tuple(pooled_rows(config, ep)),
                         tuple(leaderboard(ep, timing)), tuple(map_infos(config)),
                         tuned_section(config))
-
-
-def summary(finished) -> Summary:
-    """summary.json: cells, pooled comparisons, leaderboards, maps with their difficulty, the
-    tuned parameters and budget, and the verdict on the paper's claim (i)."""
-    from studies.arena.findings import verdict
-
-    s = summarise(finished.config, finished.store)
-    lines = tuple(f"{b.system:18s} {b.tuning:5s} #{b.rank} {b.controller:14s} safety "
-                  f"{100 * b.safety:5.1f} % [{100 * b.ci_low:.0f}, {100 * b.ci_high:.0f}]  "
-                  f"success {100 * b.success:5.1f} %  {b.mean_step_ms:6.2f} ms/step"
-                  for b in s.leaderboard)
-    return Summary({**to_jsonable(s), "verdict": to_jsonable(verdict(s))}, s, lines)

@@ -14,6 +14,6 @@ STUDY = StudySpec(
     directory=Path(__file__).parent,
     prepare="studies.free_energy_bound.shared:load_or_compute",
     tasks="studies.free_energy_bound.tasks:declare",
-    summarise="studies.free_energy_bound.summary:summary",
+    summarise="studies.free_energy_bound.report:summary",
     report="studies.free_energy_bound.report:report",
 )

@@ -13,11 +13,12 @@ import numpy as np
 import pandas as pd
 
 from studies.free_energy_bound.findings import all_claims
-from studies.free_energy_bound.paper import LEMMA, READING
-from studies.free_energy_bound.summary import STRATA, BoundSummary
-from workbench.study import md_table, png_bytes, supported
+from studies.free_energy_bound.paper import LEMMA, READING, assumed_values
+from studies.free_energy_bound.summary import STRATA, BoundSummary, summarise
+from workbench.study import md_table, png_bytes, supported, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
 from workbench.study.report import num
+from workbench.study.spec import Summary
 
 TITLES = {"holds": "Where each test holds", "safe_steps": "T1 where all real samples stayed safe",
           "looseness": "How tight: magnitudes of the local and global constants",
@@ -151,6 +152,19 @@ def write_report(s: BoundSummary, df: pd.DataFrame, out: Path, assumed, no_barri
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path
+
+
+def summary(finished) -> Summary:
+    """summary.json: the summary, the global constants, the assumed values and the claims."""
+    shared = finished.prepared
+    s = summarise(finished.config, finished.store.table("steps"),
+                  finished.store.table("episodes"))
+    claims = all_claims(s, shared.no_barrier.L_q)
+    data = {**to_jsonable(s), "global_constant": to_jsonable(shared.global_),
+            "no_barrier_constant": to_jsonable(shared.no_barrier),
+            "assumed": assumed_values(finished.config, shared),
+            "claims": {k: [to_jsonable(c) for c in v] for k, v in claims.items()}}
+    return Summary(data, s)
 
 
 def report(finished, summary) -> Path:

@@ -18,8 +18,7 @@ from studies.free_energy_bound.failures import (
     t1_failures_when_safe,
 )
 from workbench.bound import CheckSummary
-from workbench.study import Rate, Spread, to_jsonable
-from workbench.study.spec import Summary
+from workbench.study import Rate, Spread
 
 # assumptions §11.3 (a), (b) and the nominal-differs split; a transition check (t, t+1) belongs
 # to the strata of step t
@@ -131,19 +130,3 @@ def summarise(config, steps: pd.DataFrame, episodes: pd.DataFrame) -> BoundSumma
                 if "T2E" in config.tests)
     return BoundSummary(config.as_dict(), tuple(rows), tuple(facts),
                         tuple(t1_failures_when_safe(steps)), trans, t2e)
-
-
-def summary(finished) -> Summary:
-    """summary.json: the summary, the global constants, the assumed values and the claims."""
-    from studies.free_energy_bound.findings import all_claims
-    from studies.free_energy_bound.paper import assumed_values
-
-    shared = finished.prepared
-    s = summarise(finished.config, finished.store.table("steps"),
-                  finished.store.table("episodes"))
-    claims = all_claims(s, shared.no_barrier.L_q)
-    data = {**to_jsonable(s), "global_constant": to_jsonable(shared.global_),
-            "no_barrier_constant": to_jsonable(shared.no_barrier),
-            "assumed": assumed_values(finished.config, shared),
-            "claims": {k: [to_jsonable(c) for c in v] for k, v in claims.items()}}
-    return Summary(data, s)

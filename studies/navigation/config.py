@@ -30,7 +30,9 @@ DEFAULT_RULE = AlphaRule(kappa=0.1)  # [A] chosen by an activation sweep; see sw
 
 
 
-def _variances(name: str, values, allow_empty: bool = False) -> tuple[float, ...]:
+def checked_variances(name: str, values, allow_empty: bool = False) -> tuple[float, ...]:
+    """``values`` as a tuple of distinct variances >= 0 (empty only with ``allow_empty``), or an
+    error naming the field ``name``."""
     if isinstance(values, str) or not hasattr(values, "__iter__") or (
             len(values) == 0 and not allow_empty):
         raise fail(name, values, "must be a non-empty sequence of variances >= 0")
@@ -107,7 +109,7 @@ class StudyConfig:
         if len(set(ctrls)) != len(ctrls):
             raise fail("controllers", ctrls, "must not repeat a controller")
         object.__setattr__(self, "controllers", tuple(c for c in CONTROLLERS if c in ctrls))
-        object.__setattr__(self, "variances", _variances("variances", self.variances))
+        object.__setattr__(self, "variances", checked_variances("variances", self.variances))
         for name, lo, hi in (("realisations", 1, MAX_TASKS), ("steps", 1, MAX_STEPS),
                              ("seed", 0, None), ("sweep_realisations", 1, MAX_TASKS),
                              ("velocity_stride", 1, MAX_STEPS),
@@ -117,7 +119,7 @@ class StudyConfig:
             raise fail("rule", self.rule, "must be an AlphaRule")
         one_of("sweep_controller", self.sweep_controller, ROBUST)
         object.__setattr__(self, "sweep_variances",
-                           _variances("sweep_variances", self.sweep_variances, True))
+                           checked_variances("sweep_variances", self.sweep_variances, True))
         object.__setattr__(self, "sweep_rules", _rules("sweep_rules", self.sweep_rules))
         main = len(self.controllers) * len(self.variances) * self.realisations
         sweep = len(self.sweep_variances) * (1 + len(self.sweep_rules)) * self.sweep_realisations

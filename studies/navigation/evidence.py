@@ -5,15 +5,10 @@ trades (the sweep). Each is a claim computed from the summary; only those that h
 from __future__ import annotations
 
 from studies.navigation import paper
-from studies.navigation.findings import NAMES, _diff, _pct
 from studies.navigation.summary import NavigationSummary
+from studies.navigation.wording import NAMES, metres, paired_difference, points
 from workbench.study import Claim, fmt_rate
 from workbench.study.report import num, see
-
-
-def _m(x: float, why: str = "no safe episodes") -> str:
-    v = num(x, ".4f", why)
-    return v if v.startswith("n/a") else f"{v} m"
 
 
 def _reasons(x) -> str:
@@ -33,15 +28,16 @@ def internals_claims(s: NavigationSummary) -> list[Claim]:
             acts = x.nominal_differs_fraction
             out.append(Claim(
                 f"{NAMES[c]}, variance {x.variance:g}: the nominal state differs from the real "
-                f"one on {_pct(acts)}% of control steps (alpha fallback "
-                f"{_pct(x.alpha_fallback_rate)}%, K_safe fallback {_pct(x.ksafe_fallback_rate)}%"
+                f"one on {points(acts)}% of control steps (alpha fallback "
+                f"{points(x.alpha_fallback_rate)}%, K_safe fallback "
+                f"{points(x.ksafe_fallback_rate)}%"
                 f"{_reasons(x)}, nominal rollout "
-                f"unsafe {_pct(x.nominal_unsafe_fraction)}%, mean ESS nominal "
+                f"unsafe {points(x.nominal_unsafe_fraction)}%, mean ESS nominal "
                 f"{num(x.ess_nom_mean, '.1f')} / real {num(x.ess_real_mean, '.1f')}).", True))
             if x.variance >= 10 and acts < paper.RARELY_ACTS:
                 out.append(Claim(
                     f"At variance {x.variance:g} the robust part of {NAMES[c]} rarely acts "
-                    f"({_pct(acts)}% < {paper.RARELY_ACTS:.0%} of steps, the lower bound of "
+                    f"({points(acts)}% < {paper.RARELY_ACTS:.0%} of steps, the lower bound of "
                     f"{see('10.3')}): it then mostly runs as BaS-MPPI from the real state.", True))
     return out
 
@@ -52,16 +48,17 @@ def ablation_claims(s: NavigationSummary) -> list[Claim]:
         p = s.pair("sa_rmppi", "rmppi", v)
         if p is not None and v > 0:
             out.append(Claim(f"Variance {v:g}, K_safe vs plain iLQG gains (SA-RMPPI minus "
-                             f"RMPPI): {_diff(p)}; the barrier-state feedback {_effect(p)}.",
+                             f"RMPPI): {paired_difference(p)}; the barrier-state feedback "
+                             f"{_effect(p)}.",
                              True))
         p = s.pair("rmppi", "bas_mppi", v)
         if p is not None and v > 0:
             out.append(Claim(f"Variance {v:g}, robust sampling with plain gains vs BaS-MPPI "
-                             f"(RMPPI minus BaS-MPPI): {_diff(p)}.", True))
+                             f"(RMPPI minus BaS-MPPI): {paired_difference(p)}.", True))
         p = s.pair("bas_mppi", "mppi_crash", v)
         if p is not None:
             out.append(Claim(f"Variance {v:g}, the barrier state in MPPI (BaS-MPPI minus MPPI "
-                             f"with a crash cost only): {_diff(p)}; the barrier state "
+                             f"with a crash cost only): {paired_difference(p)}; the barrier state "
                              f"{_effect(p)}.", True))
     return out
 
@@ -74,15 +71,15 @@ def sweep_claims(s: NavigationSummary) -> list[Claim]:
         pairs = {p.first: p for p in s.paired if p.variance == v and "[" in p.first}
         for x in cells:
             p = pairs.get(f"{x.controller}[{x.rule}]")
-            vs = f"; minus BaS-MPPI: {_diff(p)}" if p else ""
-            out.append(Claim(f"Alpha {x.rule}, variance {v:g}: safety {_pct(x.safety)}% "
-                             f"[{_pct(x.ci_low)}, {_pct(x.ci_high)}], RMSE {_m(x.rmse)}, "
-                             f"nominal differs on {_pct(x.nominal_differs_fraction)}% of steps"
+            vs = f"; minus BaS-MPPI: {paired_difference(p)}" if p else ""
+            out.append(Claim(f"Alpha {x.rule}, variance {v:g}: safety {points(x.safety)}% "
+                             f"[{points(x.ci_low)}, {points(x.ci_high)}], RMSE {metres(x.rmse)}, "
+                             f"nominal differs on {points(x.nominal_differs_fraction)}% of steps"
                              f"{vs}.", True))
             if x.rule.startswith("start") and x.nominal_differs_fraction < 0.01:
                 out.append(Claim(f"The start-calibrated alpha ({x.rule}) never binds at "
                                  f"variance {v:g} (nominal differs on "
-                                 f"{_pct(x.nominal_differs_fraction)}% of steps): SA-RMPPI is "
+                                 f"{points(x.nominal_differs_fraction)}% of steps): SA-RMPPI is "
                                  f"then BaS-MPPI ({see('10.3')}).", True))
         best = [p for p in pairs.values() if p.low > 0]
         if pairs:
@@ -90,7 +87,7 @@ def sweep_claims(s: NavigationSummary) -> list[Claim]:
                              "BaS-MPPI with a paired 95% interval above 0.", not best))
             for p in best:
                 out.append(Claim(f"At variance {v:g} alpha rule {p.first} makes SA-RMPPI safer "
-                                 f"than BaS-MPPI: {_diff(p)}.", True))
+                                 f"than BaS-MPPI: {paired_difference(p)}.", True))
     return out
 
 
@@ -103,7 +100,7 @@ def rmse_claims(s: NavigationSummary) -> list[Claim]:
                 f"{NAMES[x.controller]}, variance {x.variance:g}: {stalled} of {x.reached.n} "
                 f"safe runs ended more than {s.config['goal_radius']:g} m from the goal; over "
                 f"the safe runs that reached it the RMSE is "
-                f"{_m(x.rmse_reached, 'none reached it')} (vs {_m(x.rmse)} over all safe "
+                f"{metres(x.rmse_reached, 'none reached it')} (vs {metres(x.rmse)} over all safe "
                 "runs).", True))
     return out
 

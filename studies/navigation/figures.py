@@ -11,8 +11,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from studies.navigation.findings import NAMES
 from studies.navigation.summary import NavigationSummary
+from studies.navigation.wording import NAMES
 from workbench.study import png_bytes
 
 COLORS = {"bas_mppi": "tab:blue", "sa_rmppi": "tab:red", "rmppi": "tab:orange",

@@ -9,32 +9,9 @@ from itertools import pairwise
 
 from studies.navigation import paper
 from studies.navigation.summary import NavigationSummary
+from studies.navigation.wording import NAMES, metres, paired_difference, points, seconds
 from workbench.study import Claim, fmt_rate
 from workbench.study.report import num
-
-NAMES = {"bas_mppi": "BaS-MPPI", "sa_rmppi": "SA-RMPPI", "rmppi": "RMPPI (plain iLQG gains)",
-         "mppi_crash": "MPPI (crash cost only)"}
-
-
-def _pct(x: float) -> str:
-    return f"{100 * x:.1f}"
-
-
-def _m(x: float) -> str:
-    """A distance in metres, or why there is none."""
-    v = num(x, ".4f", "no safe episodes")
-    return v if v.startswith("n/a") else f"{v} m"
-
-
-def _s(x: float) -> str:
-    """A time in seconds, or why there is none."""
-    v = num(x, ".2f", "none within the goal radius")
-    return v if v.startswith("n/a") else f"{v} s"
-
-
-def _diff(p) -> str:
-    return (f"{_pct(p.difference)} points [{_pct(p.low)}, {_pct(p.high)}], McNemar p = "
-            f"{num(p.p_value, '.3g')} (b = {p.b}, c = {p.c}, n = {p.n})")
 
 
 def safer_claims(s: NavigationSummary) -> list[Claim]:
@@ -51,8 +28,8 @@ def safer_claims(s: NavigationSummary) -> list[Claim]:
             verdict = "not shown: higher by point estimate, the interval includes 0"
         else:
             verdict = "does not hold"
-        out.append(Claim(f"(i) variance {v:g}: SA-RMPPI minus BaS-MPPI safety = {_diff(p)}: "
-                         f"{verdict}.", p.low > 0, verdict))
+        out.append(Claim(f"(i) variance {v:g}: SA-RMPPI minus BaS-MPPI safety = "
+                         f"{paired_difference(p)}: {verdict}.", p.low > 0, verdict))
     return out
 
 
@@ -63,8 +40,8 @@ def rmse_claims(s: NavigationSummary) -> list[Claim]:
         if a is None or b is None:
             continue
         ok = b.rmse < a.rmse
-        out.append(Claim(f"(ii) variance {v:g}: RMSE BaS-MPPI {_m(b.rmse)} (n = {b.safe.k}) "
-                         f"{'<' if ok else '>='} SA-RMPPI {_m(a.rmse)} (n = {a.safe.k}): "
+        out.append(Claim(f"(ii) variance {v:g}: RMSE BaS-MPPI {metres(b.rmse)} (n = {b.safe.k}) "
+                         f"{'<' if ok else '>='} SA-RMPPI {metres(a.rmse)} (n = {a.safe.k}): "
                          f"{'holds' if ok else 'does not hold'}.", ok))
     return out
 
@@ -77,7 +54,7 @@ def monotone_claims(s: NavigationSummary) -> list[Claim]:
             continue
         mono = all(a.safety >= b.safety for a, b in pairwise(cells))
         ends = cells[0].safe.above(cells[-1].safe)
-        text = ", ".join(f"{x.variance:g}: {_pct(x.safety)}%" for x in cells)
+        text = ", ".join(f"{x.variance:g}: {points(x.safety)}%" for x in cells)
         verdict = ("holds" if mono and ends else "holds by point estimates (end intervals "
                    "overlap)" if mono else "does not hold")
         out.append(Claim(f"Monotone, {NAMES[c]}: safety by variance {text}: {verdict}.",
@@ -100,7 +77,7 @@ def magnitude_claims(s: NavigationSummary) -> list[Claim]:
             out.append(Claim(
                 f"{NAMES[c]}, variance {v:g}: safety {fmt_rate(x.safe)} vs {safety}% "
                 f"({'within' if ok else 'outside'} 10 points; paper's value "
-                f"{'inside' if inside else 'outside'} our interval); RMSE {_m(x.rmse)} vs "
+                f"{'inside' if inside else 'outside'} our interval); RMSE {metres(x.rmse)} vs "
                 f"{rmse} m (ratio {num(f, '.2g', 'no safe episodes')}, "
                 f"{'within' if rok else 'outside'} a factor of 2).",
                 ok and rok))
@@ -118,7 +95,7 @@ def site_claims(s: NavigationSummary) -> list[Claim]:
         share = b.crashes_at_gates / n
         ok = share >= paper.GATE_SHARE
         out.append(Claim(f"(iii) variance {v:g}: {b.crashes_at_gates} of {n} BaS-MPPI crashes "
-                         f"({_pct(share)}%) are at the two gate circles of the central passage"
+                         f"({points(share)}%) are at the two gate circles of the central passage"
                          f": {'holds' if ok else 'does not hold'} (threshold "
                          f"{paper.GATE_SHARE:.0%}).", ok))
     b = s.cell("bas_mppi", vs[-1])
@@ -145,8 +122,8 @@ def velocity_claims(s: NavigationSummary) -> list[Claim]:
             f"(iv) variance {v:g}: mean speed BaS-MPPI {b.mean_speed.mean:.2f} ± "
             f"{b.mean_speed.std:.2f} vs SA-RMPPI {a.mean_speed.mean:.2f} ± "
             f"{a.mean_speed.std:.2f} m/s; median time to within {s.config['goal_radius']:g} m "
-            f"{_s(b.time_to_goal_s.median)} (n = {b.time_to_goal_s.n}) vs "
-            f"{_s(a.time_to_goal_s.median)} (n = {a.time_to_goal_s.n}): "
+            f"{seconds(b.time_to_goal_s.median)} (n = {b.time_to_goal_s.n}) vs "
+            f"{seconds(a.time_to_goal_s.median)} (n = {a.time_to_goal_s.n}): "
             f"{'holds' if ok else 'does not hold'} (faster {faster}, wider spread {spread}, "
             f"sooner {sooner}).", ok))
     return out

@@ -8,6 +8,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from studies.navigation.config import StudyConfig
+from studies.navigation.wording import NAMES
 from workbench.scenarios.navigation import NavigationSetup
 from workbench.study.report import Provenance, not_compared_row, run_provenance, see
 from workbench.study.spec import PaperRow
@@ -119,7 +120,6 @@ def paper_rows(out: Path) -> list[PaperRow]:
     import json
 
     from studies.navigation import STUDY
-    from studies.navigation.findings import NAMES
 
     skip = not_compared_row(run_provenance(STUDY, out, SIZES), "Table I", NOT_COMPARABLE)
     if skip is not None:

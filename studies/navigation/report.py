@@ -7,8 +7,9 @@ from pathlib import Path
 
 from studies.navigation import figures, paper
 from studies.navigation.evidence import all_evidence
-from studies.navigation.findings import NAMES, all_claims
+from studies.navigation.findings import all_claims
 from studies.navigation.summary import NavigationSummary
+from studies.navigation.wording import NAMES
 from workbench.study import RunStore, fmt_rate, md_table, supported
 from workbench.study.io import atomic_write_bytes, atomic_write_text
 from workbench.study.report import num, see

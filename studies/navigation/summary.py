@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from studies.navigation.paired import Paired
+from studies.navigation.wording import NAMES
 from workbench.sampling.feedback import FALLBACK_REASONS
 from workbench.study import Rate, RunStore, Spread, fmt_rate, to_jsonable
 from workbench.study.io import atomic_write_json
@@ -147,7 +148,6 @@ def summarise(config, plan, store: RunStore, ids: dict) -> NavigationSummary:
 def summary(finished) -> Summary:
     """summary.json: the cells, paired tests, illustration and the assumed values; one console
     line per cell. Also writes map.json (the map the run used)."""
-    from studies.navigation.findings import NAMES
     from studies.navigation.paper import assumed_values
     from studies.navigation.tasks import Controllers, setup
 

@@ -15,7 +15,7 @@ STUDY = StudySpec(
     directory=Path(__file__).parent,
     prepare="studies.sampling_safety.tasks:prepare",
     tasks="studies.sampling_safety.tasks:declare",
-    summarise="studies.sampling_safety.summary:summary",
+    summarise="studies.sampling_safety.report:summary",
     report="studies.sampling_safety.report:report",
     figure="frontier.png",
 )

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from studies.navigation.config import _variances, variance_key
+from studies.navigation.config import checked_variances, variance_key
 from studies.navigation.scene import MapSpec
 from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
@@ -58,7 +58,7 @@ class StudyConfig:
         if len(set(ctrls)) != len(ctrls):
             raise fail("controllers", ctrls, "must not repeat a controller")
         object.__setattr__(self, "controllers", tuple(c for c in known if c in ctrls))
-        object.__setattr__(self, "variances", _variances("variances", self.variances))
+        object.__setattr__(self, "variances", checked_variances("variances", self.variances))
         for name, lo, hi in (("realisations", 1, MAX_TASKS), ("steps", 1, MAX_STEPS),
                              ("seed", 0, None), ("calibration_seed", 0, None)):
             object.__setattr__(self, name, integer(name, getattr(self, name), lo, hi))

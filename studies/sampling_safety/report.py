@@ -12,10 +12,11 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from studies.sampling_safety.findings import frontier, most_collision_free, verdicts
-from studies.sampling_safety.summary import SamplingSafetySummary
+from studies.sampling_safety.summary import SamplingSafetySummary, summarise
 from workbench.scenarios.methods import labels, markers, method
-from workbench.study import md_table, png_bytes
+from workbench.study import md_table, png_bytes, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.spec import Summary
 
 
 def frontier_figure(s: SamplingSafetySummary) -> bytes:
@@ -193,6 +194,19 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path
+
+
+def summary(finished) -> Summary:
+    """summary.json: the cells (safety, collision-free samples, ESS, time per step and
+    mechanism activity, with intervals), paired tests, the verdicts on the paper's claim (1),
+    and one console line per cell."""
+    s = summarise(finished.config, finished.store)
+    names = labels()
+    lines = tuple(f"{names[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
+                  f"[{100 * c.ci_low:.0f}, {100 * c.ci_high:.0f}]  collision-free samples "
+                  f"{100 * c.collision_free_sample_fraction:5.1f} %  ESS {c.ess_mean:7.1f}  "
+                  f"{c.mean_step_ms:6.2f} ms/step" for c in s.cells)
+    return Summary({**to_jsonable(s), "claims": to_jsonable(verdicts(s))}, s, lines)
 
 
 def report(finished, summary) -> Path:

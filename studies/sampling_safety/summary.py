@@ -21,8 +21,7 @@ import pandas as pd
 from scipy import stats
 
 from studies.navigation.paired import Paired
-from workbench.study import Rate, RunStore, Spread, to_jsonable
-from workbench.study.spec import Summary
+from workbench.study import Rate, RunStore, Spread
 
 
 def mean_interval(values, lo: float = -math.inf,
@@ -145,19 +144,3 @@ def summarise(config, store: RunStore) -> SamplingSafetySummary:
                                                 *mean_interval(d, -1.0, 1.0)))
     return SamplingSafetySummary(config.as_dict(), float(config.scene.scene().dt), tuple(cells),
                                  tuple(paired), tuple(fractions))
-
-
-def summary(finished) -> Summary:
-    """summary.json: the cells (safety, collision-free samples, ESS, time per step and
-    mechanism activity, with intervals), paired tests, the verdicts on the paper's claim (1),
-    and one console line per cell."""
-    from studies.sampling_safety.findings import verdicts
-    from workbench.scenarios.methods import labels
-
-    s = summarise(finished.config, finished.store)
-    names = labels()
-    lines = tuple(f"{names[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
-                  f"[{100 * c.ci_low:.0f}, {100 * c.ci_high:.0f}]  collision-free samples "
-                  f"{100 * c.collision_free_sample_fraction:5.1f} %  ESS {c.ess_mean:7.1f}  "
-                  f"{c.mean_step_ms:6.2f} ms/step" for c in s.cells)
-    return Summary({**to_jsonable(s), "claims": to_jsonable(verdicts(s))}, s, lines)

@@ -9,12 +9,8 @@ from itertools import pairwise
 from studies.tracking_comparison.config import RELEVANT
 from studies.tracking_comparison.paper import PAPER_BY_METHOD, PAPER_ORDER, TOUCH_TOLERANCE
 from studies.tracking_comparison.summary import Outcome, TrackingSummary
+from studies.tracking_comparison.wording import PARAM_NAMES, SHORT
 from workbench.study import Claim, Rate, fmt_rate
-
-NAMES = {"ecbf": "ECBF-filtered iLQG", "al": "AL-iLQG", "bas": "BaS-iLQG"}
-SHORT = {"ecbf": "ECBF", "al": "AL", "bas": "BaS"}
-PARAM_NAMES = {"q_beta": "q_beta (BaS)", "pole": "ECBF poles p1 = p2", "q_scale": "Q scale",
-               "ecbf_noise": "ECBF noise vs filter", "noise_std": "noise std"}
 
 
 @dataclass(frozen=True)

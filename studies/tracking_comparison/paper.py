@@ -9,6 +9,7 @@ from pathlib import Path
 
 from studies.tracking_comparison.config import StudyConfig
 from studies.tracking_comparison.methods import Setup
+from studies.tracking_comparison.wording import NAMES
 from workbench.study.report import Provenance, not_compared_row, run_provenance
 from workbench.study.spec import PaperRow
 
@@ -113,7 +114,6 @@ def paper_rows(out: Path) -> list[PaperRow]:
     import json
 
     from studies.tracking_comparison import STUDY
-    from studies.tracking_comparison.findings import NAMES
 
     skip = not_compared_row(run_provenance(STUDY, out, SIZES), "Sec. III rates",
                             NOT_COMPARABLE)

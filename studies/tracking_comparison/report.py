@@ -12,18 +12,20 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from studies.tracking_comparison.findings import (
-    NAMES,
-    PARAM_NAMES,
-    Ranking,
-    all_claims,
-    drivers,
+from studies.tracking_comparison.findings import Ranking, all_claims, drivers
+from studies.tracking_comparison.methods import Setup
+from studies.tracking_comparison.paper import (
+    NOT_COMPARABLE,
+    PAPER_BY_METHOD,
+    assumed_values,
+    comparison,
 )
-from studies.tracking_comparison.paper import NOT_COMPARABLE, PAPER_BY_METHOD, comparison
-from studies.tracking_comparison.summary import Outcome, TrackingSummary
+from studies.tracking_comparison.summary import Outcome, TrackingSummary, summarise
+from studies.tracking_comparison.wording import NAMES, PARAM_NAMES
 from workbench.scenarios.scenes import TrackingScene
-from workbench.study import RunStore, fmt_rate, md_table, png_bytes, supported
+from workbench.study import RunStore, fmt_rate, md_table, png_bytes, supported, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.spec import Summary
 
 COLORS = {"ecbf": "tab:blue", "al": "tab:red", "bas": "tab:green"}
 # the swept parameters as axis labels, with their units
@@ -311,10 +313,19 @@ def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene:
     return path
 
 
+def summary(finished) -> Summary:
+    """summary.json (the summary, the assumed values and the claims printed iff they hold) and
+    one console line per method."""
+    s = summarise(finished.config, finished.plan, finished.store, finished.ids)
+    data = {**to_jsonable(s), "assumed": assumed_values(finished.config, Setup()),
+            "claims": to_jsonable(all_claims(s))}
+    lines = tuple(f"{NAMES[o.method]:20s} unsafe {fmt_rate(o.unsafe):22s} failure "
+                  f"{fmt_rate(o.failure):22s} n={o.n}" for o in s.methods)
+    return Summary(data, s, lines)
+
+
 def report(finished, summary) -> Path:
     """The framework's report step: figures and report.md from a finished run."""
-    from studies.tracking_comparison.methods import Setup
-
     s = summary.value
     main_ids = {finished.ids[t] for ts in finished.plan.main.values() for t in ts}
     table = finished.store.table("rollouts")

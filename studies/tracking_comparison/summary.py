@@ -14,8 +14,7 @@ import pandas as pd
 
 from studies.tracking_comparison.config import StudyConfig
 from studies.tracking_comparison.tasks import Plan
-from workbench.study import Rate, RunStore, Spread, fmt_rate, to_jsonable
-from workbench.study.spec import Summary
+from workbench.study import Rate, RunStore, Spread
 
 
 def unsafe(rows: pd.DataFrame) -> np.ndarray:
@@ -147,18 +146,3 @@ def summarise(config: StudyConfig, plan: Plan, store: RunStore, ids: dict) -> Tr
                     for m, t in plan.nominal.items())
     return TrackingSummary(config.as_dict(), methods, nominal, sweep, tuple(radius),
                            {m: ids[ts[0]] for m, ts in plan.main.items()})
-
-
-def summary(finished) -> Summary:
-    """summary.json (the summary, the assumed values and the claims printed iff they hold) and
-    one console line per method."""
-    from studies.tracking_comparison.findings import NAMES, all_claims
-    from studies.tracking_comparison.methods import Setup
-    from studies.tracking_comparison.paper import assumed_values
-
-    s = summarise(finished.config, finished.plan, finished.store, finished.ids)
-    data = {**to_jsonable(s), "assumed": assumed_values(finished.config, Setup()),
-            "claims": to_jsonable(all_claims(s))}
-    lines = tuple(f"{NAMES[o.method]:20s} unsafe {fmt_rate(o.unsafe):22s} failure "
-                  f"{fmt_rate(o.failure):22s} n={o.n}" for o in s.methods)
-    return Summary(data, s, lines)

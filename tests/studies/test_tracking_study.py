@@ -13,7 +13,7 @@ from scipy.stats import binomtest
 
 from studies.tracking_comparison import STUDY
 from studies.tracking_comparison.config import StudyConfig, Variant
-from studies.tracking_comparison.findings import NAMES, all_claims
+from studies.tracking_comparison.findings import all_claims
 from studies.tracking_comparison.methods import Setup, solve_nominal
 from studies.tracking_comparison.rollouts import (
     LinearDynamics,
@@ -23,6 +23,7 @@ from studies.tracking_comparison.rollouts import (
     noise_generator,
 )
 from studies.tracking_comparison.tasks import plan
+from studies.tracking_comparison.wording import NAMES
 from workbench.filters.ecbf import ECBFFilter
 from workbench.ilqg.bas import tracking_problem
 from workbench.problem.barrier import BarrierOptions, embed_barrier

@@ -8,7 +8,7 @@ costs in CasADi), :func:`set_threads` (OpenMP threads of every sampler library),
 :mod:`~workbench.sampling.threshold` (alpha rules).
 """
 
-from workbench.sampling.kernels.build import get_threads, set_threads
+from workbench.sampling.kernels.library import get_threads, set_threads
 from workbench.sampling.problem import SamplingProblem
 
 __all__ = ["SamplingProblem", "get_threads", "set_threads"]

@@ -7,7 +7,7 @@ algorithm; tests feed both the same noise). Sample outputs are lane-major: v (T,
 
 Batches own their arrays: per-sample results are fresh copies; the lane outputs (v) are views of
 buffers the kernels reuse for a later batch only once nothing refers to them any more
-(:class:`~workbench.sampling.kernels.build.OutputPool`), so a batch a caller keeps is never
+(:class:`~workbench.sampling.kernels.compiled.OutputPool`), so a batch a caller keeps is never
 overwritten, and a dropped one costs no new allocation (a fresh 1.6 MB buffer costs a page fault
 per 4 KiB on first write: measured 0.2-1.4 ms per SAIS batch, N = 1024, T = 100).
 
@@ -42,10 +42,10 @@ from typing import Literal
 
 import numpy as np
 
-from workbench.sampling.kernels.build import SamplerLibrary, sampler_library
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.diagnostics import diagnostics_library
-from workbench.sampling.kernels.emit import PRECISIONS
+from workbench.sampling.kernels.flags import PRECISIONS
+from workbench.sampling.kernels.library import SamplerLibrary, sampler_library
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.reference import mppi_reference, sais_reference
 from workbench.validation import as_array, fail, integer, one_of
@@ -153,7 +153,7 @@ class Sampler:
         samples near the crash margin recomputed in float64 on their own noise. ``rows``: the
         carry fields given per sample (N rows; none: every sample starts from the same carry).
         Results are contiguous copies; lane outputs are the kernel's (:class:`~workbench.
-        sampling.kernels.build.KernelOutput`: never overwritten while referenced)."""
+        sampling.kernels.compiled.KernelOutput`: never overwritten while referenced)."""
         k = getattr(self.lib, name)
         consts = c.kernel_consts()
         k = k if not float32 else getattr(self.lib32, name)

@@ -16,8 +16,7 @@ from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, physical_mod
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
 from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
 from workbench.sampling.threshold import AlphaRule, Threshold
-from workbench.scenarios import methods as registry
-from workbench.scenarios.methods import MethodSettings
+from workbench.scenarios.methods import MethodSettings, build, feedback_law, method
 from workbench.scenarios.scenes import CircleScene, NavigationScene
 from workbench.scenarios.systems import SYSTEMS, System
 from workbench.scenarios.systems import TUNED_LAMBDA as TUNED_LAMBDA
@@ -78,7 +77,7 @@ class NavigationSetup:
         ``feedback``: "bas_ilqg" (K_safe), "ilqg", "al_ilqg" or "ecbf" (see
         :func:`workbench.scenarios.methods.feedback_law`); ``settings``: the methods' options
         (default options when None)."""
-        law = registry.feedback_law(self, feedback, settings, weights=self._weights(weights))
+        law = feedback_law(self, feedback, settings, weights=self._weights(weights))
         return calibrate(rule, self.problem, self.goal, self.plant, self.x0, self.mppi, law,
                          robust, seed=seed, progress=self.progress())
 
@@ -94,7 +93,7 @@ class NavigationSetup:
         seeded with ``seed``): pass a threshold computed once when you build many
         controllers. ``weights``: tracking weights of the feedback laws (default: the
         system's)."""
-        spec = registry.method(name)
+        spec = method(name)
         weights = self._weights(weights)
         if spec.robust and threshold is None:
             why = spec.missing(self, weights)
@@ -102,7 +101,7 @@ class NavigationSetup:
                 raise fail("controller", name, why)
             threshold = self.threshold(rule, spec.feedback or "", robust, weights, seed,
                                        settings)
-        return registry.build(self, name, settings, threshold=threshold, robust=robust,
+        return build(self, name, settings, threshold=threshold, robust=robust,
                               weights=weights)
 
 

@@ -27,6 +27,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from workbench.study.scheduler import SchedulerError, check_scheduler
 from workbench.study.store import TaskRecord
 from workbench.study.tasks import Study
+from workbench.study.threads import limit_threads
 from workbench.validation import fail
 
 CLIENT_TIMEOUT_S = 10.0
@@ -40,8 +41,6 @@ class WorkerInit(WorkerPlugin):
         self.client_pid = os.getpid()
 
     def setup(self, worker) -> None:
-        from workbench.study.execute import limit_threads
-
         if os.getpid() != self.client_pid:  # not the caller's own process (processes=False)
             limit_threads()
         if self.init is not None:

@@ -61,9 +61,9 @@ from workbench.study.folder import RunFolderError, claim
 from workbench.study.io import StorageError
 from workbench.study.store import RunStore, TaskError, TaskRecord, study_manifest
 from workbench.study.tasks import Study, TaskContext, TaskOutput
+from workbench.study.threads import THREAD_ENV, limit_threads
 from workbench.validation import fail, flag, real
 
-THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _STOP = threading.Event()
 log = logging.getLogger("workbench.study")
 PR_SET_PDEATHSIG = 1
@@ -133,12 +133,6 @@ def _execute(run_task: Callable, task: Any, ctx: TaskContext) -> TaskRecord:
     except Exception:
         return TaskRecord(ctx.task_id, error=traceback.format_exc(),
                           elapsed_s=time.perf_counter() - t0, worker=worker)
-
-
-def limit_threads() -> None:
-    """Set the thread environment of a worker to one thread (before any OpenMP library loads)."""
-    for name in THREAD_ENV:
-        os.environ[name] = "1"
 
 
 # ---------------------------------------------------------------------- local worker processes
@@ -371,7 +365,7 @@ def scheduler_client(scheduler: Any) -> Iterator[tuple[Any, str | None]]:
     if scheduler is None:
         yield None, None
         return
-    from workbench.study.cluster import connect
+    from workbench.study.cluster import connect  # loads distributed: only with a scheduler
 
     client, own, address = connect(scheduler)
     try:

@@ -126,7 +126,9 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
-def _default(o):
+def numpy_default(o):
+    """The ``default`` of :func:`json.dumps` for NumPy values: arrays as lists, scalars as
+    Python numbers; anything else is a TypeError naming its type."""
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, np.generic):
@@ -159,7 +161,7 @@ def strict_json(obj):
 
 def dumps_json(obj, **kw) -> str:
     """Strict JSON text of ``obj`` (:func:`strict_json`: NaN and inf as null)."""
-    return json.dumps(strict_json(obj), allow_nan=False, default=_default, **kw)
+    return json.dumps(strict_json(obj), allow_nan=False, default=numpy_default, **kw)
 
 
 def atomic_write_json(path: Path, obj) -> None:

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import workbench.study.config_io as config_io
+from workbench.study.spec import PaperRow
 from workbench.study.summary import Rate
 
 log = logging.getLogger("workbench.study")
@@ -129,8 +131,6 @@ def _short(v: Any, width: int = 60) -> str:
 def config_changes(config: Any, reference: Any, sizes: Iterable[str] = ()) -> tuple[str, ...]:
     """Every dotted key whose value differs between two configs of one dataclass, outside
     ``sizes`` (a size key also covers the keys below it, e.g. ``sweep`` -> ``sweep.x``)."""
-    from workbench.study import config_io
-
     ours, theirs = (_flat(config_io.to_dict(c)) for c in (config, reference))
     skip = tuple(sizes)
 
@@ -156,8 +156,6 @@ def provenance(spec: Any, config: Any, out: Path | str | None = None, sizes: Ite
     """Compare ``config`` with the config of the study's ``reference`` profile (the paper's
     set-up), ignoring ``sizes`` (counts, seeds, sweeps: keys whose change keeps the paper's
     numbers comparable)."""
-    from workbench.study import config_io
-
     ref = config_io.load(spec.config_type, config_io.read_toml(spec.profiles[reference]),
                          aliases=spec.aliases)
     return Provenance(recorded_profile(out) if out is not None else None, reference,
@@ -167,8 +165,6 @@ def provenance(spec: Any, config: Any, out: Path | str | None = None, sizes: Ite
 def not_compared_row(prov: Provenance | None, paper: str, what: str):
     """The report site's one row for a run whose numbers are not set beside the paper's (a
     custom run, or a run whose config.toml is unreadable); None for a comparable run."""
-    from workbench.study.spec import PaperRow
-
     if prov is not None and prov.comparable:
         return None
     why = ("its config.toml is unreadable" if prov is None else
@@ -181,8 +177,6 @@ def run_provenance(spec: Any, out: Path | str, sizes: Iterable[str] = (),
                    reference: str = "paper") -> Provenance | None:
     """:func:`provenance` of the finished run in ``out`` (its config.toml); None when the
     config cannot be read."""
-    from workbench.study import config_io
-
     try:
         config = config_io.load(spec.config_type, config_io.read_toml(Path(out) / "config.toml"),
                                 aliases=spec.aliases)

@@ -36,7 +36,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from workbench.study.folder import MANIFEST, RunFolderError, read_json
-from workbench.study.io import _default, atomic_write_bytes, atomic_write_json, manifest
+from workbench.study.io import atomic_write_bytes, atomic_write_json, manifest, numpy_default
 from workbench.study.tasks import Study, TaskOutput, columns, describe
 from workbench.validation import fail
 
@@ -128,7 +128,7 @@ class RunStore:
                   "tables": {t: list(cols) for t, cols in out.tables.items()},
                   "arrays": list(out.arrays),
                   "provenance": dict(record.provenance) if record.provenance else None}
-        entries = {_RECORD: np.array(json.dumps(header, default=_default))}
+        entries = {_RECORD: np.array(json.dumps(header, default=numpy_default))}
         for t, cols in out.tables.items():
             for c, v in cols.items():
                 entries[f"{_TABLE}{t}:{c}"] = np.asarray(v)

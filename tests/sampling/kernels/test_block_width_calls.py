@@ -5,7 +5,7 @@
   kernels' own draws are the same numbers for 4 and 8 float64 samples per block (8 and 16
   float32) and 1 or 2 threads, slow paths of the ziggurat (wedges, the tail beyond r) included.
 * SAIS batches are bitwise equal across block widths and thread counts, in both precisions.
-* Calls reuse their buffers (:class:`~workbench.sampling.kernels.build.OutputPool`) only when
+* Calls reuse their buffers (:class:`~workbench.sampling.kernels.compiled.OutputPool`) only when
   nothing refers to them: results a caller keeps are never overwritten by later calls (a pool
   that reuses regardless is shown to corrupt them), dropped ones are reused; const pointers
   follow new constants; time inputs of the wrong size are refused.
@@ -24,16 +24,12 @@ import pytest
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.kernels import build
-from workbench.sampling.kernels.build import OutputPool, load_sampler_library
+from workbench.sampling.kernels.compiled import OutputPool
 from workbench.sampling.kernels.constants import SamplerConstants
-from workbench.sampling.kernels.emit import (
-    VECTOR_BITS_ENV,
-    EmitError,
-    KernelSpec,
-    lane_count,
-    ziggurat_tables,
-)
+from workbench.sampling.kernels.emit import EmitError, KernelSpec, ziggurat_tables
+from workbench.sampling.kernels.flags import VECTOR_BITS_ENV, lane_count
+from workbench.sampling.kernels.library import load_sampler_library
+from workbench.sampling.kernels.specs import mppi_spec
 from workbench.sampling.kernels.threads import using
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.sampler import Sampler, check_batch
@@ -236,10 +232,10 @@ def test_vector_bits_setting(monkeypatch, setup):
     assert (lane_count("float64"), lane_count("float32")) == (4, 8)
     monkeypatch.setenv(VECTOR_BITS_ENV, "512")
     assert (lane_count("float64"), lane_count("float32")) == (8, 16)
-    assert build.mppi_spec(setup[1]).lanes == 8
+    assert mppi_spec(setup[1]).lanes == 8
     monkeypatch.setenv(VECTOR_BITS_ENV, "384")
     with pytest.raises(ValueError, match=VECTOR_BITS_ENV):
         lane_count("float64")
-    spec = build.mppi_spec(setup[1])
+    spec = mppi_spec(setup[1])
     with pytest.raises(EmitError, match="block"):
         KernelSpec(name="x", step=spec.step, final=spec.final, roles=spec.roles, block=-1)

@@ -35,7 +35,7 @@ _LIBM_OPS = {
 @pytest.mark.parametrize("op", sorted(_LIBM_OPS))
 def test_class4_emitter_writes_libm_operations_equal_to_casadi(op, tmp_path):
     from workbench.codegen import build_library
-    from workbench.sampling.kernels.build import CompiledKernel
+    from workbench.sampling.kernels.compiled import CompiledKernel
     from workbench.sampling.kernels.emit import emit_kernel, rng_source
 
     spec = _tiny_spec(_LIBM_OPS[op])

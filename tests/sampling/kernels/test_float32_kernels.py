@@ -21,8 +21,10 @@ from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling.kernels import vector_math as vm
-from workbench.sampling.kernels.build import CompiledKernel, kernel_flags, mppi_spec
+from workbench.sampling.kernels.compiled import CompiledKernel
 from workbench.sampling.kernels.constants import GUARD_BAND, SamplerConstants
+from workbench.sampling.kernels.flags import kernel_flags
+from workbench.sampling.kernels.specs import mppi_spec
 from workbench.sampling.kernels.verify import KernelMismatch, reference_rollout, verify_kernel
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.reference import mppi_reference, sais_reference
@@ -265,7 +267,7 @@ def test_float_vector_math_uses_simd_float_functions():
     from pathlib import Path
 
     from benchmarks.trig import problem, unicycle
-    from workbench.sampling.kernels.build import load_sampler_library
+    from workbench.sampling.kernels.library import load_sampler_library
     from workbench.scenarios.scenes import NavigationScene
 
     assert vm.ulp_distance32(np.float32(1.0), np.nextafter(np.float32(1.0),

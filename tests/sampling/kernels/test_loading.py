@@ -29,7 +29,7 @@ def _erfinv_sampling_problem():
 def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
     import warnings
 
-    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels import library as kernels
     from workbench.sampling.kernels.constants import SamplerConstants
     from workbench.sampling.reference import mppi_reference
     from workbench.sampling.sampler import Sampler
@@ -73,15 +73,16 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
     import shutil
 
     from workbench.codegen import build_library
-    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels import library as kernels
     from workbench.sampling.kernels.constants import SamplerConstants
+    from workbench.sampling.kernels.flags import KERNEL_FLAGS
     from workbench.sampling.reference import mppi_reference
 
     sp_a, sp_b = _small_navigation((2.0, 2.0)), _small_navigation((1.0, 3.0), 0.05)
     built, cache = {}, tmp_path / "cache"
     for name, sp in (("a", sp_a), ("b", sp_b)):
         stem, _, source = kernels.library_sources(sp)
-        lib = build_library(stem, [], source, extra_flags=kernels.KERNEL_FLAGS,
+        lib = build_library(stem, [], source, extra_flags=KERNEL_FLAGS,
                             root=tmp_path / "build")
         # the cache under test holds copies this process has never loaded (as a cache left
         # by an earlier run would)
@@ -108,14 +109,16 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
 
 
 def test_class5_kernel_check_rejects_another_problems_kernel():
-    from workbench.sampling.kernels import build as kernels
+    from workbench.sampling.kernels.compiled import CompiledKernel
+    from workbench.sampling.kernels.library import sampler_library
+    from workbench.sampling.kernels.specs import mppi_spec
     from workbench.sampling.kernels.verify import KernelMismatch, verify_kernel
 
-    lib_b = kernels.sampler_library(_small_navigation((1.0, 3.0), 0.05))
-    spec_a = kernels.mppi_spec(_small_navigation((2.0, 2.0)))
+    lib_b = sampler_library(_small_navigation((1.0, 3.0), 0.05))
+    spec_a = mppi_spec(_small_navigation((2.0, 2.0)))
     verify_kernel(lib_b.mppi)  # its own spec: fine
     with pytest.raises(KernelMismatch, match="wb_mppi"):
-        verify_kernel(kernels.CompiledKernel(spec_a, lib_b.cdll))
+        verify_kernel(CompiledKernel(spec_a, lib_b.cdll))
 
 
 def test_set_threads_reaches_every_kernel_library_loaded_before_and_after():
@@ -123,8 +126,8 @@ def test_set_threads_reaches_every_kernel_library_loaded_before_and_after():
     follow it, whether they were loaded before the call or after it."""
     from workbench.problem.barrier import embed_barrier
     from workbench.problem.obstacles import Circle
-    from workbench.sampling.kernels.build import get_threads, sampler_library, set_threads
     from workbench.sampling.kernels.diagnostics import diagnostics_library
+    from workbench.sampling.kernels.library import get_threads, sampler_library, set_threads
     from workbench.sampling.kernels.safe import safe_library
     from workbench.sampling.problem import navigation_costs
 

@@ -16,8 +16,11 @@ from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import INERT_CENTER, Circle
 from workbench.problem.vehicles import unicycle
-from workbench.sampling.kernels import build, slots
+from workbench.sampling.kernels import library, slots
 from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.kernels.flags import kernel_flags
+from workbench.sampling.kernels.specs import layouts
+from workbench.sampling.kernels.verify import KernelMismatch
 from workbench.sampling.problem import goal_costs, navigation_costs
 from workbench.scenarios.navigation import navigation_setup
 
@@ -116,8 +119,8 @@ _LIBS: dict = {}
 def libraries(name: str):
     if name not in _LIBS:
         sp = PROBLEMS[name][0]
-        ref = build.load_sampler_library(sp, slot_loop=False)
-        loop = slots.load_slot_library(sp)
+        ref = library.load_sampler_library(sp, slot_loop=False)
+        loop = library.load_sampler_library(sp, slot_loop=True)
         if ref is None or loop is None:
             pytest.skip("no C compiler")
         _LIBS[name] = (ref, loop)
@@ -132,11 +135,11 @@ def test_loop_kernels_equal_straight_line(name):
     b = run_all(loop, sp, scene, x_phys, goal)
     assert max_rel(a, b) <= RTOL
     # the batches are informative: some samples crash, some do not (real and nominal systems)
-    lay = build.layouts(sp, "sais")[1]
+    lay = layouts(sp, "sais")[1]
     r = lay.unpack(a["sais.result"])
     for key in ("crashed_real", "crashed_nom"):
         assert 0 < np.mean(r[key]) < 1, (key, np.mean(r[key]))
-    assert 0 < np.mean(build.layouts(sp, "mppi")[1].unpack(a["mppi.result"])["crashed"]) < 1
+    assert 0 < np.mean(layouts(sp, "mppi")[1].unpack(a["mppi.result"])["crashed"]) < 1
 
 
 def _broken(source: str, n_pairs: int, what: str) -> str:
@@ -166,11 +169,11 @@ def test_broken_loop_fails(what):
     sp, scene, x_phys, goal = PROBLEMS[name]
     ref, loop = libraries(name)
     a = run_all(ref, sp, scene, x_phys, goal)
-    stem, specs, source = slots.library_sources(sp)
+    stem, specs, source = library.library_sources(sp, slot_loop=True)
     bad = _broken(source, 4, what)
-    lib = build._load(f"{stem}_broken_{what}", bad, build.kernel_flags())
-    lays = [build.layouts(sp, k) for k in ("mppi", "sais", "candidates")]
-    broken = build._sampler_library(lib.cdll, specs, lays)
+    lib = library._load(f"{stem}_broken_{what}", bad, kernel_flags())
+    lays = [layouts(sp, k) for k in ("mppi", "sais", "candidates")]
+    broken = library._sampler_library(lib.cdll, specs, lays)
     b = run_all(broken, sp, scene, x_phys, goal)
     for kern in ("mppi", "sais", "candidates"):
         part = {k: v for k, v in a.items() if k.startswith(kern + ".")}
@@ -253,31 +256,31 @@ def test_the_library_chooses_the_loop_from_the_slot_threshold():
     """30 circle slots (the navigation map): loop kernels by default; 9 slots: straight-line;
     float32 (unsupported by the loop): straight-line; ``slot_loop`` forces either."""
     nav30, nine = PROBLEMS["nav30"][0], PROBLEMS["odd9_gamma"][0]
-    assert build.library_sources(nav30)[0].endswith("_loop")
-    assert not build.library_sources(nine)[0].endswith("_loop")
-    assert build.library_sources(nine, slot_loop=True)[0].endswith("_loop")
-    assert not build.library_sources(nav30, slot_loop=False)[0].endswith("_loop")
-    assert not build.library_sources(nav30, precision="float32")[0].endswith("_loop")
+    assert library.library_sources(nav30)[0].endswith("_loop")
+    assert not library.library_sources(nine)[0].endswith("_loop")
+    assert library.library_sources(nine, slot_loop=True)[0].endswith("_loop")
+    assert not library.library_sources(nav30, slot_loop=False)[0].endswith("_loop")
+    assert not library.library_sources(nav30, precision="float32")[0].endswith("_loop")
 
 
 def test_an_automatic_loop_library_that_fails_its_check_falls_back(monkeypatch):
     """A loop library that fails the load-time check is replaced by the straight-line one,
     with one warning; asked for explicitly (slot_loop=True) the failure is raised."""
     sp = PROBLEMS["nav30"][0]
-    real = build.load_verified
+    real = library.load_verified
     stems = []
 
     def failing(stem, source, *a, **kw):
         stems.append(stem)
         if stem.endswith("_loop"):
-            raise build.KernelMismatch(f"compiled kernel in {stem}: planted mismatch")
+            raise KernelMismatch(f"compiled kernel in {stem}: planted mismatch")
         return real(stem, source, *a, **kw)
 
-    monkeypatch.setattr(build, "load_verified", failing)
+    monkeypatch.setattr(library, "load_verified", failing)
     with pytest.warns(RuntimeWarning, match="loop-over-circles kernels"):
-        lib = build.load_sampler_library(sp)
+        lib = library.load_sampler_library(sp)
     if lib is None:
         pytest.skip("no C compiler")
     assert stems[0].endswith("_loop") and not stems[-1].endswith("_loop")
-    with pytest.raises(build.KernelMismatch, match="planted"):
-        build.load_sampler_library(sp, slot_loop=True)
+    with pytest.raises(KernelMismatch, match="planted"):
+        library.load_sampler_library(sp, slot_loop=True)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from workbench.sampling.kernels import threads
-from workbench.sampling.kernels.build import get_threads, set_threads
+from workbench.sampling.kernels.library import get_threads, set_threads
 
 BIG = 10 * threads.SMALL_WORK
 
@@ -112,7 +112,7 @@ def test_a_fresh_process_loads_the_kernels_with_passive_threads():
             "from workbench.problem.obstacles import Circle\n"
             "from workbench.problem.barrier import embed_barrier\n"
             "from workbench.sampling.problem import navigation_costs\n"
-            "from workbench.sampling.kernels.build import sampler_library\n"
+            "from workbench.sampling.kernels.library import sampler_library\n"
             "m = embed_barrier(double_integrator(obstacles=(Circle((2.0, 2.0), 0.8),)))\n"
             "lib = sampler_library(navigation_costs(m))\n"
             "print(lib is not None, os.environ.get('OMP_WAIT_POLICY'))\n")

@@ -15,13 +15,10 @@ import pytest
 
 from workbench.codegen import build_library
 from workbench.sampling.kernels import vector_math as vm
-from workbench.sampling.kernels.build import (
-    KERNEL_FLAGS,
-    LANES,
-    CompiledKernel,
-    load_sampler_library,
-)
+from workbench.sampling.kernels.compiled import CompiledKernel
 from workbench.sampling.kernels.emit import emit_kernel, rng_source
+from workbench.sampling.kernels.flags import KERNEL_FLAGS, LANES
+from workbench.sampling.kernels.library import load_sampler_library
 from workbench.sampling.kernels.verify import reference_rollout
 
 NAMES = [n for n, _ in vm.VECTOR_FUNCTIONS.values()]

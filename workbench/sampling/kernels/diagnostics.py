@@ -1,6 +1,6 @@
 """Diagnostic kernels for the Lemma-1 checks (assumptions §11.2), in their own cached library.
 
-* ``wb_sais_diag`` — the SAIS dual rollout of :func:`~workbench.sampling.kernels.build.sais_spec`
+* ``wb_sais_diag`` — the SAIS dual rollout of :func:`~workbench.sampling.kernels.specs.sais_spec`
   unchanged (its step Function is called inside this one, so every SAIS output is bitwise the
   main kernel's for the same seed), plus the post-step states of both systems as lane outputs
   (T, nx, N) and the pure state costs Σ_{k=1}^T q(x_k) + φ(x_T) of the real and the nominal
@@ -28,15 +28,11 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from workbench.sampling.kernels.build import (
-    CompiledKernel,
-    kernel_source,
-    layouts,
-    load_verified,
-    sais_spec,
-)
+from workbench.sampling.kernels.compiled import CompiledKernel
 from workbench.sampling.kernels.emit import KernelSpec
 from workbench.sampling.kernels.layout import Layout
+from workbench.sampling.kernels.library import kernel_source, load_verified
+from workbench.sampling.kernels.specs import layouts, sais_spec
 from workbench.sampling.problem import SamplingProblem
 
 _OPTS = {"cse": True}

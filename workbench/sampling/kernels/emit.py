@@ -23,12 +23,11 @@ Step outputs: the new carry first, then per-sample per-time outputs written as (
 A ``final`` Function maps (carry, consts) to per-sample results (N, nr) after the last step.
 Lane-contiguous (T, m, N) layouts keep every load and store of the lane loop contiguous.
 
-Block width (:func:`lane_count`): one vector register of samples, 256 or 512 bits
-(:func:`vector_bits`: 512 when the kernels' compile target has AVX-512, else 256; the
-environment variable ``WORKBENCH_VECTOR_BITS`` = 256 or 512 overrides it): four or eight samples
-per block of a float64 kernel, eight or sixteen of a float32 one. The width is written into the
-C (so it is part of the code cache's key); results never depend on it (every sample's noise is
-its own stream, and the lane loop computes each sample alone).
+Block width (:func:`~workbench.sampling.kernels.flags.lane_count`): one vector register of
+samples, four or eight of a float64 kernel, eight or sixteen of a float32 one
+(:mod:`.flags`). The width is written into the C (so it is part of the code cache's key);
+results never depend on it (every sample's noise is its own stream, and the lane loop computes
+each sample alone).
 
 Precision (``KernelSpec.precision``): ``"float64"`` kernels compute in double. ``"float32"``
 kernels compute in ``float`` (f-suffixed libm calls, float literals rounded to nearest), twice
@@ -44,66 +43,19 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import re
-import subprocess
 from dataclasses import dataclass
 from functools import cached_property
 from importlib import resources
 
 import casadi as ca
 
-LANES = 4  # samples per block of a float64 kernel on 256-bit vectors (the narrowest block)
-PRECISIONS = ("float64", "float32")
-_BITS = {"float64": 64, "float32": 32}
-VECTOR_BITS_ENV = "WORKBENCH_VECTOR_BITS"
-VECTOR_BITS = (256, 512)
+from workbench.sampling.kernels.flags import LANES, PRECISIONS, lane_count
+
 ROLES = ("carry", "noise", "lane", "time", "const")
 # OpenMP schedule of the block loop: equal shares per thread (busy machines are handled by the
 # thread count, workbench/sampling/kernels/threads.py; a dynamic schedule measured no better)
 WB_SCHEDULE = "static"
-
-
-@functools.cache
-def _target_has_avx512(flags: tuple[str, ...]) -> bool:
-    """Whether the compiler's target for ``flags`` (the kernels' -march) has AVX-512F."""
-    from workbench.codegen.toolchain import find_toolchain
-
-    tc = find_toolchain()
-    if tc is None:
-        return False
-    try:
-        out = subprocess.run([tc.cc, *tc.flags, *flags, "-dM", "-E", "-x", "c", os.devnull],
-                             capture_output=True, text=True, timeout=60)
-    except (OSError, subprocess.TimeoutExpired):
-        return False
-    return out.returncode == 0 and "#define __AVX512F__ 1" in out.stdout
-
-
-def vector_bits() -> int:
-    """The vector width (bits) the kernels block their samples for: ``WORKBENCH_VECTOR_BITS``
-    (256 or 512) when set, else 512 when the kernels' compile target (their ``-march`` flag and
-    ``WORKBENCH_CFLAGS``) has AVX-512F, else 256. Eight doubles per block on AVX-512 measured
-    1.15x faster than four on the navigation SAIS rollout (AMD Zen 4)."""
-    v = os.environ.get(VECTOR_BITS_ENV, "").strip()
-    if v:
-        if v not in ("256", "512"):
-            raise ValueError(f"{VECTOR_BITS_ENV} = {v!r} is invalid: allowed values are 256 "
-                             "and 512 (unset: 512 when the compile target has AVX-512)")
-        return int(v)
-    from workbench.sampling.kernels.build import KERNEL_FLAGS
-
-    march = tuple(f for f in KERNEL_FLAGS if f.startswith("-m"))
-    return 512 if _target_has_avx512(march) else 256
-
-
-def lane_count(precision: str) -> int:
-    """Samples per block of a kernel of ``precision``: one vector of :func:`vector_bits` (4 or
-    8 float64 samples; float32: twice float64's)."""
-    if precision not in _BITS:
-        raise ValueError(f"precision = {precision!r} is invalid: allowed values are "
-                         f"{PRECISIONS}")
-    return vector_bits() // _BITS[precision]
 
 _UNARY = {
     ca.OP_NEG: "(-{0})", ca.OP_SQ: "({0}*{0})", ca.OP_TWICE: "({0}+{0})", ca.OP_INV: "(1.0/{0})",

@@ -50,14 +50,10 @@ import numpy as np
 from workbench.codegen import CompileError
 from workbench.problem.barrier import min_margin
 from workbench.problem.dcbf import DiscreteCBF, discrete_cbf
-from workbench.sampling.kernels.build import (
-    CompiledKernel,
-    kernel_source,
-    load_verified,
-    set_threads,
-)
+from workbench.sampling.kernels.compiled import CompiledKernel
 from workbench.sampling.kernels.emit import EmitError, KernelSpec
 from workbench.sampling.kernels.layout import Layout
+from workbench.sampling.kernels.library import kernel_source, load_verified, set_threads
 from workbench.sampling.kernels.vocabulary import clip, crashed_flag, kernel_symbols, model_parts
 from workbench.sampling.problem import SamplingProblem
 
@@ -166,7 +162,7 @@ class SafeLibrary:
         return out
 
     def set_threads(self, n: int) -> None:
-        """:func:`~workbench.sampling.kernels.build.set_threads` (every kernel library)."""
+        """:func:`~workbench.sampling.kernels.library.set_threads` (every kernel library)."""
         set_threads(n)
 
 

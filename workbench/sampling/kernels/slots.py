@@ -29,7 +29,7 @@ naming it; the library then keeps the straight-line kernel.
 
 A :class:`SlotKernelSpec` carries the straight-line :class:`~.emit.KernelSpec` it replaces:
 same name, inputs, roles, layouts and ``step`` Function (which
-:class:`~workbench.sampling.kernels.build.CompiledKernel` and the load-time verification use),
+:class:`~workbench.sampling.kernels.compiled.CompiledKernel` and the load-time verification use),
 so the library calls either kernel the same way.
 """
 
@@ -47,10 +47,14 @@ from workbench.sampling.kernels.emit import (
     final_input,
     result_layout,
     result_output,
+    rng_source,
     step_input,
     step_output,
     straight_line,
 )
+from workbench.sampling.kernels.flags import kernel_flags
+from workbench.sampling.kernels.specs import candidate_spec, mppi_spec, sais_spec
+from workbench.sampling.kernels.vector_math import prelude
 from workbench.sampling.kernels.vocabulary import clip
 from workbench.sampling.problem import SamplingProblem
 
@@ -284,23 +288,21 @@ def _inputs(spec: KernelSpec) -> dict[str, ca.SX]:
 
 
 def _reference(kind: str, sp: SamplingProblem, name: str | None, precision: str) -> KernelSpec:
-    from workbench.sampling.kernels import build  # build may import this module
-
     if kind == "sais":
-        return build.sais_spec(sp, name or "wb_sais", precision)
+        return sais_spec(sp, name or "wb_sais", precision)
     if kind == "candidates":
-        return build.candidate_spec(sp, precision)
-    return build.mppi_spec(sp, name or "wb_mppi", precision=precision)
+        return candidate_spec(sp, precision)
+    return mppi_spec(sp, name or "wb_mppi", precision=precision)
 
 
 # ---------------------------------------------------------------------------------------------
-# spec builders (the formulas of workbench.sampling.kernels.build, split around the slots)
+# spec builders (the formulas of workbench.sampling.kernels.specs, split around the slots)
 
 
 def mppi_slot_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
                    precision: str = "float64",
                    reference: KernelSpec | None = None) -> SlotKernelSpec:
-    """The loop version of :func:`~workbench.sampling.kernels.build.mppi_spec` (``strided``:
+    """The loop version of :func:`~workbench.sampling.kernels.specs.mppi_spec` (``strided``:
     of the RMPPI candidate kernel). ``reference``: the straight-line spec (built when None)."""
     sm = _slot_model(sp, precision)
     spec = reference or _reference("candidates" if strided else "mppi", sp, name, precision)
@@ -352,14 +354,14 @@ def mppi_slot_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = F
 
 def candidate_slot_spec(sp: SamplingProblem, precision: str = "float64",
                         reference: KernelSpec | None = None) -> SlotKernelSpec:
-    """The loop version of :func:`~workbench.sampling.kernels.build.candidate_spec`."""
+    """The loop version of :func:`~workbench.sampling.kernels.specs.candidate_spec`."""
     return mppi_slot_spec(sp, "wb_candidates", strided=True, precision=precision,
                           reference=reference)
 
 
 def sais_slot_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "float64",
                    reference: KernelSpec | None = None) -> SlotKernelSpec:
-    """The loop version of :func:`~workbench.sampling.kernels.build.sais_spec`."""
+    """The loop version of :func:`~workbench.sampling.kernels.specs.sais_spec`."""
     sm = _slot_model(sp, precision)
     spec = reference or _reference("sais", sp, name, precision)
     nx, nu, n = sp.nx, sp.nu, sm.n
@@ -544,7 +546,7 @@ def emit_slot_kernel(sk: SlotKernelSpec) -> str:
 
 def slot_specs(sp: SamplingProblem, specs: list[KernelSpec]) -> list[SlotKernelSpec]:
     """Loop versions of a sampler library's straight-line specs [mppi, sais, candidates]
-    (:func:`~workbench.sampling.kernels.build.library_sources`' order)."""
+    (:func:`~workbench.sampling.kernels.library.library_sources`' order)."""
     mppi, sais, cand = specs
     return [mppi_slot_spec(sp, mppi.name, precision=mppi.precision, reference=mppi),
             sais_slot_spec(sp, sais.name, sais.precision, reference=sais),
@@ -554,12 +556,8 @@ def slot_specs(sp: SamplingProblem, specs: list[KernelSpec]) -> list[SlotKernelS
 def slot_kernel_source(sp: SamplingProblem, specs: list[KernelSpec],
                        vector_math: bool | None = None) -> str:
     """C source of a sampler library with loop kernels: the same generator and declarations as
-    :func:`~workbench.sampling.kernels.build.kernel_source`, the kernels from
+    :func:`~workbench.sampling.kernels.library.kernel_source`, the kernels from
     :func:`emit_slot_kernel`."""
-    from workbench.sampling.kernels.build import kernel_flags
-    from workbench.sampling.kernels.emit import rng_source
-    from workbench.sampling.kernels.vector_math import prelude
-
     sks = slot_specs(sp, specs)
     precision = specs[0].precision
     fns = [f for s in sks for f in s.functions()]
@@ -574,22 +572,3 @@ def use_slot_loop(sp: SamplingProblem, precision: str = "float64",
     ``precision`` support it (:func:`unsupported_reason`)."""
     return sp.model.scene_capacity >= min_slots and unsupported_reason(sp, precision) is None
 
-
-def library_sources(sp: SamplingProblem, vector_math: bool | None = None,
-                    precision: str = "float64") -> tuple[str, list[KernelSpec], str]:
-    """(cache stem, kernel specs, C source) of ``sp``'s sampler library with loop kernels:
-    :func:`workbench.sampling.kernels.build.library_sources` with ``slot_loop=True``; raises
-    :class:`SlotLoopUnsupported` when it cannot."""
-    from workbench.sampling.kernels import build
-
-    _slot_model(sp, precision)
-    return build.library_sources(sp, vector_math, precision, slot_loop=True)
-
-
-def load_slot_library(sp: SamplingProblem, vector_math: bool | None = None):
-    """Build (or load from the cache) and verify ``sp``'s sampler library with loop kernels
-    (a :class:`~workbench.sampling.kernels.build.SamplerLibrary`; None without a compiler)."""
-    from workbench.sampling.kernels import build
-
-    _slot_model(sp)
-    return build.load_sampler_library(sp, vector_math, slot_loop=True)

@@ -32,6 +32,9 @@ from functools import cache
 import casadi as ca
 import numpy as np
 
+from workbench.codegen import CompileError, build_library
+from workbench.sampling.kernels.compiled import CompiledKernel
+from workbench.sampling.kernels.emit import KernelSpec, emit_kernel, rng_source
 from workbench.validation import fail
 
 MAX_ULP = 4
@@ -146,8 +149,6 @@ def reference(name: str, x, u, y) -> np.ndarray:
 def probe_spec(precision: str = "float64"):
     """A kernel whose lane outputs are every vectorisable function of lane inputs x, u, y
     (asin and acos of u in [-1, 1])."""
-    from workbench.sampling.kernels.emit import KernelSpec
-
     c, w = ca.SX.sym("carry"), ca.SX.sym("w")
     x, u, y = ca.SX.sym("x"), ca.SX.sym("u"), ca.SX.sym("y")
     args = {"asin": (u,), "acos": (u,), "atan2": (x, y)}
@@ -170,10 +171,6 @@ def unavailable(flags: tuple[str, ...], lanes: int, precision: str = "float64") 
     Builds a probe with the kernels' flags, checks that gcc called a SIMD variant of every
     function and that each result is within :data:`MAX_ULP` ulp of scalar libm (float32: float
     ulps from the double libm value at the float argument, rounded to float)."""
-    from workbench.codegen import CompileError, build_library
-    from workbench.sampling.kernels.build import CompiledKernel
-    from workbench.sampling.kernels.emit import emit_kernel, rng_source
-
     spec = probe_spec(precision)
     names = [n for n, _ in VECTOR_FUNCTIONS.values()]
     source = rng_source(spec.lanes) + "\n" + declarations(names, precision) + emit_kernel(spec)

@@ -1,6 +1,6 @@
 """The emitter vocabulary: the CasADi pieces every generated sampling kernel is written in.
 
-The MPPI, SAIS and candidate kernels (:mod:`workbench.sampling.kernels.build`), their slot-loop
+The MPPI, SAIS and candidate kernels (:mod:`workbench.sampling.kernels.specs`), their slot-loop
 forms (:mod:`~workbench.sampling.kernels.slots`) and the safe-MPPI kernel
 (:mod:`~workbench.sampling.kernels.safe`) build their step Functions from these, so the same
 input names, control clip and crash rule appear in each (and CSE shares them within a step).
