@@ -36,10 +36,11 @@ from workbench.bound.tube import Tube
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI
 from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.reference import sais_reference
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.sampling.sampler import SAISDiagBatch, Sampler
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop

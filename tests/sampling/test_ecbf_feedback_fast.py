@@ -10,11 +10,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import workbench.sampling.ecbf_feedback as ef
+import workbench.sampling.feedback.ecbf as ef
 from workbench.filters.ecbf import ECBFOptions
 from workbench.problem.models import Circle, double_integrator
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
-from workbench.sampling.ecbf_feedback import ECBFFeedback
+from workbench.sampling.feedback.ecbf import ECBFFeedback
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.planning import physical_model
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.scenarios.methods import affine_in_controls
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop

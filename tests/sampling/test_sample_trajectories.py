@@ -21,16 +21,17 @@ from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling import samples as samples_module
-from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
 from workbench.sampling.feedback import Gains
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
 from workbench.sampling.methods.gatekeeper import Gatekeeper, braking_backup
+from workbench.sampling.methods.sampler import SafeOptions
 from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
 from workbench.sampling.methods.tube import TubeMPPI
+from workbench.sampling.mppi import MPPI, MPPIConfig
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.reference import mppi_reference
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.sampling.safe_reference import safe_reference
-from workbench.sampling.safe_sampler import SafeOptions
 from workbench.sampling.samples import (
     Rollout,
     SampleTrajectories,

@@ -113,7 +113,7 @@ def core_source(problem: Problem, fns: list[ca.Function]) -> str:
     :func:`core_macros`, then core.c (``wb_call`` with the current scene ``wb_scene``, the
     passes ``wb_forward``, ``wb_derivatives``, ``wb_box_qp``, ``wb_backward``,
     ``wb_line_search`` and the outer loop ``wb_solve``). Another library may append C that
-    calls them (:mod:`workbench.sampling.kernels.robust`)."""
+    calls them (:mod:`workbench.sampling.feedback.compiled`)."""
     core = resources.files("workbench.ilqg").joinpath("core.c").read_text()
     return core_macros(problem, fns) + core
 

@@ -16,7 +16,7 @@ from workbench.sampling.numpy_model import numpy_navigation_twin
 from workbench.sampling.problem import SamplingProblem
 
 
-def _model(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
+def model_twin(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
     """Model evaluation for the twin in ``scene`` (empty: the model's own): plain NumPy for
     the built-in navigation problem (unless ``model_backend == "casadi"``), otherwise the CasADi
     virtual machine mapped over samples."""
@@ -77,7 +77,7 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
     if delay is not None:
         Z = np.where(np.arange(T)[None, :, None] < np.asarray(delay)[:, None, None], 0.0, Z)
     Ub = np.broadcast_to(U, (N, T, sp.nu))
-    m = _model(sp, N, c.scene, model_backend)
+    m = model_twin(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
@@ -107,7 +107,7 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
     trajectories X, X_nom (N,T+1,nx); with ``pure_costs`` also the pure state costs Sx_real,
     Sx_nom (Σq + φ without crash cost, assumptions §11.2 item 1)."""
     N, T = Z.shape[0], Z.shape[1]
-    m = _model(sp, N, c.scene, model_backend)
+    m = model_twin(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))

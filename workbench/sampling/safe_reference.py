@@ -18,7 +18,7 @@ from workbench.problem.dcbf import check_gamma, discrete_cbf
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import INFEASIBLE_TOL
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.reference import _model
+from workbench.sampling.reference import model_twin
 
 
 class _CBF:
@@ -51,7 +51,7 @@ def safe_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants, project: 
     gamma = check_gamma("gamma", gamma)
     N, T = Z.shape[0], Z.shape[1]
     scene = sp.model.scene_vector(c.scene if np.size(c.scene) else None)
-    m = _model(sp, N, scene, model_backend)
+    m = model_twin(sp, N, scene, model_backend)
     cbf = _CBF(sp, N, gamma, scene)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)

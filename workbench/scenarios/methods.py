@@ -28,14 +28,16 @@ import numpy as np
 
 from workbench.filters.ecbf import ECBFOptions
 from workbench.problem.models import Model
-from workbench.sampling.al_feedback import ALFeedback, ALFeedbackOptions
-from workbench.sampling.controllers import MPPI, RMPPIConfig, RobustMPPI, physical_model
-from workbench.sampling.ecbf_feedback import ECBFFeedback
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.feedback.al import ALFeedback, ALFeedbackOptions
+from workbench.sampling.feedback.ecbf import ECBFFeedback
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
 from workbench.sampling.methods.gatekeeper import Gatekeeper, GatekeeperConfig
 from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
 from workbench.sampling.methods.tube import TubeConfig, TubeMPPI
+from workbench.sampling.mppi import MPPI
+from workbench.sampling.planning import physical_model
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.validation import fail, one_of
 
 if TYPE_CHECKING:

@@ -12,9 +12,11 @@ import numpy as np
 from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.models import Model, margin_violation
 from workbench.sampling.calibration import calibrate
-from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
+from workbench.sampling.mppi import MPPI, MPPIConfig
+from workbench.sampling.planning import physical_model
 from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.scenes import CircleScene, NavigationScene
 from workbench.scenarios.systems import SYSTEMS, System

@@ -283,7 +283,7 @@ def test_float_vector_math_uses_simd_float_functions():
 def test_mppi_config_precision_reaches_the_sampler_and_is_validated(setup):
     """MPPIConfig(precision=...) selects the Sampler's kernels; bad values and float32-unsafe
     scales are refused naming the field."""
-    from workbench.sampling.controllers import MPPI, MPPIConfig
+    from workbench.sampling.mppi import MPPI, MPPIConfig
 
     model, sp = setup[0], setup[1]
     goal = model.lift((4.0, 4.0, 0.0, 0.0))

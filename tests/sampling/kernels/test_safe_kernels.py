@@ -22,10 +22,10 @@ from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import INFEASIBLE_TOL, safe_library
+from workbench.sampling.methods.sampler import SafeOptions, SafeSampler
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import _model
+from workbench.sampling.reference import model_twin
 from workbench.sampling.safe_reference import _CBF, safe_reference
-from workbench.sampling.safe_sampler import SafeOptions, SafeSampler
 from workbench.sampling.sampler import Sampler
 
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6),
@@ -190,7 +190,7 @@ def twin_copy(sp, X0, U, Z, c, project, w_dcbf, gamma, model_backend="auto", dro
     assert set(drop) <= set(MUTANTS)
     N_, T_ = Z.shape[0], Z.shape[1]
     scene = sp.model.scene_vector(c.scene if np.size(c.scene) else None)
-    m = _model(sp, N_, scene, model_backend)
+    m = model_twin(sp, N_, scene, model_backend)
     cbf = _CBF(sp, N_, gamma, scene)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)

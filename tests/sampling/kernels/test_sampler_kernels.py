@@ -24,7 +24,7 @@ from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import _model, _NumpyModel, mppi_reference, sais_reference
+from workbench.sampling.reference import _NumpyModel, model_twin, mppi_reference, sais_reference
 from workbench.sampling.sampler import Sampler
 
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6))
@@ -231,7 +231,7 @@ def sais_twin_copy(sp, X0, Xs0, U, K, Z, c, model_backend="auto", drop=frozenset
     Without ``drop`` it equals the twin bit for bit (tested below)."""
     assert set(drop) <= set(MUTANTS)
     N, T = Z.shape[0], Z.shape[1]
-    m = _model(sp, N, c.scene, model_backend)
+    m = model_twin(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
@@ -419,8 +419,8 @@ def test_candidate_kernel_equals_twin_per_element(setup):
 
 def test_numpy_twin_is_used_for_the_navigation_problem(setup):
     _, sp, _, _ = setup
-    assert isinstance(_model(sp, 4, sp.model.scene_value), _NumpyModel)
-    assert not isinstance(_model(sp, 4, sp.model.scene_value, "casadi"), _NumpyModel)
+    assert isinstance(model_twin(sp, 4, sp.model.scene_value), _NumpyModel)
+    assert not isinstance(model_twin(sp, 4, sp.model.scene_value, "casadi"), _NumpyModel)
 
 
 def test_kernel_noise_is_standard_normal_and_deterministic(setup):

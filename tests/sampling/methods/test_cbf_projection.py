@@ -17,11 +17,11 @@ import pytest
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPIConfig
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
+from workbench.sampling.methods.sampler import SafeMPPIState, SafeSampler
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.safe_reference import safe_reference
-from workbench.sampling.safe_sampler import SafeMPPIState, SafeSampler
 from workbench.sampling.weights import importance_weights
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop

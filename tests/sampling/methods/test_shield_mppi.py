@@ -15,11 +15,11 @@ import pytest
 
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPIConfig
+from workbench.sampling.methods.sampler import SafeSampler
 from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.safe_reference import safe_reference
-from workbench.sampling.safe_sampler import SafeSampler
 from workbench.sampling.weights import importance_weights
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop

@@ -15,9 +15,9 @@ import pytest
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPI, MPPIConfig
 from workbench.sampling.feedback import Gains
 from workbench.sampling.methods.tube import TubeConfig, TubeMPPI, TubeState, default_tracker
+from workbench.sampling.mppi import MPPI, MPPIConfig
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.reference import mppi_reference
 from workbench.sampling.weights import importance_weights

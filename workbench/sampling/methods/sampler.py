@@ -18,15 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma
-from workbench.sampling.controllers import (
-    MPPIConfig,
-    _check_plan,
-    _full_state,
-    constants_in_scene,
-    plan_constants,
-)
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import safe_library
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.planning import check_plan, constants_in_scene, full_state, plan_constants
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.safe_reference import safe_reference
 from workbench.sampling.sampler import Backend, check_batch
@@ -119,7 +114,7 @@ class SafeMPPIState:
 class SafeMPPIPlanner:
     """MPPI's planning loop on a :class:`SafeSampler` with fixed :class:`SafeOptions`: goal
     (a physical goal of a barrier-embedded problem is lifted in the current scene, like
-    :class:`~workbench.sampling.controllers.MPPI`), constants, scene, ``iterations`` batches
+    :class:`~workbench.sampling.mppi.MPPI`), constants, scene, ``iterations`` batches
     per step, each updating the plan to the weighted average of the applied sample controls
     (smoothed when the config asks)."""
 
@@ -138,7 +133,7 @@ class SafeMPPIPlanner:
 
     def set_scene(self, scene) -> None:
         """Plan in ``scene`` from the next step on (see
-        :meth:`~workbench.sampling.controllers.MPPI.set_scene`)."""
+        :meth:`~workbench.sampling.mppi.MPPI.set_scene`)."""
         self.consts = constants_in_scene(self.sp, self.consts, self._goal, scene)
 
     def initial_state(self, x0=None) -> SafeMPPIState:
@@ -146,7 +141,7 @@ class SafeMPPIPlanner:
 
     def full_state(self, x) -> np.ndarray:
         """The measured state as the problem's full state (lifted in the current scene)."""
-        return _full_state(self.sp, x, self.consts.scene)
+        return full_state(self.sp, x, self.consts.scene)
 
     def plan(self, state: SafeMPPIState, xb: np.ndarray,
              rng: np.random.Generator) -> tuple[np.ndarray, Weights, SafeBatch]:
@@ -156,7 +151,7 @@ class SafeMPPIPlanner:
             raise fail("state", type(state).__name__, "must be a SafeMPPIState "
                        "(from initial_state)")
         U = state.U
-        _check_plan(U, self.cfg.horizon, self.sp.nu)
+        check_plan(U, self.cfg.horizon, self.sp.nu)
         for _ in range(self.cfg.iterations):
             batch = self.sampler.batch(xb, U, self.cfg.n_samples, self.consts, self.options,
                                        int(rng.integers(0, 2**63)))
