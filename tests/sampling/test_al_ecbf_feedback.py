@@ -291,7 +291,7 @@ def test_ecbf_gains_are_the_derivative_of_the_actual_filter(model, ecbf, ilqg):
         kinds.setdefault(kind, []).append(k)
     assert set(kinds) == {"none", "row", "row+box", "infeasible"}, kinds
     assert not np.any(g.K[:, :, 4])
-    ref = ecbf.gains_reference(AT_SPEED, U, None, 0)  # the per-step twin: the same gains
+    ref = ecbf.gains_twin(AT_SPEED, U, None, 0)  # the per-step twin: the same gains
     assert ref.activity == g.activity and close(ref.K, g.K, 1e-12)
     n_active = T - len(kinds["none"])
     assert g.activity["ecbf_active"] == pytest.approx(n_active / T)

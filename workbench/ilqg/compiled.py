@@ -16,7 +16,7 @@ from workbench.ilqg.passes import (
     LineSearchResult,
     SolveResult,
 )
-from workbench.ilqg.reference import step_function
+from workbench.ilqg.twin import step_function
 from workbench.problem.problem import FUNCTION_NAMES, Problem
 
 _LIBS: dict[str, Library | None] = {}
@@ -162,7 +162,7 @@ def _c(a) -> np.ndarray:
 
 
 class CompiledPasses:
-    """Same interface as :class:`~workbench.ilqg.reference.NumpyPasses`, in compiled C.
+    """Same interface as :class:`~workbench.ilqg.twin.PassesTwin`, in compiled C.
 
     Every array the C functions read or write lives in a buffer allocated once per
     (problem, horizon), whose address is looked up once: a call copies its inputs into the

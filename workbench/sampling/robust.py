@@ -174,7 +174,7 @@ class RobustMPPI(RecordsSamples):
     arithmetic around the sampler batches runs vectorised
     (:mod:`workbench.sampling.robust_step`): candidate starts compiled, all candidate free
     energies in one pass, the real system's weighted controls only when they are applied.
-    ``fast=False`` runs :meth:`step_reference`, the step-by-step twin (``feedback.gains``);
+    ``fast=False`` runs :meth:`step_twin`, the step-by-step twin (``feedback.gains``);
     both return the same numbers, bit for bit."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig(),
@@ -239,9 +239,9 @@ class RobustMPPI(RecordsSamples):
 
     def select_nominal(self, state: RMPPIState, xb, rng) -> Selection:
         """Nominal-state selection (assumptions §9.3) with s = 1 plant step since the last call
-        (:meth:`select_nominal_reference` with ``fast=False``)."""
+        (:meth:`select_nominal_twin` with ``fast=False``)."""
         if not self.fast:
-            return self.select_nominal_reference(state, xb, rng)
+            return self.select_nominal_twin(state, xb, rng)
         nc = self.rcfg.n_candidates
         if state.x_nom is None:
             return self._first_selection(state, xb)
@@ -272,7 +272,7 @@ class RobustMPPI(RecordsSamples):
                          index=i_star, stride=s, free_energy=F, alpha=alpha,
                          fallback=fallback, alpha_nominal=float(alpha[i_star]))
 
-    def select_nominal_reference(self, state: RMPPIState, xb, rng) -> Selection:
+    def select_nominal_twin(self, state: RMPPIState, xb, rng) -> Selection:
         """:meth:`select_nominal` step by step (its twin: per-candidate free energies in a
         Python loop, the mixture, lift and propagation as separate calls)."""
         nc = self.rcfg.n_candidates
@@ -299,9 +299,9 @@ class RobustMPPI(RecordsSamples):
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         """One control step: selection, gains, SAIS batch(es), update (``fast``: the
-        vectorised step, else :meth:`step_reference`)."""
+        vectorised step, else :meth:`step_twin`)."""
         if not self.fast:
-            return self.step_reference(state, x, rng)
+            return self.step_twin(state, x, rng)
         t0 = time.perf_counter()
         sp, cfg = self.sp, self.cfg
         xb = full_state(sp, x, self.consts.scene)
@@ -375,12 +375,12 @@ class RobustMPPI(RecordsSamples):
             samples=samples)
         return RMPPIState(U=U, x_nom=x_nom, index=sel.index, gains=gains), u, info
 
-    def step_reference(self, state: RMPPIState, x, rng: np.random.Generator):
+    def step_twin(self, state: RMPPIState, x, rng: np.random.Generator):
         """:meth:`step` step by step (its twin; ``fast=False``)."""
         t0 = time.perf_counter()
         xb = full_state(self.sp, x, self.consts.scene)
         check_plan(state.U, self.cfg.horizon, self.sp.nu)
-        sel = self.select_nominal_reference(state, xb, rng)
+        sel = self.select_nominal_twin(state, xb, rng)
         x_nom, U = sel.x_nom, sel.U
         t1 = time.perf_counter()
         gains = self.feedback.gains(x_nom, U, state.gains, sel.stride)

@@ -294,10 +294,10 @@ class ECBFFeedback:
     def gains(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
         """The gains (see the class): the QP of every active step solved by daqp as in
         :meth:`solve`, the row Jacobians and the KKT solves batched over the steps; equal to
-        :meth:`gains_reference` (which runs :meth:`sensitivity` step by step)."""
+        :meth:`gains_twin` (which runs :meth:`sensitivity` step by step)."""
         return self._gains(x_nom, U, previous, stride, fast=True)
 
-    def gains_reference(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
+    def gains_twin(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
         """The gains with :meth:`sensitivity` called at each active step (the slow twin of
         :meth:`gains`)."""
         return self._gains(x_nom, U, previous, stride, fast=False)

@@ -1,6 +1,6 @@
 """Safe-MPPI batches: MPPI samples projected onto the discrete CBF constraints and/or scored with
 the DCBF violation cost (:mod:`workbench.sampling.kernels.safe`), on the compiled kernel or its
-NumPy twin (:mod:`workbench.sampling.safe_reference`).
+NumPy twin (:mod:`workbench.sampling.methods.twin`).
 
 Like :class:`~workbench.sampling.sampler.Sampler`: every call takes an explicit seed; the
 compiled backend draws its noise in the kernel from it, the NumPy backend with
@@ -20,11 +20,12 @@ import numpy as np
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import safe_library
+from workbench.sampling.methods.twin import safe_twin
 from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.planning import check_plan, constants_in_scene, full_state, plan_constants
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.safe_reference import safe_reference
 from workbench.sampling.sampler import Backend, check_batch
+from workbench.sampling.twin import lane_major
 from workbench.sampling.weights import Weights, importance_weights, weighted_controls
 from workbench.validation import as_array, fail, flag, one_of, real
 
@@ -98,10 +99,10 @@ class SafeSampler:
                              projected=np.rint(r["projected"]).astype(int),
                              infeasible=np.rint(r["infeasible"]).astype(int),
                              dcbf=r["dcbf"].copy())
-        ref = safe_reference(sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), consts,
-                             options.project, options.w_dcbf, options.gamma)
+        ref = safe_twin(sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), consts,
+                        options.project, options.w_dcbf, options.gamma)
         return SafeBatch(S=ref["S"], crashed=ref["crashed"],
-                         v=np.ascontiguousarray(np.transpose(ref["v"], (1, 2, 0))),
+                         v=np.ascontiguousarray(lane_major(ref["v"])),
                          projected=ref["projected"], infeasible=ref["infeasible"],
                          dcbf=ref["dcbf"])
 
