@@ -1,9 +1,9 @@
 """The library's layers, lowest first, and the rule that nothing imports upward.
 
 validation < study (infrastructure: configs, runner, store, statistics) and codegen < problem
-< ilqg, filters < sim < sampling.problem < sampling.kernels < sampling < scenarios < bound
-< cli. The library never imports ``benchmarks`` or ``studies`` (except the command line, which
-reads the study registry), and module-level imports form no cycle.
+< ilqg, filters < sim < sampling.problem < sampling.kernels < sampling.feedback < sampling
+< scenarios < bound < cli. The library never imports ``benchmarks`` or ``studies`` (except the
+command line, which reads the study registry), and module-level imports form no cycle.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ LAYERS = [
     ("workbench.sim",),
     ("workbench.sampling.problem",),
     ("workbench.sampling.kernels",),
+    ("workbench.sampling.feedback",),
     ("workbench.sampling",),
     ("workbench.scenarios",),
     ("workbench.bound",),
