@@ -1,4 +1,5 @@
-"""The compiled twin: the problem's Functions and core.c in one cached shared library."""
+"""The compiled iLQG passes: the problem's Functions and core.c in one cached shared library
+(their twin: :mod:`workbench.ilqg.twin`)."""
 
 from __future__ import annotations
 
@@ -56,9 +57,9 @@ def solve_options_layout(library: Library) -> tuple[int, tuple[tuple[str, int, i
 
 
 def row_major_functions(problem: Problem) -> list[ca.Function]:
-    """``wb_<name>`` twins of the problem Functions whose matrix outputs are row-major in memory.
+    """``wb_<name>`` copies of the problem Functions whose matrix outputs are row-major in memory.
 
-    Every twin takes the scene as its fourth input (the inputs before it padded with empty
+    Every copy takes the scene as its fourth input (the inputs before it padded with empty
     ones), so core.c's ``wb_call`` hands the current scene to each of them in one place."""
     out = []
     for f in [problem.functions[n] for n in FUNCTION_NAMES] + [step_function(problem)]:

@@ -169,7 +169,7 @@ class RobustMPPI(RecordsSamples):
     state with feedback, ``nominal`` from x*_0 without; ``weights`` the nominal weights (the
     update of u*), ``weights_real`` the real ones.
 
-    ``fast`` (default): the gains come from the law's compiled twin when it has one
+    ``fast`` (default): the gains come from the law's compiled fast path when it has one
     (``fast_gains``, e.g. :meth:`ILQGFeedback.fast_gains`: K_safe in one call) and the step's
     arithmetic around the sampler batches runs vectorised
     (:mod:`workbench.sampling.robust_step`): candidate starts compiled, all candidate free
@@ -217,7 +217,7 @@ class RobustMPPI(RecordsSamples):
         self._smooth = (None if config.smoothing is None
                         else savgol_matrix(config.horizon, *config.smoothing))
         if self.fast and hasattr(self.feedback, "fast_gains"):
-            getattr(self.feedback, "compiled", None)  # build the law's compiled twin now
+            getattr(self.feedback, "compiled", None)  # build the law's compiled fast path now
         self.set_scene(None)
 
     @property
@@ -310,7 +310,7 @@ class RobustMPPI(RecordsSamples):
         x_nom, U = sel.x_nom, sel.U
         t1 = time.perf_counter()
         fb = self.feedback
-        # a law's compiled twin of gains(...) when it has one (ILQGFeedback.fast_gains)
+        # a law's compiled fast path of gains(...) when it has one (ILQGFeedback.fast_gains)
         gains = getattr(fb, "fast_gains", fb.gains)(x_nom, U, state.gains, sel.stride)
         K = gains.K
         t2 = time.perf_counter()
