@@ -34,10 +34,10 @@ from benchmarks.floor import FloorProblem, load_floor
 from benchmarks.split import machine
 from benchmarks.timing import pinned_threads, round_robin
 from workbench.codegen import build_counts
-from workbench.sampling.controllers import MPPI, MPPIConfig
 from workbench.sampling.kernels import slots
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.library import load_sampler_library
+from workbench.sampling.mppi import MPPI, MPPIConfig
 from workbench.sampling.sampler import Sampler, check_batch
 from workbench.sampling.threshold import AlphaRule
 from workbench.sampling.weights import importance_weights, weighted_controls

@@ -41,8 +41,9 @@ import numpy as np
 
 from benchmarks.timing import pinned_threads, record, round_robin
 from workbench.codegen.fastcall import FastFunction
-from workbench.sampling.controllers import RobustMPPI, _shift, strides
 from workbench.sampling.feedback import ILQGFeedback
+from workbench.sampling.planning import shift_plan
+from workbench.sampling.robust import RobustMPPI, strides
 from workbench.sampling.robust_step import candidate_free_energies
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
 from workbench.scenarios.navigation import navigation_setup
@@ -113,7 +114,7 @@ def episode(nav, fast: RobustMPPI, ref: RobustMPPI, steps: int, seed: int = 2) -
         new, u, info = out["fast"]
         # the step's own SAIS batch: its inputs rebuilt from the step's outcome
         xb = sp.model.lift(x, fast.consts.scene)
-        U_is = _shift(state.U, int(st[info.candidate]), fast.cfg.tail) if state.x_nom is not \
+        U_is = shift_plan(state.U, int(st[info.candidate]), fast.cfg.tail) if state.x_nom is not \
             None else state.U
         K, c = new.gains.K, replace(fast.consts, alpha=info.alpha)
 

@@ -1,5 +1,5 @@
 """Sampler benchmarks: one SAIS and one MPPI iteration, compiled kernel vs a well-vectorised NumPy
-implementation (benchmarks/numpy_sampling.py), each checked equal to the kernel on the kernel's
+implementation (benchmarks/numpy_baseline.py), each checked equal to the kernel on the kernel's
 noise before it is timed (the SA-RMPPI control step is in benchmarks/split.py, against the C
 floor)."""
 
@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from benchmarks.numpy_sampling import VectorisedNavigation, mppi_numpy, sais_numpy
+from benchmarks.numpy_baseline import VectorisedNavigation, mppi_baseline, sais_baseline
 from benchmarks.timing import pinned_threads
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.sampler import Sampler
@@ -55,7 +55,7 @@ def _sais_compiled(sampler, x0, U, K, N, c, seed):
 def _sais_vectorised(nav, x0, U, K, N, c, seed):
     T, nu = U.shape
     Z = np.random.default_rng(seed).standard_normal((T, nu, N))
-    r = sais_numpy(nav, x0, x0, U, K, Z, c)
+    r = sais_baseline(nav, x0, x0, U, K, Z, c)
     wn, wr = importance_weights(r["S_nom"], c.lam), importance_weights(r["S_real"], c.lam)
     return weighted_controls(r["v_nom"], wn.w), weighted_controls(r["v_real"], wr.w)
 
@@ -68,7 +68,7 @@ def _mppi_compiled(sampler, x0, U, N, c, seed):
 def _mppi_vectorised(nav, x0, U, N, c, seed):
     T, nu = U.shape
     Z = np.random.default_rng(seed).standard_normal((T, nu, N))
-    r = mppi_numpy(nav, x0, U, Z, c)
+    r = mppi_baseline(nav, x0, U, Z, c)
     return weighted_controls(r["v"], importance_weights(r["S"], c.lam).w)
 
 
@@ -105,7 +105,7 @@ def sais_batch_records(repeats: int) -> list[dict]:
         with pinned_threads(threads) if threads else contextlib.nullcontext():
             # exactness first: the vectorised baseline on the kernel's noise equals the kernel
             b = sampler.sais(x0, x0, U, K, N, c, 1)
-            r = sais_numpy(vec, x0, x0, U, K, sampler.lib.normals(N, T, sp.nu, 1), c)
+            r = sais_baseline(vec, x0, x0, U, K, sampler.lib.normals(N, T, sp.nu, 1), c)
             err = max(_rel_err(getattr(b, n), r[n]) for n in (
                 "S_nom", "S_real", "S_state_nom", "S_hat", "LR", "v_nom", "v_real"))
             if not (np.array_equal(b.crashed_real, r["crashed_real"])
@@ -127,7 +127,7 @@ def sais_batch_records(repeats: int) -> list[dict]:
                 "includes": "noise draw + dual rollout + 3 costs + both weightings and updates "
                 "(both sides)", "max_rel_err_vs_kernel_on_kernel_noise": err,
                 "crashed_real_fraction": float(np.mean(r["crashed_real"])),
-                "baseline_code": "benchmarks/numpy_sampling.py:sais_numpy"}))
+                "baseline_code": "benchmarks/numpy_baseline.py:sais_baseline"}))
     return out
 
 
@@ -143,7 +143,7 @@ def mppi_batch_records(repeats: int) -> list[dict]:
         c = SamplerConstants(sigma=c_bas.sigma, lam=c_bas.lam, nu_mix=0.0, u_min=c_bas.u_min,
                              u_max=c_bas.u_max, crash_cost=1e6, p=sp.model.lift(nav_setup.goal))
         b = sampler.mppi(x0, U, N, c, 1)
-        r = mppi_numpy(vec, x0, U, sampler.lib.normals(N, T, sp.nu, 1), c)
+        r = mppi_baseline(vec, x0, U, sampler.lib.normals(N, T, sp.nu, 1), c)
         err = max(_rel_err(b.S, r["S"]), _rel_err(b.v, r["v"]))
         if not np.array_equal(b.crashed, r["crashed"]):
             err = np.inf
@@ -161,7 +161,7 @@ def mppi_batch_records(repeats: int) -> list[dict]:
                            "includes": "noise draw + rollout + costs + weights + update "
                            "(both sides)", "max_rel_err_vs_kernel_on_kernel_noise": err,
                            "crashed_fraction": float(np.mean(r["crashed"])),
-                           "baseline_code": "benchmarks/numpy_sampling.py:mppi_numpy"}))
+                           "baseline_code": "benchmarks/numpy_baseline.py:mppi_baseline"}))
     return out
 
 

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from benchmarks.numpy_sampling import VectorisedNavigation
+from benchmarks.numpy_baseline import VectorisedNavigation
 from benchmarks.sampling import _mppi_compiled, _record
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.sampler import Sampler

@@ -22,8 +22,8 @@ from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import mppi_reference, sais_reference
 from workbench.sampling.sampler import Sampler, check_batch
+from workbench.sampling.twin import mppi_twin, sais_twin
 
 # five circles: the pairwise sum has two pairs and an odd tail, the four-circle form one group
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6),
@@ -64,7 +64,7 @@ def case():
     Z = np.random.default_rng(ZSEED).standard_normal((N, T, 2))  # sample-major for the twin
     c = SamplerConstants(sigma=np.array([3.0, 2.4]), lam=1.3, nu_mix=0.1, u_min=model.u_min,
                          u_max=model.u_max, crash_cost=1e6, p=model.lift(GOAL))
-    free = sais_reference(sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, c)
+    free = sais_twin(sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, c)
     Sh = np.sort(free["S_hat"][~free["crashed_real"] & ~free["crashed_nom"]])
     c = replace(c, alpha=float(0.5 * (Sh[Sh.size // 2 - 1] + Sh[Sh.size // 2])))
     return sp, x0, xs0, U, K, Z, c
@@ -74,7 +74,7 @@ def twin(case, **changes):
     sp, x0, xs0, U, K, Z, c = case
     K = changes.pop("K", K)
     c = replace(c, **changes)
-    return sais_reference(sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, c)
+    return sais_twin(sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, c)
 
 
 def floor_sais(case, group: int = 2):
@@ -129,12 +129,12 @@ def test_floor_comparison_is_sharp(case, change):
 
 def test_floor_mppi_equals_twin(case):
     sp, x0, _, U, _, Z, c = case
-    ref = mppi_reference(sp, np.tile(x0, (N, 1)), U, Z, c)
+    ref = mppi_twin(sp, np.tile(x0, (N, 1)), U, Z, c)
     fl = load_floor().mppi(FloorProblem.of(sp, c), x0, U, lane_major(Z))
     assert ref["crashed"].any() and not ref["crashed"].all()
     assert np.array_equal(fl["crashed"], ref["crashed"])
     assert max(rel_err(fl["S"], ref["S"]), rel_err(fl["v"], lane_major(ref["v"]))) <= RTOL
-    other = mppi_reference(sp, np.tile(x0, (N, 1)), U, Z, replace(c, lam=2.0))
+    other = mppi_twin(sp, np.tile(x0, (N, 1)), U, Z, replace(c, lam=2.0))
     assert rel_err(fl["S"], other["S"]) > 1e4 * RTOL
 
 

@@ -24,7 +24,8 @@ import numpy as np
 import pytest
 
 from workbench.cli import main, parser, user_path
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.robust import RMPPIConfig
 from workbench.study import TaskOutput
 from workbench.study import runner as runner_module
 from workbench.study.config_io import ConfigError, parse_sets

@@ -21,7 +21,7 @@ from matplotlib.figure import Figure
 from workbench import plot
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle, scene_vector
-from workbench.sampling.controllers import MPPI, MPPIConfig
+from workbench.sampling.mppi import MPPI, MPPIConfig
 from workbench.sampling.problem import navigation_costs
 from workbench.sampling.samples import SampleTrajectories
 from workbench.scenarios.scenes import CircleScene, NavigationScene

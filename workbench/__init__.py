@@ -41,10 +41,12 @@ _EXPORTS = {
     "workbench.ilqg.oracle": ("solve_ipopt",),
     "workbench.filters.ecbf": ("ECBFFilter", "ECBFOptions"),
     "workbench.sampling.problem": ("SamplingProblem", "goal_costs", "navigation_costs"),
-    "workbench.sampling.controllers": ("MPPI", "MPPIConfig", "RMPPIConfig", "RobustMPPI"),
-    "workbench.sampling.feedback": ("FeedbackWeights", "ILQGFeedback"),
-    "workbench.sampling.al_feedback": ("ALFeedback", "ALFeedbackOptions"),
-    "workbench.sampling.ecbf_feedback": ("ECBFFeedback",),
+    "workbench.sampling.mppi": ("MPPI", "MPPIConfig"),
+    "workbench.sampling.robust": ("RMPPIConfig", "RobustMPPI"),
+    "workbench.sampling.feedback.base": ("FeedbackWeights",),
+    "workbench.sampling.feedback.ilqg": ("ILQGFeedback",),
+    "workbench.sampling.feedback.al": ("ALFeedback", "ALFeedbackOptions"),
+    "workbench.sampling.feedback.ecbf": ("ECBFFeedback",),
     "workbench.sampling.step_stats": ("StepStats",),
     "workbench.sampling.samples": ("SampleTrajectories",),
     "workbench.sampling.methods.tube": ("TubeConfig", "TubeMPPI"),
@@ -132,10 +134,11 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.problem.problem import Problem
     from workbench.problem.vehicles import kinematic_bicycle, planar_quadrotor, unicycle
     from workbench.sampling.calibration import calibrate, calibration_trace
-    from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
     from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
     from workbench.sampling.kernels.library import get_threads, set_threads
+    from workbench.sampling.mppi import MPPI, MPPIConfig
     from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
+    from workbench.sampling.robust import RMPPIConfig, RobustMPPI
     from workbench.sampling.samples import SampleTrajectories
     from workbench.sampling.threshold import AlphaRule, make_threshold
     from workbench.scenarios.maps import (

@@ -22,8 +22,8 @@ from workbench.codegen import build_library
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.emit import rng_source
 from workbench.sampling.kernels.flags import KERNEL_FLAGS
-from workbench.sampling.numpy_model import numpy_navigation_twin
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.twin_model import numpy_navigation_twin
 from workbench.validation import fail, integer
 
 SOURCE = Path(__file__).with_name("sais_floor.c")

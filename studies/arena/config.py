@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.maps import MapFamily, generate
 from workbench.scenarios.methods import MethodSettings, names

@@ -14,8 +14,8 @@ from functools import cache
 
 import numpy as np
 
-from workbench.sampling.controllers import RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.robust import RMPPIConfig
 from workbench.scenarios.maps import GeneratedMap, MapFamily, generate, scaled
 from workbench.scenarios.methods import build, method
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup

@@ -16,7 +16,8 @@ import numpy as np
 
 from studies.free_energy_bound.config import StudyConfig
 from workbench.bound import BoundConfig, CostGradients, Lipschitz, LipschitzGrid
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.sampling.threshold import AlphaRule, ProgressThreshold
 from workbench.scenarios.navigation import (
     TUNED_LAMBDA,

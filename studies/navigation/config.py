@@ -5,8 +5,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 from studies.navigation.scene import MapSpec
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import method
 from workbench.scenarios.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA

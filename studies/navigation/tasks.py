@@ -17,8 +17,9 @@ from studies.navigation.illustration import illustrate
 from studies.navigation.metrics import episode_row, timing_row, velocity_rows
 from studies.navigation.scene import MapSpec
 from workbench.sampling.calibration import calibrate, calibration_trace
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop

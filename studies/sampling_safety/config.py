@@ -7,8 +7,9 @@ from dataclasses import asdict, dataclass, field
 
 from studies.navigation.config import checked_variances, variance_key
 from studies.navigation.scene import MapSpec
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA

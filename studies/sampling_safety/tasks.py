@@ -16,8 +16,9 @@ import numpy as np
 from studies.navigation.scene import MapSpec
 from studies.sampling_safety.config import RESULT_VERSION, StudyConfig, variance_key
 from workbench.sampling.calibration import calibrate
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.methods import MethodSettings, build, feedback_law, method, slowest_first
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup

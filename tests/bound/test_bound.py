@@ -36,11 +36,12 @@ from workbench.bound.tube import Tube
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI
 from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import sais_reference
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.sampling.sampler import SAISDiagBatch, Sampler
+from workbench.sampling.twin import sais_twin
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
@@ -317,8 +318,8 @@ def test_diagnostic_kernel_matches_the_twin_and_the_plain_kernel(scene):
               "v_nom", "v_real"):
         assert np.array_equal(getattr(b, f), getattr(plain, f)), f  # bitwise
     Z = np.transpose(sampler.lib.normals(N, U.shape[0], 2, seed), (2, 0, 1))
-    ref = sais_reference(sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, c,
-                         pure_costs=True)
+    ref = sais_twin(sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, c,
+                    pure_costs=True)
     lm = lambda a: np.transpose(a, (1, 2, 0))  # noqa: E731
     assert rel_err(b.X, lm(ref["X"])) <= RTOL
     assert rel_err(b.X_nom, lm(ref["X_nom"])) <= RTOL

@@ -9,7 +9,7 @@ from conftest import bas_tracking_problem, central_jacobian
 
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.ilqg.oracle import solve_ipopt
-from workbench.ilqg.reference import NumpyPasses
+from workbench.ilqg.twin import PassesTwin
 
 
 def _safe_points(problem, rng, n):
@@ -46,7 +46,7 @@ def test_dyn_hess_matches_finite_differences(bas_tracking, rng):
 def test_second_order_passes_equal_numpy_twin(bas_tracking, scene, rng, reg, boxed):
     problem, P = bas_tracking
     T = scene.horizon
-    fast, slow = make_passes(problem, T, "compiled"), NumpyPasses(problem, T)
+    fast, slow = make_passes(problem, T, "compiled"), PassesTwin(problem, T)
     x0 = problem.check_initial_state(scene.start)
     umin, umax = problem.model.u_min, problem.model.u_max
     # a safe trajectory with curvature: a few first-order iterations from zero controls

@@ -17,7 +17,7 @@ from workbench.ilqg.compiled import (
     problem_library,
     solve_options_layout,
 )
-from workbench.ilqg.reference import NumpyPasses, box_qp
+from workbench.ilqg.twin import PassesTwin, box_qp
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import double_integrator
 from workbench.problem.problem import Problem
@@ -109,7 +109,7 @@ def test_box_qp_reports_non_convex():
 def test_compiled_passes_equal_numpy_twin(bas_tracking, scene, rng, reg, boxed):
     problem, P = bas_tracking
     T = scene.horizon
-    fast, slow = make_passes(problem, T, "compiled"), NumpyPasses(problem, T)
+    fast, slow = make_passes(problem, T, "compiled"), PassesTwin(problem, T)
     x0 = problem.check_initial_state(scene.start)
     U = rng.normal(0, 4, (T, 2))
     umin, umax = problem.model.u_min, problem.model.u_max

@@ -16,10 +16,12 @@ from conftest import central_jacobian
 from workbench.filters.ecbf import ECBFFilter, ECBFOptions
 from workbench.ilqg.passes import BackwardResult
 from workbench.problem.models import Circle, double_integrator
-from workbench.sampling.al_feedback import ALFeedback, ALFeedbackOptions, ALGains
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
-from workbench.sampling.ecbf_feedback import ECBFFeedback
 from workbench.sampling.feedback import FALLBACK_REASONS, FeedbackWeights, ILQGFeedback, shifted
+from workbench.sampling.feedback.al import ALFeedback, ALFeedbackOptions, ALGains
+from workbench.sampling.feedback.ecbf import ECBFFeedback
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.planning import physical_model
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
@@ -289,7 +291,7 @@ def test_ecbf_gains_are_the_derivative_of_the_actual_filter(model, ecbf, ilqg):
         kinds.setdefault(kind, []).append(k)
     assert set(kinds) == {"none", "row", "row+box", "infeasible"}, kinds
     assert not np.any(g.K[:, :, 4])
-    ref = ecbf.gains_reference(AT_SPEED, U, None, 0)  # the per-step twin: the same gains
+    ref = ecbf.gains_twin(AT_SPEED, U, None, 0)  # the per-step twin: the same gains
     assert ref.activity == g.activity and close(ref.K, g.K, 1e-12)
     n_active = T - len(kinds["none"])
     assert g.activity["ecbf_active"] == pytest.approx(n_active / T)
@@ -327,7 +329,7 @@ def test_ecbf_sensitivity_reports_the_active_set(model, ecbf, ilqg):
 
 
 def test_ecbf_uses_the_osqp_filter_where_daqp_fails(model, ecbf, monkeypatch):
-    import workbench.sampling.ecbf_feedback as sf
+    import workbench.sampling.feedback.ecbf as sf
 
     U = np.zeros((T, 2))
     g = ecbf.gains(AT_SPEED, U, None, 0)

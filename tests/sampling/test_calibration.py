@@ -11,7 +11,7 @@ import pytest
 from studies.navigation import STUDY
 from studies.navigation.tasks import Controllers, Realisation, controller, plan, prepare
 from workbench.sampling.calibration import calibrate, calibration_trace
-from workbench.sampling.controllers import MPPIConfig
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.threshold import AlphaRule, ConstantThreshold, ProgressThreshold
 from workbench.scenarios.navigation import navigation_setup
 from workbench.study.runner import profile_config

@@ -7,7 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
+from workbench.sampling.mppi import MPPI, MPPIConfig
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
 
@@ -103,7 +104,7 @@ def test_savgol_matrix_equals_scipy_per_element(T, window, order):
     """Both ends (scipy's "interp" polynomial fits) and the interior, per element, relative."""
     from scipy.signal import savgol_filter
 
-    from workbench.sampling.controllers import savgol_matrix
+    from workbench.sampling.mppi import savgol_matrix
 
     U = np.random.default_rng(T).normal(0.0, 10.0, (T, 3)) ** 3
     want = savgol_filter(U, window, order, axis=0)

@@ -1,5 +1,5 @@
 """ECBFFeedback.gains (QPs set up per group, row Jacobians and KKT solves batched) against its
-per-step twin gains_reference (sensitivity() at each active step): equal gains (1e-12 relative,
+per-step twin gains_twin (sensitivity() at each active step): equal gains (1e-12 relative,
 absolute below magnitude 1), activity and fallbacks on plans that reach every branch: no active
 row, hard rows, violated (soft) rows, box bounds, hard-mode infeasible steps, multipliers that
 drop a bound, daqp failures (OSQP), non-finite gains and derivatives; closed-loop plans of the
@@ -10,11 +10,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import workbench.sampling.ecbf_feedback as ef
+import workbench.sampling.feedback.ecbf as ef
 from workbench.filters.ecbf import ECBFOptions
 from workbench.problem.models import Circle, double_integrator
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI, physical_model
-from workbench.sampling.ecbf_feedback import ECBFFeedback
+from workbench.sampling.feedback.ecbf import ECBFFeedback
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.planning import physical_model
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.scenarios.methods import affine_in_controls
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
@@ -34,9 +36,9 @@ def close(a, b, tol=1e-12):
 
 
 def assert_same(law, x0, U, previous=None, stride=0, ref_law=None):
-    """gains (fast) equals gains_reference (of ref_law, default the same law)."""
+    """gains (fast) equals gains_twin (of ref_law, default the same law)."""
     fast = law.gains(x0, U, previous, stride)
-    ref = (ref_law or law).gains_reference(x0, U, previous, stride)
+    ref = (ref_law or law).gains_twin(x0, U, previous, stride)
     assert fast.fallback == ref.fallback
     assert fast.activity == ref.activity
     assert fast.nominal_unsafe == ref.nominal_unsafe
@@ -107,7 +109,7 @@ def test_fast_gains_equal_the_twin_on_every_branch(model, mode, monkeypatch):
         fast = law.gains(x0, U, None, 0)
         fast_log = list(log)
         del log[:]
-        law.gains_reference(x0, U, None, 0)
+        law.gains_twin(x0, U, None, 0)
         assert all(fast_log) and len(fast_log) == sum(log)
         assert_same(law, x0, U)
         assert fast.fallback is None
@@ -143,7 +145,7 @@ def test_fast_gains_take_the_per_step_path_where_multipliers_drop_a_bound(model,
         before = len(held)
         fast = law.gains(x0, U, None, 0)
         n += len(held) - before
-        ref = law.gains_reference(x0, U, None, 0)
+        ref = law.gains_twin(x0, U, None, 0)
         assert fast.activity == ref.activity and close(fast.K, ref.K)
     assert n > 5  # the fast path used the per-step drop loop
 

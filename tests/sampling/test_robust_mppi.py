@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 
 from workbench.ilqg.passes import BackwardResult
-from workbench.sampling.controllers import (
-    MPPI,
+from workbench.sampling.feedback import FeedbackWeights, Gains, ILQGFeedback, shifted
+from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.mppi import MPPI
+from workbench.sampling.robust import (
     RMPPIConfig,
     RMPPIState,
     RobustMPPI,
     candidate_weights,
     strides,
 )
-from workbench.sampling.feedback import FeedbackWeights, Gains, ILQGFeedback, shifted
-from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.sampler import Sampler
 from workbench.sampling.threshold import (
     AlphaRule,

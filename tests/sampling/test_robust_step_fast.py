@@ -14,10 +14,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-import workbench.sampling.controllers as controllers
+import workbench.sampling.robust as robust_module
 from workbench.codegen.fastcall import FastFunction
-from workbench.sampling.controllers import RMPPIConfig, RobustMPPI, candidate_weights
 from workbench.sampling.feedback import Gains, ILQGFeedback
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI, candidate_weights
 from workbench.sampling.robust_step import CandidateStarts, candidate_free_energies
 from workbench.sampling.threshold import ProgressThreshold
 from workbench.sampling.weights import free_energy
@@ -155,7 +155,7 @@ def test_fast_step_equals_reference(nav, robust, record, mppi):
 def _with_globals(ctrl: RobustMPPI, **names) -> None:
     """A broken copy of ctrl's fast step: its step and selection read ``names`` instead of the
     module's functions (the reference controller keeps the module's)."""
-    g = {**vars(controllers), **names}
+    g = {**vars(robust_module), **names}
     for meth in ("step", "select_nominal"):
         f = getattr(RobustMPPI, meth)
         setattr(ctrl, meth, types.MethodType(types.FunctionType(f.__code__, g, f.__name__,
@@ -166,7 +166,7 @@ def _mutations():
     """Broken copies of the fast step: name -> function(controller) that breaks it."""
 
     def free_energy_sum(ctrl):  # sum instead of mean inside the log
-        orig = controllers.candidate_free_energies
+        orig = robust_module.candidate_free_energies
         _with_globals(ctrl, candidate_free_energies=lambda S, nc, lam: orig(S, nc, lam)
                       - lam * np.log(S.size // nc))
 
@@ -183,7 +183,7 @@ def _mutations():
         fb.w = replace(fb.w, mu=fb.w.mu * 10)
 
     def weights_shifted(ctrl):  # the update's weights with a wrong temperature
-        orig = controllers.importance_weights
+        orig = robust_module.importance_weights
         _with_globals(ctrl, importance_weights=lambda S, lam: orig(S, lam * (1 + 1e-6)))
 
     def applied_offset(ctrl):  # the applied control off by 1e-3 before clipping

@@ -21,22 +21,23 @@ from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling import samples as samples_module
-from workbench.sampling.controllers import MPPI, MPPIConfig, RMPPIConfig, RobustMPPI
 from workbench.sampling.feedback import Gains
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
 from workbench.sampling.methods.gatekeeper import Gatekeeper, braking_backup
+from workbench.sampling.methods.sampler import SafeOptions
 from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
 from workbench.sampling.methods.tube import TubeMPPI
+from workbench.sampling.methods.twin import safe_twin
+from workbench.sampling.mppi import MPPI, MPPIConfig
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import mppi_reference
-from workbench.sampling.safe_reference import safe_reference
-from workbench.sampling.safe_sampler import SafeOptions
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.sampling.samples import (
     Rollout,
     SampleTrajectories,
     kept_lanes,
 )
 from workbench.sampling.threshold import ConstantThreshold
+from workbench.sampling.twin import mppi_twin
 from workbench.sampling.weights import importance_weights
 
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6))
@@ -173,8 +174,8 @@ def test_mppi_samples_are_the_batch_rolled_out(recorded, problems):
     seed = int(rng.integers(0, 2**63))
     xb = ctrl.sp.model.lift(x, ctrl.scene)
     b = ctrl.sampler.mppi(xb, st.U, N, ctrl.consts, seed)
-    ref = mppi_reference(ctrl.sp, np.tile(xb, (N, 1)), st.U, noise(ctrl.sampler, seed),
-                         ctrl.consts)
+    ref = mppi_twin(ctrl.sp, np.tile(xb, (N, 1)), st.U, noise(ctrl.sampler, seed),
+                    ctrl.consts)
     errs = check(rec, X=ref["X"], crashed=b.crashed, v=b.v,
                  w=importance_weights(b.S, ctrl.cfg.lam).w)
     assert max(errs.values()) <= RTOL, errs
@@ -235,8 +236,8 @@ def test_tube_samples_are_both_batches(recorded):
     ba = ctrl.sampler.mppi(x, st.U_a, N, c, seed)
     bn = ctrl.sampler.mppi(st.x_nom, st.U_n, N, c, seed)
     Z = noise(ctrl.sampler, seed)
-    ra = mppi_reference(ctrl.sp, np.tile(x, (N, 1)), st.U_a, Z, c)
-    rn = mppi_reference(ctrl.sp, np.tile(st.x_nom, (N, 1)), st.U_n, Z, c)
+    ra = mppi_twin(ctrl.sp, np.tile(x, (N, 1)), st.U_a, Z, c)
+    rn = mppi_twin(ctrl.sp, np.tile(st.x_nom, (N, 1)), st.U_n, Z, c)
     errs = check(rec, X=ra["X"], crashed=ba.crashed, v=ba.v,
                  w=importance_weights(bn.S, lam).w, X_nom=rn["X"], crashed_nom=bn.crashed,
                  v_nom=bn.v, w_real=importance_weights(ba.S, lam).w)
@@ -254,8 +255,8 @@ def test_safe_method_samples_are_the_batch_rolled_out(recorded, kind):
     seed = int(rng.integers(0, 2**63))
     o: SafeOptions = ctrl.planner.options
     b = ctrl.sampler.batch(x, st.U, N, ctrl.consts, o, seed)
-    ref = safe_reference(ctrl.sp, np.tile(x, (N, 1)), st.U, noise(ctrl.sampler, seed),
-                         ctrl.consts, o.project, o.w_dcbf, o.gamma)
+    ref = safe_twin(ctrl.sp, np.tile(x, (N, 1)), st.U, noise(ctrl.sampler, seed),
+                    ctrl.consts, o.project, o.w_dcbf, o.gamma)
     errs = check(rec, X=ref["X"], crashed=b.crashed, v=b.v,
                  w=importance_weights(b.S, ctrl.cfg.lam).w)
     assert max(errs.values()) <= RTOL, errs
@@ -271,8 +272,8 @@ def test_gatekeeper_hands_out_the_inner_samples(recorded):
     assert inner.sample_recorder is not None and inner.sample_recorder.k == K
     seed = int(rng.integers(0, 2**63))
     b = inner.sampler.mppi(x, st.inner.U, N, inner.consts, seed)
-    ref = mppi_reference(inner.sp, np.tile(x, (N, 1)), st.inner.U, noise(inner.sampler, seed),
-                         inner.consts)
+    ref = mppi_twin(inner.sp, np.tile(x, (N, 1)), st.inner.U, noise(inner.sampler, seed),
+                    inner.consts)
     errs = check(info.samples, X=ref["X"], crashed=b.crashed, v=b.v,
                  w=importance_weights(b.S, inner.cfg.lam).w)
     assert max(errs.values()) <= RTOL, errs

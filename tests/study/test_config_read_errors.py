@@ -143,7 +143,7 @@ def test_the_command_line_reports_a_folder_config_in_one_line(tmp_path, capsys):
 def test_a_nested_set_keeps_the_fields_own_defaults():
     """``--set sampler.n_samples=256`` changes only n_samples: sigma and lambda stay the study's
     own (the field's default instance), not the nested class's defaults."""
-    from workbench.sampling.controllers import MPPIConfig
+    from workbench.sampling.mppi import MPPIConfig
     from workbench.study.runner import resolve_config
     from workbench.study.spec import registry
 

@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from workbench.sampling.controllers import MPPIConfig
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.tuned import ControllerSettings, shipped, space

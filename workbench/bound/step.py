@@ -32,7 +32,8 @@ from workbench.bound.free_energy import (
 from workbench.bound.lipschitz import CostGradients, Lipschitz, LipschitzGrid
 from workbench.bound.tube import Tube, check_trajectories, tube_radius
 from workbench.codegen.fastcall import FastFunction
-from workbench.sampling.controllers import RMPPIInfo, RobustMPPI, physical_model
+from workbench.sampling.planning import physical_model
+from workbench.sampling.robust import RMPPIInfo, RobustMPPI
 from workbench.sampling.sampler import SAISDiagBatch
 from workbench.sim import Disturbance
 from workbench.validation import fail, integer, one_of, real

@@ -39,7 +39,7 @@ class TrackingWeights:
 
 def tracking_problem(model: Model, weights: TrackingWeights = TrackingWeights(), *,
                      barrier: BarrierOptions | None = None) -> Problem:
-    """Plain tracking problem (barrier=None) or its barrier-embedded twin."""
+    """Plain tracking problem (barrier=None) or its barrier-embedded counterpart."""
     m = embed_barrier(model, barrier) if barrier is not None else model
     cost = quadratic_tracking(m, Q=weights.Q, R=weights.R, S=weights.S, q_beta=weights.q_beta,
                               s_beta=weights.s_beta, beta_cost=weights.beta_cost)

@@ -1,4 +1,5 @@
-"""The compiled twin: the problem's Functions and core.c in one cached shared library."""
+"""The compiled iLQG passes: the problem's Functions and core.c in one cached shared library
+(their twin: :mod:`workbench.ilqg.twin`)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from workbench.ilqg.passes import (
     LineSearchResult,
     SolveResult,
 )
-from workbench.ilqg.reference import step_function
+from workbench.ilqg.twin import step_function
 from workbench.problem.problem import FUNCTION_NAMES, Problem
 
 _LIBS: dict[str, Library | None] = {}
@@ -56,9 +57,9 @@ def solve_options_layout(library: Library) -> tuple[int, tuple[tuple[str, int, i
 
 
 def row_major_functions(problem: Problem) -> list[ca.Function]:
-    """``wb_<name>`` twins of the problem Functions whose matrix outputs are row-major in memory.
+    """``wb_<name>`` copies of the problem Functions whose matrix outputs are row-major in memory.
 
-    Every twin takes the scene as its fourth input (the inputs before it padded with empty
+    Every copy takes the scene as its fourth input (the inputs before it padded with empty
     ones), so core.c's ``wb_call`` hands the current scene to each of them in one place."""
     out = []
     for f in [problem.functions[n] for n in FUNCTION_NAMES] + [step_function(problem)]:
@@ -113,7 +114,7 @@ def core_source(problem: Problem, fns: list[ca.Function]) -> str:
     :func:`core_macros`, then core.c (``wb_call`` with the current scene ``wb_scene``, the
     passes ``wb_forward``, ``wb_derivatives``, ``wb_box_qp``, ``wb_backward``,
     ``wb_line_search`` and the outer loop ``wb_solve``). Another library may append C that
-    calls them (:mod:`workbench.sampling.kernels.robust`)."""
+    calls them (:mod:`workbench.sampling.feedback.compiled`)."""
     core = resources.files("workbench.ilqg").joinpath("core.c").read_text()
     return core_macros(problem, fns) + core
 
@@ -162,7 +163,7 @@ def _c(a) -> np.ndarray:
 
 
 class CompiledPasses:
-    """Same interface as :class:`~workbench.ilqg.reference.NumpyPasses`, in compiled C.
+    """Same interface as :class:`~workbench.ilqg.twin.PassesTwin`, in compiled C.
 
     Every array the C functions read or write lives in a buffer allocated once per
     (problem, horizon), whose address is looked up once: a call copies its inputs into the

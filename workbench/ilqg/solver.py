@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 
 from workbench.ilqg.compiled import CompiledPasses, SolveOptions, problem_library
-from workbench.ilqg.reference import CRASH_MARGIN, NumpyPasses
+from workbench.ilqg.twin import CRASH_MARGIN, PassesTwin
 from workbench.problem.models import margin_violation
 from workbench.problem.problem import Problem
 from workbench.validation import fail, flag, integer, one_of, real
@@ -139,12 +139,12 @@ class ILQGResult:
 def make_passes(problem: Problem, T: int, backend: Backend = "auto"):
     """The pass backend for a problem and horizon."""
     if backend == "numpy":
-        return NumpyPasses(problem, T)
+        return PassesTwin(problem, T)
     lib = problem_library(problem)
     if lib is None:
         if backend == "compiled":
             raise fail("backend", backend, "no C compiler is available; use 'numpy' or 'auto'")
-        return NumpyPasses(problem, T)
+        return PassesTwin(problem, T)
     return CompiledPasses(problem, T, lib)
 
 

@@ -15,9 +15,10 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.models import Model
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, RobustMPPI
-from workbench.sampling.feedback import FeedbackLaw
+from workbench.sampling.feedback.base import FeedbackLaw
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.sampling.threshold import (
     AlphaRule,
     ConstantThreshold,

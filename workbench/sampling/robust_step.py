@@ -2,7 +2,7 @@
 start states compiled and all candidate free energies in one pass.
 
 Each function computes the numbers of its step-by-step twin in
-:mod:`workbench.sampling.controllers` and :mod:`workbench.sampling.weights` bit for bit (the
+:mod:`workbench.sampling.robust` and :mod:`workbench.sampling.weights` bit for bit (the
 same operations in the same order): the closed loop amplifies last-bit differences (a control
 sum rounded differently moved the states of a 30-step disturbed navigation episode by about
 1e-11 relative). The update's weights and control sums are the twin's own functions

@@ -47,7 +47,7 @@ from workbench.sampling.kernels.diagnostics import diagnostics_library
 from workbench.sampling.kernels.flags import PRECISIONS
 from workbench.sampling.kernels.library import SamplerLibrary, sampler_library
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.reference import mppi_reference, sais_reference
+from workbench.sampling.twin import lane_major, mppi_twin, sais_twin
 from workbench.validation import as_array, fail, integer, one_of
 
 Backend = Literal["auto", "compiled", "numpy"]
@@ -192,8 +192,8 @@ class Sampler:
                 self._rerun()
                 r, lane = self._run("mppi", N, {"x": x0}, (), {"u": U}, c, seed, False)
             return MPPIBatch(S=r["S"], crashed=r["crashed"] > 0, v=lane[0])
-        ref = mppi_reference(self.sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), c)
-        return MPPIBatch(S=ref["S"], crashed=ref["crashed"], v=np.transpose(ref["v"], (1, 2, 0)))
+        ref = mppi_twin(self.sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), c)
+        return MPPIBatch(S=ref["S"], crashed=ref["crashed"], v=lane_major(ref["v"]))
 
     def sais(self, x0, xs0, U, K, N: int, c: SamplerConstants, seed: int,
              diagnostics: bool = False) -> SAISBatch:
@@ -217,13 +217,13 @@ class Sampler:
             return SAISBatch(S_nom=r["S_nom"], S_real=r["S_real"], S_state_nom=r["S_state_nom"],
                              S_hat=r["S_hat"], LR=r["LR"], crashed_real=r["crashed_real"] > 0,
                              crashed_nom=r["crashed_nom"] > 0, v_nom=lane[0], v_real=lane[1])
-        ref = sais_reference(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
-                             self._noise(N, T, seed), c)
+        ref = sais_twin(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
+                        self._noise(N, T, seed), c)
         return SAISBatch(S_nom=ref["S_nom"], S_real=ref["S_real"],
                          S_state_nom=ref["S_state_nom"], S_hat=ref["S_hat"], LR=ref["LR"],
                          crashed_real=ref["crashed_real"], crashed_nom=ref["crashed_nom"],
-                         v_nom=np.transpose(ref["v_nom"], (1, 2, 0)),
-                         v_real=np.transpose(ref["v_real"], (1, 2, 0)))
+                         v_nom=lane_major(ref["v_nom"]),
+                         v_real=lane_major(ref["v_real"]))
 
     def _sais_diag(self, x0, xs0, U, K, N, c, seed) -> SAISDiagBatch:
         T, nx = U.shape[0], self.sp.nx
@@ -245,11 +245,11 @@ class Sampler:
                 crashed_nom=r["crashed_nom"] > 0, v_nom=out.lane_out[0], v_real=out.lane_out[1],
                 X=X, X_nom=Xs, Sx_real=r["Sx_real"].copy(), Sx_nom=r["Sx_nom"].copy(), U=U, K=K,
                 consts=c, seed=int(seed))
-        ref = sais_reference(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
-                             self._noise(N, T, seed), c, pure_costs=True)
+        ref = sais_twin(self.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K,
+                        self._noise(N, T, seed), c, pure_costs=True)
 
         def lm(a):
-            return np.ascontiguousarray(np.transpose(a, (1, 2, 0)))
+            return np.ascontiguousarray(lane_major(a))
 
         return SAISDiagBatch(
             S_nom=ref["S_nom"], S_real=ref["S_real"], S_state_nom=ref["S_state_nom"],
@@ -279,8 +279,8 @@ class Sampler:
                              self.lib32 is not None)
             return r["S"]
         U_lane = np.where(stride[:, None, None] > 0, U_next[None], U[None])
-        return mppi_reference(self.sp, starts, U_lane, self._noise(N, T, seed), c,
-                              delay=stride)["S"]
+        return mppi_twin(self.sp, starts, U_lane, self._noise(N, T, seed), c,
+                         delay=stride)["S"]
 
 
 def check_batch(sp: SamplingProblem, N: int, U,

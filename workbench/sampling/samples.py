@@ -1,8 +1,8 @@
 """Seeing the sampler: a step's sample trajectories, from every sampling controller.
 
 Off by default. Switch it on per controller with ``ctrl.record_samples(k, keep="spread")``
-(every controller of :mod:`workbench.sampling.controllers` and
-:mod:`workbench.sampling.methods` has it; the gatekeeper hands it to its inner controller);
+(:mod:`workbench.sampling.mppi`, :mod:`workbench.sampling.robust` and
+:mod:`workbench.sampling.methods` have it; the gatekeeper hands it to its inner controller);
 ``ctrl.record_samples(0)`` switches it off again. While it is on, each step's info carries
 ``info.samples``, a :class:`SampleTrajectories`; while it is off ``info.samples`` is None and
 the step does no extra work. Recording never draws from the step's generator and never changes

@@ -72,7 +72,7 @@ class Threshold(Protocol):
 class ConstantThreshold:
     """alpha(x) = value everywhere. ``ConstantThreshold(np.inf)`` (or :meth:`selection_off`)
     switches the nominal-state selection off: the real-state candidate is always taken and the
-    robust part of RMPPI never acts. :class:`~workbench.sampling.controllers.RobustMPPI` uses
+    robust part of RMPPI never acts. :class:`~workbench.sampling.robust.RobustMPPI` uses
     that only when it is handed over explicitly (calibration runs do so on purpose)."""
 
     value: float

@@ -12,9 +12,11 @@ import numpy as np
 from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.models import Model, margin_violation
 from workbench.sampling.calibration import calibrate
-from workbench.sampling.controllers import MPPIConfig, RMPPIConfig, physical_model
 from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.planning import physical_model
 from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
+from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.methods import MethodSettings, build, feedback_law, method
 from workbench.scenarios.scenes import CircleScene, NavigationScene

@@ -92,7 +92,7 @@ class System:
     physical state with barrier states weighted 1). ``sigma`` (one per control), ``lam``,
     ``q_beta``: the sampler's defaults. ``disturbed``: default disturbed state names.
     ``sigma`` entries in [1.5e-154, 6.7e153] and ``lam`` in [2.2e-308, 4.5e307], as
-    :class:`~workbench.sampling.controllers.MPPIConfig` (:func:`~workbench.validation.scale`).
+    :class:`~workbench.sampling.mppi.MPPIConfig` (:func:`~workbench.validation.scale`).
     ``scale``: map length scale. ``level_scale``: multiplies a disturbance level given in the
     double integrator's units (see the module docstring). ``backup(plant, gain)``: the
     gatekeeper's backup law (``gain``: MethodSettings.braking_gain, None for the system's

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
-from workbench.sampling.controllers import MPPIConfig
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import MethodSettings, method
 from workbench.study.tuning import Param, TuningBudget

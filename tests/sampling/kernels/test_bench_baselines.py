@@ -19,7 +19,7 @@ from test_sampler_kernels import (
     twin_sais,
 )
 
-from benchmarks.numpy_sampling import VectorisedNavigation, mppi_numpy, sais_numpy
+from benchmarks.numpy_baseline import VectorisedNavigation, mppi_baseline, sais_baseline
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.sampling.kernels.constants import SamplerConstants
@@ -45,7 +45,7 @@ def test_vectorised_sais_equals_the_kernel():
     assert counts["real_only"] > 0 and counts["nom_only"] > 0 and counts["S_hat>alpha"] > 0
     batch = sampler.sais(case.x0, case.xs0, case.U, case.K, N, case.c, case.seed)
     Z = sampler.lib.normals(N, T, 2, case.seed)
-    out = sais_numpy(VectorisedNavigation(sp), case.x0, case.xs0, case.U, case.K, Z, case.c)
+    out = sais_baseline(VectorisedNavigation(sp), case.x0, case.xs0, case.U, case.K, Z, case.c)
     for name in (*SAIS_COSTS, "v_nom", "v_real"):
         assert rel_err(getattr(batch, name), out[name]) <= RTOL, name
     for name in ("crashed_real", "crashed_nom"):
@@ -58,7 +58,7 @@ def test_vectorised_mppi_equals_the_kernel(barrier):
     x0 = mppi_start(model)
     U = np.random.default_rng(11).normal(0, 2.0, (T, 2))
     batch = sampler.mppi(x0, U, N, c, seed=123)
-    out = mppi_numpy(VectorisedNavigation(sp), x0, U, sampler.lib.normals(N, T, 2, 123), c)
+    out = mppi_baseline(VectorisedNavigation(sp), x0, U, sampler.lib.normals(N, T, 2, 123), c)
     assert 0 < out["crashed"].sum() < N
     np.testing.assert_array_equal(batch.crashed, out["crashed"])
     assert rel_err(batch.S, out["S"]) <= RTOL

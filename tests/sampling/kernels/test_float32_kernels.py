@@ -27,8 +27,8 @@ from workbench.sampling.kernels.flags import kernel_flags
 from workbench.sampling.kernels.specs import mppi_spec
 from workbench.sampling.kernels.verify import KernelMismatch, reference_rollout, verify_kernel
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import mppi_reference, sais_reference
 from workbench.sampling.sampler import Sampler
+from workbench.sampling.twin import mppi_twin, sais_twin
 
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6))
 N, T = 1001, 30  # N not a multiple of the float32 lane count (8): padding is exercised
@@ -107,7 +107,7 @@ def twin(sp, x0, xs0, U, K, Z, c, drop: str | None = None):
     elif drop == "likelihood_ratio":
         c = replace(c, nu_mix=1.0)
     n = Z.shape[0]
-    return sais_reference(sp, np.tile(x0, (n, 1)), np.tile(xs0, (n, 1)), U, K, Z, c, "numpy")
+    return sais_twin(sp, np.tile(x0, (n, 1)), np.tile(xs0, (n, 1)), U, K, Z, c, "numpy")
 
 
 def mismatch(r, lane_out, ref, ok) -> dict[str, float]:
@@ -178,7 +178,7 @@ def test_mppi_and_candidates_equal_the_twin(setup, sais_case):
     x0, U, seed = sais_case["x0"], sais_case["U"], 11
     b = s32.mppi(x0, U, N, c, seed)
     Z = np.transpose(s64.lib.normals(N, T, 2, seed), (2, 0, 1))
-    ref = mppi_reference(sp, np.tile(x0, (N, 1)), U, Z, c, "numpy")
+    ref = mppi_twin(sp, np.tile(x0, (N, 1)), U, Z, c, "numpy")
     assert np.array_equal(b.crashed, ref["crashed"])
     ok = _min_margin_before_crash(sp, ref["X"], ref["crashed"]) >= H_OK
     assert ok.sum() >= 0.3 * N  # (a crashed sample's margin reaches eps_h: never "ok")
@@ -192,8 +192,8 @@ def test_mppi_and_candidates_equal_the_twin(setup, sais_case):
     S32 = s32.candidates(starts, U, stride, c, seed)
     S64 = s64.candidates(starts, U, stride, c, seed)
     Un = np.vstack([U[1:], U[-1:]])
-    ref = mppi_reference(sp, starts, np.where(stride[:, None, None] > 0, Un[None], U[None]), Z,
-                         c, "numpy", delay=stride)
+    ref = mppi_twin(sp, starts, np.where(stride[:, None, None] > 0, Un[None], U[None]), Z,
+                    c, "numpy", delay=stride)
     ok = _min_margin_before_crash(sp, ref["X"], ref["crashed"]) >= H_OK
     assert rel(S32, ref["S"])[ok].max() <= RTOL32
     assert 0 < rel(S32, S64)[ok].max()  # float32 ran
@@ -285,7 +285,7 @@ def test_float_vector_math_uses_simd_float_functions():
 def test_mppi_config_precision_reaches_the_sampler_and_is_validated(setup):
     """MPPIConfig(precision=...) selects the Sampler's kernels; bad values and float32-unsafe
     scales are refused naming the field."""
-    from workbench.sampling.controllers import MPPI, MPPIConfig
+    from workbench.sampling.mppi import MPPI, MPPIConfig
 
     model, sp = setup[0], setup[1]
     goal = model.lift((4.0, 4.0, 0.0, 0.0))

@@ -31,8 +31,8 @@ def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
 
     from workbench.sampling.kernels import library as kernels
     from workbench.sampling.kernels.constants import SamplerConstants
-    from workbench.sampling.reference import mppi_reference
     from workbench.sampling.sampler import Sampler
+    from workbench.sampling.twin import mppi_twin
 
     monkeypatch.setattr(kernels, "_LIBS", {})
     sp = _erfinv_sampling_problem()
@@ -46,8 +46,8 @@ def test_class4_sampler_falls_back_to_the_twin_with_one_warning(monkeypatch):
                          u_max=2 * np.ones(2), crash_cost=1e3, p=np.array([1.0, 1.0]))
     U = np.full((4, 2), 0.5)
     out = first.mppi(np.zeros(2), U, 6, c, seed=3)
-    ref = mppi_reference(sp, np.zeros((6, 2)), U,
-                         np.random.default_rng(3).standard_normal((6, 4, 2)), c)
+    ref = mppi_twin(sp, np.zeros((6, 2)), U,
+                    np.random.default_rng(3).standard_normal((6, 4, 2)), c)
     np.testing.assert_allclose(out.S, ref["S"], rtol=1e-12)
     assert np.all(np.isfinite(out.S))
 
@@ -76,7 +76,7 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
     from workbench.sampling.kernels import library as kernels
     from workbench.sampling.kernels.constants import SamplerConstants
     from workbench.sampling.kernels.flags import KERNEL_FLAGS
-    from workbench.sampling.reference import mppi_reference
+    from workbench.sampling.twin import mppi_twin
 
     sp_a, sp_b = _small_navigation((2.0, 2.0)), _small_navigation((1.0, 3.0), 0.05)
     built, cache = {}, tmp_path / "cache"
@@ -104,7 +104,7 @@ def test_class5_swapped_sampler_library_is_detected_and_rebuilt(tmp_path, monkey
     U = np.full((6, 2), 0.5)
     out = lib.mppi(np.tile(np.r_[x0, 0, 0], (9, 1)), consts=c.kernel_consts(),
                    time_in={"u": U}, seed=5, keep_noise=True)
-    ref = mppi_reference(sp_a, np.tile(x0, (9, 1)), U, np.transpose(out.noise, (2, 0, 1)), c)
+    ref = mppi_twin(sp_a, np.tile(x0, (9, 1)), U, np.transpose(out.noise, (2, 0, 1)), c)
     np.testing.assert_allclose(out.result[:, 0], ref["S"], rtol=1e-9)
 
 

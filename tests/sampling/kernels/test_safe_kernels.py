@@ -22,11 +22,11 @@ from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import INFEASIBLE_TOL, safe_library
+from workbench.sampling.methods.sampler import SafeOptions, SafeSampler
+from workbench.sampling.methods.twin import _CBF, safe_twin
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import _model
-from workbench.sampling.safe_reference import _CBF, safe_reference
-from workbench.sampling.safe_sampler import SafeOptions, SafeSampler
 from workbench.sampling.sampler import Sampler
+from workbench.sampling.twin_model import model_twin
 
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6),
         Circle((2.2, 0.6), 0.4))
@@ -68,7 +68,7 @@ def setup():
     return sp, sampler, c, U, Z
 
 
-def twin(sp, c, U, Z, project, w, x0=None, fn=safe_reference, **kw):
+def twin(sp, c, U, Z, project, w, x0=None, fn=safe_twin, **kw):
     x0 = start() if x0 is None else x0
     return fn(sp, np.tile(x0, (N, 1)), U, Z, c, project, w, GAMMA, **kw)
 
@@ -185,12 +185,12 @@ MUTANTS = {
 
 
 def twin_copy(sp, X0, U, Z, c, project, w_dcbf, gamma, model_backend="auto", drop=frozenset()):
-    """:func:`safe_reference`, line for line, with the pieces named in ``drop`` left out.
+    """:func:`safe_twin`, line for line, with the pieces named in ``drop`` left out.
     Without ``drop`` it equals the twin bit for bit (tested below)."""
     assert set(drop) <= set(MUTANTS)
     N_, T_ = Z.shape[0], Z.shape[1]
     scene = sp.model.scene_vector(c.scene if np.size(c.scene) else None)
-    m = _model(sp, N_, scene, model_backend)
+    m = model_twin(sp, N_, scene, model_backend)
     cbf = _CBF(sp, N_, gamma, scene)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
@@ -265,7 +265,7 @@ def test_numpy_backend_draws_its_own_noise_and_runs_the_twin(setup):
     opts = SafeOptions(project=True, w_dcbf=W_DCBF, gamma=GAMMA)
     b = s.batch(start(), U, 9, c, opts, 4)
     Z = np.random.default_rng(4).standard_normal((9, T, 2))
-    ref = safe_reference(sp, np.tile(start(), (9, 1)), U, Z, c, True, W_DCBF, GAMMA)
+    ref = safe_twin(sp, np.tile(start(), (9, 1)), U, Z, c, True, W_DCBF, GAMMA)
     np.testing.assert_array_equal(b.S, ref["S"])
     np.testing.assert_array_equal(b.v, np.transpose(ref["v"], (1, 2, 0)))
     assert b.projected.dtype.kind == "i" and b.v.shape == (T, 2, 9)

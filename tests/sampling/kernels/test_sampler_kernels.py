@@ -24,8 +24,9 @@ from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import _model, _NumpyModel, mppi_reference, sais_reference
 from workbench.sampling.sampler import Sampler
+from workbench.sampling.twin import mppi_twin, sais_twin
+from workbench.sampling.twin_model import NumpyModelTwin, model_twin
 
 OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5), Circle((1.0, 3.2), 0.6))
 N, T = 125, 30  # N not a multiple of the lane count (4): padding is exercised
@@ -113,7 +114,7 @@ def sais_case(model, sampler, consts) -> SAISCase:
     # alpha: halfway between the two middle S_hat of the samples whose real and nominal
     # rollouts are both safe (S_hat does not depend on alpha), so the clamp binds on about
     # half of them and no sample sits on alpha
-    free = sais_reference(sampler.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, consts)
+    free = sais_twin(sampler.sp, np.tile(x0, (N, 1)), np.tile(xs0, (N, 1)), U, K, Z, consts)
     Sh = np.sort(free["S_hat"][~free["crashed_real"] & ~free["crashed_nom"]])
     c = replace(consts, alpha=float(0.5 * (Sh[Sh.size // 2 - 1] + Sh[Sh.size // 2])))
     return SAISCase(x0, xs0, U, K, Z, seed, c)
@@ -124,7 +125,7 @@ def run_sais(sampler, case: SAISCase, c: SamplerConstants | None = None):
 
 
 def twin_sais(sp, case: SAISCase, c: SamplerConstants | None = None, model_backend="numpy",
-              fn=sais_reference):
+              fn=sais_twin):
     return fn(sp, np.tile(case.x0, (N, 1)), np.tile(case.xs0, (N, 1)), case.U, case.K, case.Z,
               c or case.c, model_backend)
 
@@ -227,11 +228,11 @@ MUTANTS = {
 
 
 def sais_twin_copy(sp, X0, Xs0, U, K, Z, c, model_backend="auto", drop=frozenset()):
-    """:func:`sais_reference`, line for line, with the terms named in ``drop`` left out.
+    """:func:`sais_twin`, line for line, with the terms named in ``drop`` left out.
     Without ``drop`` it equals the twin bit for bit (tested below)."""
     assert set(drop) <= set(MUTANTS)
     N, T = Z.shape[0], Z.shape[1]
-    m = _model(sp, N, c.scene, model_backend)
+    m = model_twin(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
@@ -365,8 +366,8 @@ def test_mppi_kernel_equals_twin_per_element(setup, model_backend):
     x0 = mppi_start(model)
     U = np.random.default_rng(11).normal(0, 2.0, (T, 2))
     batch = sampler.mppi(x0, U, N, c, seed=123)
-    ref = mppi_reference(sp, np.tile(x0, (N, 1)), U, kernel_noise(sampler, N, T, 123), c,
-                         model_backend)
+    ref = mppi_twin(sp, np.tile(x0, (N, 1)), U, kernel_noise(sampler, N, T, 123), c,
+                    model_backend)
     assert_mppi_case_is_useful(ref, c)
     np.testing.assert_array_equal(batch.crashed, ref["crashed"])
     assert rel_err(batch.S, ref["S"]) <= RTOL
@@ -385,7 +386,7 @@ def test_plain_model_mppi_kernel_equals_twin_per_element():
     batch = sampler.mppi(x0, U, N, c, seed=5)
     Z = kernel_noise(sampler, N, T, 5)
     for backend in ("numpy", "casadi"):
-        ref = mppi_reference(sp, np.tile(x0, (N, 1)), U, Z, c, backend)
+        ref = mppi_twin(sp, np.tile(x0, (N, 1)), U, Z, c, backend)
         assert_mppi_case_is_useful(ref, c)
         np.testing.assert_array_equal(batch.crashed, ref["crashed"])
         assert rel_err(batch.S, ref["S"]) <= RTOL
@@ -403,7 +404,7 @@ def test_candidate_kernel_equals_twin_per_element(setup):
     S = sampler.candidates(starts, U, stride, c, seed=11)
     U_next = np.vstack([U[1:], U[-1:]])
     U_lane = np.where(stride[:, None, None] > 0, U_next[None], U[None])
-    ref = mppi_reference(sp, starts, U_lane, kernel_noise(sampler, N, T, 11), c, delay=stride)
+    ref = mppi_twin(sp, starts, U_lane, kernel_noise(sampler, N, T, 11), c, delay=stride)
     assert_mppi_case_is_useful(ref, c)
     assert 0 < stride.sum() < N
     assert 0 < ref["crashed"][stride == 1].sum() and 0 < ref["crashed"][stride == 0].sum()
@@ -419,8 +420,8 @@ def test_candidate_kernel_equals_twin_per_element(setup):
 
 def test_numpy_twin_is_used_for_the_navigation_problem(setup):
     _, sp, _, _ = setup
-    assert isinstance(_model(sp, 4, sp.model.scene_value), _NumpyModel)
-    assert not isinstance(_model(sp, 4, sp.model.scene_value, "casadi"), _NumpyModel)
+    assert isinstance(model_twin(sp, 4, sp.model.scene_value), NumpyModelTwin)
+    assert not isinstance(model_twin(sp, 4, sp.model.scene_value, "casadi"), NumpyModelTwin)
 
 
 def test_kernel_noise_is_standard_normal_and_deterministic(setup):

@@ -17,11 +17,11 @@ import pytest
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPIConfig
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
+from workbench.sampling.methods.sampler import SafeMPPIState, SafeSampler
+from workbench.sampling.methods.twin import safe_twin
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.safe_reference import safe_reference
-from workbench.sampling.safe_sampler import SafeMPPIState, SafeSampler
 from workbench.sampling.weights import importance_weights
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
@@ -94,7 +94,7 @@ def twin_step(ctrl: CBFProjectionMPPI, U, x, rng, drop=frozenset()) -> TwinStep:
     sp, c, cfg = ctrl.sp, ctrl.consts, ctrl.cfg
     seed = int(rng.integers(0, 2**63))
     Z = np.transpose(ctrl.sampler.lib.normals(N, T, sp.nu, seed), (2, 0, 1))
-    ref = safe_reference(sp, np.tile(x, (N, 1)), U, Z, c, "samples" not in drop, 0.0, GAMMA)
+    ref = safe_twin(sp, np.tile(x, (N, 1)), U, Z, c, "samples" not in drop, 0.0, GAMMA)
     W = importance_weights(ref["S"], cfg.lam)
     U = np.einsum("n,ntu->tu", W.w, ref["v"])
     u, acted = U[0], False

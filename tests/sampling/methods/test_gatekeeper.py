@@ -15,7 +15,6 @@ import pytest
 
 from workbench.problem.models import double_integrator, single_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPI
 from workbench.sampling.methods.gatekeeper import (
     BackupPolicy,
     Gatekeeper,
@@ -23,6 +22,7 @@ from workbench.sampling.methods.gatekeeper import (
     backup_from_expression,
     braking_backup,
 )
+from workbench.sampling.mppi import MPPI
 from workbench.sampling.step_stats import StepStats
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop

@@ -15,11 +15,11 @@ import pytest
 
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPIConfig
+from workbench.sampling.methods.sampler import SafeSampler
 from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
+from workbench.sampling.methods.twin import safe_twin
+from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.safe_reference import safe_reference
-from workbench.sampling.safe_sampler import SafeSampler
 from workbench.sampling.weights import importance_weights
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
@@ -136,7 +136,7 @@ def twin_step(ctrl: ShieldMPPI, U, x, rng, drop=frozenset()) -> TwinStep:
     seed = int(rng.integers(0, 2**63))
     Z = np.transpose(ctrl.sampler.lib.normals(N, T, sp.nu, seed), (2, 0, 1))
     w = 0.0 if "dcbf_cost" in drop else SHIELD.w_dcbf
-    ref = safe_reference(sp, np.tile(x, (N, 1)), U, Z, c, False, w, SHIELD.gamma)
+    ref = safe_twin(sp, np.tile(x, (N, 1)), U, Z, c, False, w, SHIELD.gamma)
     W = importance_weights(ref["S"], cfg.lam)
     U = np.einsum("n,ntu->tu", W.w, ref["v"])
     u, it = np.clip(U[0], c.u_min, c.u_max), 0

@@ -1,5 +1,5 @@
 """Tube-MPPI (Williams et al., RSS 2018): one controller step on the compiled sampler equals a
-NumPy twin of the step written here from the sampler's twin (:func:`mppi_reference`) and the
+NumPy twin of the step written here from the sampler's twin (:func:`mppi_twin`) and the
 MPPI weights, fed the kernels' noise for the same seeds; mutations of the twin (no nominal
 reset, no feedback term) fail the comparison; bad options name the field; a short disturbed
 closed loop on the navigation map runs."""
@@ -15,11 +15,11 @@ import pytest
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.controllers import MPPI, MPPIConfig
 from workbench.sampling.feedback import Gains
 from workbench.sampling.methods.tube import TubeConfig, TubeMPPI, TubeState, default_tracker
+from workbench.sampling.mppi import MPPI, MPPIConfig
 from workbench.sampling.problem import navigation_costs
-from workbench.sampling.reference import mppi_reference
+from workbench.sampling.twin import mppi_twin
 from workbench.sampling.weights import importance_weights
 from workbench.scenarios.navigation import navigation_setup
 from workbench.sim import Disturbance, closed_loop
@@ -75,8 +75,8 @@ def twin_step(ctrl: TubeMPPI, tracker, st: Twin, x, rng, threshold, drop=frozens
     seed = int(rng.integers(0, 2**63))
     Z = np.transpose(ctrl.sampler.lib.normals(N, T, sp.nu, seed), (2, 0, 1))
     x_nom = x if st.x_nom is None else st.x_nom
-    ra = mppi_reference(sp, np.tile(x, (N, 1)), st.U_a, Z, c)
-    rn = mppi_reference(sp, np.tile(x_nom, (N, 1)), st.U_n, Z, c)
+    ra = mppi_twin(sp, np.tile(x, (N, 1)), st.U_a, Z, c)
+    rn = mppi_twin(sp, np.tile(x_nom, (N, 1)), st.U_n, Z, c)
     Wa, Wn = importance_weights(ra["S"], cfg.lam), importance_weights(rn["S"], cfg.lam)
     U_a = np.einsum("n,ntu->tu", Wa.w, ra["v"])
     U_n = np.einsum("n,ntu->tu", Wn.w, rn["v"])

@@ -55,7 +55,7 @@ class SamplerConstants:
 
     Checked here: every ``sigma`` in [1.5e-154, 6.7e153] and ``lam`` in [2.2e-308, 4.5e307]
     (sigma^2 and 1/sigma^2, lambda and 1/lambda are normal float64 numbers, as
-    :class:`~workbench.sampling.controllers.MPPIConfig` requires); ``guard_band`` >= 0.
+    :class:`~workbench.sampling.mppi.MPPIConfig` requires); ``guard_band`` >= 0.
     :meth:`check_float32` adds the float32 kernels' ranges."""
 
     sigma: np.ndarray  # (nu,) sampling std

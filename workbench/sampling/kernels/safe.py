@@ -181,7 +181,7 @@ def safe_library(sp: SamplingProblem) -> SafeLibrary | None:
     """Build (or load from the cache) and verify the safe kernel of a sampling problem, once per
     process (keyed by the problem's fingerprint); None without a compiler, or, with one
     warning, when the emitter or the C back end cannot compile the model (the NumPy twin,
-    :mod:`workbench.sampling.safe_reference`, is then used)."""
+    :mod:`workbench.sampling.methods.twin`, is then used)."""
     key = sp.fingerprint()
     if key not in _LIBS:
         try:

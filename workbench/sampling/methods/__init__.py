@@ -1,4 +1,6 @@
-"""The field's safe-sampling methods, each a controller on the shared sampler.
+"""The field's safe-sampling methods, each a controller on the shared sampler
+(:mod:`~workbench.sampling.methods.sampler`: MPPI batches with a per-sample projection or a
+DCBF cost in the kernel).
 
 Every controller follows the workbench's protocol (``initial_state``, ``step(state, x, rng)``
 returning ``(state, u, info)``, ``set_scene``) and its step info exposes ``stats``

@@ -25,15 +25,16 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma, discrete_cbf
-from workbench.sampling.controllers import MPPIConfig, _shift
 from workbench.sampling.kernels.safe import projection_function
-from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.safe_sampler import (
+from workbench.sampling.methods.sampler import (
     SafeMPPIController,
     SafeMPPIPlanner,
     SafeMPPIState,
     SafeOptions,
 )
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.planning import shift_plan
+from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.validation import fail, flag
@@ -85,7 +86,7 @@ class CBFProjectionInfo:
 class CBFProjectionMPPI(RecordsSamples, SafeMPPIController):
     """MPPI with per-sample CBF projection (see module docstring) on a sampling problem
     (physical or barrier-embedded). ``sampler`` is its
-    :class:`~workbench.sampling.safe_sampler.SafeSampler`."""
+    :class:`~workbench.sampling.methods.sampler.SafeSampler`."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig(),
                  cbf: CBFProjectionConfig | None = None):
@@ -126,7 +127,7 @@ class CBFProjectionMPPI(RecordsSamples, SafeMPPIController):
             projected=float(b.projected.sum() / steps),
             infeasible=float(b.infeasible.sum() / steps), applied_projected=acted,
             applied_c_min=cmin, samples=samples)
-        return SafeMPPIState(U=_shift(U, 1, self.cfg.tail)), u, info
+        return SafeMPPIState(U=shift_plan(U, 1, self.cfg.tail)), u, info
 
 
 __all__ = ["CBFProjectionConfig", "CBFProjectionInfo", "CBFProjectionMPPI"]

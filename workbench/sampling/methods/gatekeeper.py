@@ -35,7 +35,7 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
-from workbench.sampling.controllers import physical_model
+from workbench.sampling.planning import physical_model
 from workbench.sampling.samples import Keep, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.validation import as_array, fail, integer, real

@@ -37,15 +37,16 @@ import numpy as np
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.barrier import min_margin
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma, discrete_cbf
-from workbench.sampling.controllers import MPPIConfig, _shift
 from workbench.sampling.kernels.safe import INFEASIBLE_TOL, projection_function
-from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.safe_sampler import (
+from workbench.sampling.methods.sampler import (
     SafeMPPIController,
     SafeMPPIPlanner,
     SafeMPPIState,
     SafeOptions,
 )
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.planning import shift_plan
+from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.validation import fail, integer, real
@@ -129,7 +130,7 @@ class Repair:
 
 class ShieldMPPI(RecordsSamples, SafeMPPIController):
     """Shield-MPPI (see module docstring) on a sampling problem (physical or barrier-embedded).
-    ``sampler`` is its :class:`~workbench.sampling.safe_sampler.SafeSampler`."""
+    ``sampler`` is its :class:`~workbench.sampling.methods.sampler.SafeSampler`."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig(),
                  shield: ShieldConfig | None = None):
@@ -178,7 +179,7 @@ class ShieldMPPI(RecordsSamples, SafeMPPIController):
             repair_iterations=r.iterations, c_min_before=r.c_min_before,
             c_min_after=r.c_min_after, dcbf_active=float(np.mean(b.dcbf > 0)),
             samples=samples)
-        return SafeMPPIState(U=_shift(U, 1, self.cfg.tail)), r.u, info
+        return SafeMPPIState(U=shift_plan(U, 1, self.cfg.tail)), r.u, info
 
 
 __all__ = ["DEFAULT_W_DCBF", "MAX_REPAIR_STEPS", "Repair", "ShieldConfig", "ShieldInfo",

@@ -11,7 +11,7 @@ plan U_n. The applied control tracks the nominal::
     u = clip(U_n[0] + K_0 (x - x_nom))
 
 with K the ancillary tracker's gains about the nominal trajectory (by default iLQG tracking
-gains, :class:`~workbench.sampling.feedback.ILQGFeedback`, on the physical model), and the
+gains, :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback`, on the physical model), and the
 nominal advances without noise, x_nom <- f(x_nom, clip(U_n[0])). The plans shift like MPPI's.
 
 ``record_samples(k)`` (:mod:`workbench.sampling.samples`) hands out both batches of the last
@@ -28,15 +28,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
-from workbench.sampling.controllers import (
-    MPPI,
-    MPPIConfig,
-    _full_state,
-    _shift,
-    physical_model,
-)
-from workbench.sampling.feedback import FeedbackLaw, FeedbackWeights, Gains, ILQGFeedback
+from workbench.sampling.feedback.base import FeedbackLaw, FeedbackWeights, Gains
+from workbench.sampling.feedback.ilqg import ILQGFeedback
 from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.mppi import MPPI, MPPIConfig
+from workbench.sampling.planning import full_state, physical_model, shift_plan
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
@@ -170,7 +166,7 @@ class TubeMPPI(RecordsSamples):
     def step(self, state: TubeState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
         cfg, sp, c = self.cfg, self.sp, self.consts
-        xb = _full_state(sp, x, c.scene)
+        xb = full_state(sp, x, c.scene)
         for name, U in (("state.U_a", state.U_a), ("state.U_n", state.U_n)):
             if (not isinstance(U, np.ndarray) or U.shape != (cfg.horizon, sp.nu)
                     or not np.all(np.isfinite(U))):
@@ -210,7 +206,7 @@ class TubeMPPI(RecordsSamples):
             baseline_actual=Wa.rho, baseline_nominal=Wn.rho, free_energy_actual=Wa.free_energy,
             free_energy_nominal=Wn.free_energy, x_nom=x_nom, feedback_fallback=gains.fallback,
             gains_activity=dict(gains.activity), samples=samples)
-        new = TubeState(U_a=_shift(U_a, 1, cfg.tail), U_n=_shift(U_n, 1, cfg.tail),
+        new = TubeState(U_a=shift_plan(U_a, 1, cfg.tail), U_n=shift_plan(U_n, 1, cfg.tail),
                         x_nom=x_next, gains=gains)
         return new, u, info
 

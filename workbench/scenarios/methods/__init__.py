@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from workbench.sampling.controllers import RMPPIConfig
+from workbench.sampling.robust import RMPPIConfig
 from workbench.scenarios.methods.builtin import BUILTIN as BUILTIN
 from workbench.scenarios.methods.feedback_laws import affine_in_controls, feedback_law
 from workbench.scenarios.methods.settings import MethodSettings, check_fields

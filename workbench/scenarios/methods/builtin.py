@@ -11,12 +11,13 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from workbench.filters.ecbf import ECBFOptions
-from workbench.sampling.al_feedback import ALFeedbackOptions
-from workbench.sampling.controllers import MPPI, RMPPIConfig, RobustMPPI
+from workbench.sampling.feedback.al import ALFeedbackOptions
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
 from workbench.sampling.methods.gatekeeper import Gatekeeper, GatekeeperConfig
 from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
 from workbench.sampling.methods.tube import TubeConfig, TubeMPPI
+from workbench.sampling.mppi import MPPI
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
 from workbench.scenarios.methods.feedback_laws import feedback_law
 from workbench.scenarios.methods.settings import MethodSettings
 from workbench.scenarios.methods.spec import MethodSpec, register

@@ -8,10 +8,10 @@ from typing import TYPE_CHECKING
 import casadi as ca
 
 from workbench.problem.models import Model
-from workbench.sampling.al_feedback import ALFeedback
-from workbench.sampling.controllers import physical_model
-from workbench.sampling.ecbf_feedback import ECBFFeedback
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.feedback.al import ALFeedback
+from workbench.sampling.feedback.ecbf import ECBFFeedback
+from workbench.sampling.planning import physical_model
 from workbench.scenarios.methods.settings import MethodSettings
 from workbench.scenarios.methods.spec import FEEDBACK_LAWS
 from workbench.validation import one_of

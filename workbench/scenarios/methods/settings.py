@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from workbench.filters.ecbf import ECBFOptions
-from workbench.sampling.al_feedback import ALFeedbackOptions
+from workbench.sampling.feedback.al import ALFeedbackOptions
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig
 from workbench.sampling.methods.gatekeeper import GatekeeperConfig
 from workbench.sampling.methods.shield import ShieldConfig

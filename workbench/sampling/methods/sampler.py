@@ -1,6 +1,6 @@
 """Safe-MPPI batches: MPPI samples projected onto the discrete CBF constraints and/or scored with
 the DCBF violation cost (:mod:`workbench.sampling.kernels.safe`), on the compiled kernel or its
-NumPy twin (:mod:`workbench.sampling.safe_reference`).
+NumPy twin (:mod:`workbench.sampling.methods.twin`).
 
 Like :class:`~workbench.sampling.sampler.Sampler`: every call takes an explicit seed; the
 compiled backend draws its noise in the kernel from it, the NumPy backend with
@@ -18,18 +18,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma
-from workbench.sampling.controllers import (
-    MPPIConfig,
-    _check_plan,
-    _full_state,
-    constants_in_scene,
-    plan_constants,
-)
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import safe_library
+from workbench.sampling.methods.twin import safe_twin
+from workbench.sampling.mppi import MPPIConfig
+from workbench.sampling.planning import check_plan, constants_in_scene, full_state, plan_constants
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.safe_reference import safe_reference
 from workbench.sampling.sampler import Backend, check_batch
+from workbench.sampling.twin import lane_major
 from workbench.sampling.weights import Weights, importance_weights, weighted_controls
 from workbench.validation import as_array, fail, flag, one_of, real
 
@@ -103,10 +99,10 @@ class SafeSampler:
                              projected=np.rint(r["projected"]).astype(int),
                              infeasible=np.rint(r["infeasible"]).astype(int),
                              dcbf=r["dcbf"].copy())
-        ref = safe_reference(sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), consts,
-                             options.project, options.w_dcbf, options.gamma)
+        ref = safe_twin(sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), consts,
+                        options.project, options.w_dcbf, options.gamma)
         return SafeBatch(S=ref["S"], crashed=ref["crashed"],
-                         v=np.ascontiguousarray(np.transpose(ref["v"], (1, 2, 0))),
+                         v=np.ascontiguousarray(lane_major(ref["v"])),
                          projected=ref["projected"], infeasible=ref["infeasible"],
                          dcbf=ref["dcbf"])
 
@@ -119,7 +115,7 @@ class SafeMPPIState:
 class SafeMPPIPlanner:
     """MPPI's planning loop on a :class:`SafeSampler` with fixed :class:`SafeOptions`: goal
     (a physical goal of a barrier-embedded problem is lifted in the current scene, like
-    :class:`~workbench.sampling.controllers.MPPI`), constants, scene, ``iterations`` batches
+    :class:`~workbench.sampling.mppi.MPPI`), constants, scene, ``iterations`` batches
     per step, each updating the plan to the weighted average of the applied sample controls
     (smoothed when the config asks)."""
 
@@ -138,7 +134,7 @@ class SafeMPPIPlanner:
 
     def set_scene(self, scene) -> None:
         """Plan in ``scene`` from the next step on (see
-        :meth:`~workbench.sampling.controllers.MPPI.set_scene`)."""
+        :meth:`~workbench.sampling.mppi.MPPI.set_scene`)."""
         self.consts = constants_in_scene(self.sp, self.consts, self._goal, scene)
 
     def initial_state(self, x0=None) -> SafeMPPIState:
@@ -146,7 +142,7 @@ class SafeMPPIPlanner:
 
     def full_state(self, x) -> np.ndarray:
         """The measured state as the problem's full state (lifted in the current scene)."""
-        return _full_state(self.sp, x, self.consts.scene)
+        return full_state(self.sp, x, self.consts.scene)
 
     def plan(self, state: SafeMPPIState, xb: np.ndarray,
              rng: np.random.Generator) -> tuple[np.ndarray, Weights, SafeBatch]:
@@ -156,7 +152,7 @@ class SafeMPPIPlanner:
             raise fail("state", type(state).__name__, "must be a SafeMPPIState "
                        "(from initial_state)")
         U = state.U
-        _check_plan(U, self.cfg.horizon, self.sp.nu)
+        check_plan(U, self.cfg.horizon, self.sp.nu)
         for _ in range(self.cfg.iterations):
             batch = self.sampler.batch(xb, U, self.cfg.n_samples, self.consts, self.options,
                                        int(rng.integers(0, 2**63)))

@@ -1,6 +1,6 @@
 """Feedback laws for Robust MPPI from the two other safety mechanisms: gains K_k (T, nu, nx).
 
-Next to K_safe (barrier states, :class:`~workbench.sampling.feedback.ILQGFeedback` on the
+Next to K_safe (barrier states, :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback` on the
 barrier-embedded model), these laws put the augmented Lagrangian and the ECBF filter inside the
 SAIS sampler, so the three mechanisms can be compared with everything else equal. Both act on a
 plain (physical) model with safety margins and zero-pad their gains to the sampler's state size;
@@ -26,14 +26,14 @@ import numpy as np
 from workbench.codegen.fastcall import FastFunction
 from workbench.filters.ecbf import ECBFFilter, ECBFOptions
 from workbench.problem.models import Model
-from workbench.sampling.feedback import (
+from workbench.sampling.feedback.base import (
     FeedbackWeights,
     Gains,
-    ILQGFeedback,
     check_plain_law,
     fallback_gains,
     pad_gains,
 )
+from workbench.sampling.feedback.ilqg import ILQGFeedback
 from workbench.validation import as_array, fail
 
 
@@ -109,7 +109,7 @@ class ECBFFeedback:
     the ECBF rows a_i(x)^T u >= b_i(x) (:func:`~workbench.filters.ecbf.ecbf_rows`, normalised
     to |a_i| = 1 as in :class:`~workbench.filters.ecbf.ECBFFilter`; soft mode adds the same
     slack cost) and the control box; K_k are the tracking gains of
-    :class:`~workbench.sampling.feedback.ILQGFeedback` on the same model. The returned gain is
+    :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback` on the same model. The returned gain is
     d pi_k/dx at x*_k with the QP's active set there (u_ref = u*_k) held fixed. With active
     rows A (ECBF rows and box bounds with a positive multiplier) and no violated rows it is
 
@@ -134,7 +134,7 @@ class ECBFFeedback:
     Only the gains enter the sampler: the feedforward offset pi_k(x*_k) - u*_k (nonzero where a
     row is active) cannot be represented by SAIS' u* + K (x - x*) and is not applied.
 
-    Fallbacks as in :class:`~workbench.sampling.feedback.ILQGFeedback` (reasons from
+    Fallbacks as in :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback` (reasons from
     ``FALLBACK_REASONS``): when the tracking gains fall back, or the row Jacobians or the
     filtered gains are not finite, the previous gains are shifted by the stride.
 
@@ -294,10 +294,10 @@ class ECBFFeedback:
     def gains(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
         """The gains (see the class): the QP of every active step solved by daqp as in
         :meth:`solve`, the row Jacobians and the KKT solves batched over the steps; equal to
-        :meth:`gains_reference` (which runs :meth:`sensitivity` step by step)."""
+        :meth:`gains_twin` (which runs :meth:`sensitivity` step by step)."""
         return self._gains(x_nom, U, previous, stride, fast=True)
 
-    def gains_reference(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
+    def gains_twin(self, x_nom, U, previous: Gains | None, stride: int) -> Gains:
         """The gains with :meth:`sensitivity` called at each active step (the slow twin of
         :meth:`gains`)."""
         return self._gains(x_nom, U, previous, stride, fast=False)

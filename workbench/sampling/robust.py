@@ -1,20 +1,14 @@
-"""Receding-horizon controllers with explicit state: ``state, u, info = ctrl.step(state, x, rng)``.
+"""Robust MPPI with explicit state: ``state, u, info = ctrl.step(state, x, rng)``.
 
-* :class:`MPPI` — MPPI (assumptions §8.1); BaS-MPPI is MPPI on a barrier-embedded problem
-  (assumptions §8.2).
-* :class:`RobustMPPI` — Robust MPPI with the SAIS sampler of Algorithm 1 and a feedback law
-  (:mod:`workbench.sampling.feedback`): K_safe from BaS-iLQG gives SA-RMPPI (assumptions §10.3),
-  plain iLQG tracking gains give RMPPI (assumptions §9.4). The selection threshold alpha comes from
-  :mod:`workbench.sampling.threshold`.
+:class:`RobustMPPI` runs the SAIS sampler of Algorithm 1 with a feedback law
+(:mod:`workbench.sampling.feedback`): K_safe from BaS-iLQG gives SA-RMPPI (assumptions §10.3),
+plain iLQG tracking gains give RMPPI (assumptions §9.4). The selection threshold alpha comes from
+:mod:`workbench.sampling.threshold`; the sampling settings are MPPI's
+(:class:`~workbench.sampling.mppi.MPPIConfig`).
 
-Controllers hold only immutable configuration and external workspaces (compiled kernels, iLQG
-passes); everything that changes between steps lives in the returned state.
-
-Seeing the samples: ``ctrl.record_samples(k)`` makes every later step's info carry
-``info.samples``, k of the last batch's sample trajectories with their weights and crash flags
-(:class:`~workbench.sampling.samples.SampleTrajectories`; MPPI: the one system, ``nominal`` is
-None; Robust MPPI: real and nominal). Off by default (``info.samples`` is None, no extra work);
-the same call exists on every method of :mod:`workbench.sampling.methods`.
+The controller holds only immutable configuration and external workspaces (compiled kernels,
+iLQG passes); everything that changes between steps lives in the returned state.
+``ctrl.record_samples(k)`` hands out the last SAIS batch's samples, real and nominal.
 """
 
 from __future__ import annotations
@@ -22,246 +16,27 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from functools import cache
 from typing import Literal
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from workbench.codegen.fastcall import FastFunction
-from workbench.problem.models import Model
-from workbench.sampling.feedback import FeedbackLaw, Gains, ILQGFeedback
-from workbench.sampling.kernels.constants import FLOAT32_MAX, SamplerConstants, check_scales32
+from workbench.sampling.feedback.base import FeedbackLaw, Gains
+from workbench.sampling.feedback.ilqg import ILQGFeedback
+from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.mppi import MPPI, MPPIConfig, savgol_matrix
+from workbench.sampling.planning import check_plan, full_state, shift_plan
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.robust_step import CandidateStarts, candidate_free_energies
-from workbench.sampling.sampler import Backend, Precision, SAISBatch, Sampler
+from workbench.sampling.sampler import SAISBatch
 from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.sampling.threshold import ConstantThreshold, Threshold
 from workbench.sampling.weights import free_energy, importance_weights, weighted_controls
-from workbench.validation import (
-    MAX_BATCH,
-    as_array,
-    at_most,
-    fail,
-    flag,
-    integer,
-    one_of,
-    real,
-    real_or_inf,
-    scale,
-)
+from workbench.validation import MAX_BATCH, at_most, fail, flag, integer, one_of, real_or_inf
 
-MAX_ITERATIONS = 1000  # MPPI iterations per step
 MAX_CANDIDATES = 1001  # RMPPI candidate nominal states
 MAX_CANDIDATE_ROLLOUTS = 2**24  # RMPPI candidate rollouts per step
-
-
-@cache
-def savgol_matrix(T: int, window: int, order: int) -> np.ndarray:
-    """scipy's Savitzky-Golay filter along time (mode "interp": polynomial fits at both ends) as
-    the (T, T) matrix it applies: the filter is linear, so U_smooth = M @ U equals
-    ``savgol_filter(U, window, order, axis=0)`` to rounding, ~100x faster than calling scipy,
-    which refits the polynomial coefficients on every call (0.3 ms at T = 100)."""
-    M = savgol_filter(np.eye(T), window, order, axis=0)
-    M.setflags(write=False)
-    return M
-
-
-@dataclass(frozen=True)
-class MPPIConfig:
-    """Sampling settings (assumptions §8.2, 15 defaults [A]).
-
-    Bounds checked here: every ``sigma`` in [1.5e-154, 6.7e153] and ``lam`` in
-    [2.2e-308, 4.5e307] (their squares, resp. values, and reciprocals are normal float64
-    numbers); ``n_samples * horizon * len(sigma) <= 2**31``; ``iterations <= 1000``."""
-
-    n_samples: int = 1024
-    horizon: int = 100
-    lam: float = 1.0
-    sigma: tuple[float, ...] = (2.0, 2.0)  # per-axis std; Sigma = diag(sigma^2)
-    nu_mix: float = 0.0
-    iterations: int = 1
-    crash_cost: float = 1e6
-    tail: Literal["hold", "zero"] = "hold"
-    # Savitzky-Golay (window, order), assumptions §8.1 [A] (9, 2)
-    smoothing: tuple[int, int] | None = None
-    backend: Backend = "auto"
-    # sampler kernels: "float32" = twice the SIMD lanes; samples near the crash margin and
-    # batches without a crash-free sample are recomputed in float64 (workbench.sampling.sampler)
-    precision: Precision = "float64"
-
-    def __post_init__(self) -> None:
-        for name in ("n_samples", "horizon"):  # the kernels take them as a C int
-            integer(f"MPPIConfig.{name}", getattr(self, name), 1, MAX_BATCH - 1)
-        integer("MPPIConfig.iterations", self.iterations, 1, MAX_ITERATIONS)
-        scale("MPPIConfig.lam", self.lam)  # the weights divide by lambda
-        if isinstance(self.sigma, str) or not hasattr(self.sigma, "__len__") or any(
-                isinstance(v, bool | np.bool_) for v in self.sigma):
-            raise fail("MPPIConfig.sigma", self.sigma, "must be a list of standard deviations, "
-                       "one per control, each in [1.492e-154, 6.704e+153]")
-        s = np.asarray(self.sigma, dtype=float)
-        if s.ndim != 1 or s.size == 0 or not np.all(np.isfinite(s)) or np.any(s <= 0):
-            raise fail("MPPIConfig.sigma", s, "Sigma = diag(sigma^2) must be positive definite: "
-                       "every sigma must be finite and > 0")
-        for i, v in enumerate(s):  # sigma^2 and 1/sigma^2 enter the sampler and the costs
-            scale(f"MPPIConfig.sigma[{i}]", float(v), power=2)
-        object.__setattr__(self, "sigma", tuple(float(v) for v in s))
-        at_most("MPPIConfig.n_samples", self.n_samples, self.n_samples * self.horizon * s.size,
-                MAX_BATCH, "n_samples * horizon * nu (entries of a sampled batch)")
-        if not 0.0 <= real("MPPIConfig.nu_mix", self.nu_mix) < 1.0:
-            raise fail("MPPIConfig.nu_mix", self.nu_mix, "must lie in [0, 1)")
-        real("MPPIConfig.crash_cost", self.crash_cost, 0.0)
-        one_of("MPPIConfig.tail", self.tail, ("hold", "zero"))
-        if self.smoothing is not None:
-            ok = isinstance(self.smoothing, tuple | list) and len(self.smoothing) == 2
-            if ok:
-                w, o = (integer("MPPIConfig.smoothing", v) for v in self.smoothing)
-                ok = w % 2 == 1 and 0 <= o < w <= self.horizon
-            if not ok:
-                raise fail("MPPIConfig.smoothing", self.smoothing,
-                           "need (window, order) with an odd window <= horizon and order < window")
-        one_of("MPPIConfig.precision", self.precision, ("float64", "float32"))
-        if self.precision == "float32":  # the kernels' own float32 rules, checked at once
-            check_scales32("MPPIConfig", self.sigma, self.lam, self.nu_mix)
-            if self.crash_cost > FLOAT32_MAX:
-                raise fail("MPPIConfig.crash_cost", self.crash_cost,
-                           f"must be at most {FLOAT32_MAX:.4g} for precision 'float32'")
-
-    def smooth(self, U: np.ndarray) -> np.ndarray:
-        """Savitzky-Golay smoothing of a control sequence along time (or U unchanged): one
-        product with the filter's (T, T) matrix (:func:`savgol_matrix`)."""
-        if self.smoothing is None:
-            return U
-        return savgol_matrix(U.shape[0], *self.smoothing) @ U
-
-    @classmethod
-    def with_covariance(cls, Sigma, **kw) -> MPPIConfig:
-        """Build from a covariance matrix; it must be positive definite (and diagonal)."""
-        S = np.asarray(Sigma, dtype=float)
-        if S.ndim != 2 or S.shape[0] != S.shape[1] or not np.allclose(S, S.T):
-            raise fail("Sigma", S, "must be a symmetric square matrix")
-        if not np.all(np.isfinite(S)) or np.min(np.linalg.eigvalsh(S)) <= 0:
-            raise fail("Sigma", S, "must be positive definite")
-        if np.any(S[~np.eye(S.shape[0], dtype=bool)] != 0):
-            raise fail("Sigma", S, "only diagonal covariances are supported by the kernels")
-        return cls(sigma=tuple(np.sqrt(np.diag(S))), **kw)
-
-
-def _shift(U: np.ndarray, s: int, tail: str) -> np.ndarray:
-    if s == 0:
-        return U
-    out = np.empty_like(U)
-    out[:-s] = U[s:]
-    out[-s:] = U[-1] if tail == "hold" else 0.0
-    return out
-
-
-def _full_state(sp: SamplingProblem, x, scene=None) -> np.ndarray:
-    x = np.asarray(x, dtype=float).ravel()
-    if not np.all(np.isfinite(x)):
-        raise fail("x", x, "the measured state must be finite")
-    if x.size == sp.model.n_physical and sp.nx != x.size:
-        return sp.model.lift(x, scene)
-    return as_array("x", x, (sp.nx,))
-
-
-def plan_constants(sp: SamplingProblem, goal,
-                   config: MPPIConfig) -> tuple[SamplerConstants, np.ndarray | None]:
-    """The batch constants of a controller planning to ``goal`` with ``config`` in the model's
-    own scene, and the physical goal to lift again in every new scene (None when the goal is
-    not lifted: a full state, or cost parameters that are not a state)."""
-    g = np.asarray(goal, dtype=float).ravel()
-    # a physical goal is lifted in the current scene (beta_g = B(h(p_g))), again per scene
-    lift = g if sp.n_p == sp.nx and g.size == sp.model.n_physical != sp.nx else None
-    p = _full_state(sp, goal) if sp.n_p == sp.nx else as_array("goal", goal, (sp.n_p,))
-    consts = SamplerConstants(
-        sigma=np.array(config.sigma), lam=config.lam, nu_mix=config.nu_mix,
-        u_min=sp.model.u_min, u_max=sp.model.u_max, crash_cost=config.crash_cost, p=p,
-        scene=sp.model.scene_value.copy())
-    return consts, lift
-
-
-def constants_in_scene(sp: SamplingProblem, consts: SamplerConstants, goal: np.ndarray | None,
-                       scene) -> SamplerConstants:
-    """``consts`` in ``scene`` (circles or a flat vector), the goal ``goal`` (from
-    :func:`plan_constants`) lifted there when it is one to lift."""
-    s = sp.model.scene_vector(scene)
-    p = consts.p if goal is None else sp.model.lift(goal, s)
-    return replace(consts, scene=s, p=p)
-
-
-@dataclass(frozen=True)
-class MPPIState:
-    U: np.ndarray  # (T, nu) importance-sampling sequence
-
-
-@dataclass(frozen=True, kw_only=True)
-class MPPIInfo:
-    free_energy: float
-    ess: float
-    n_crashed: int
-    valid_weights: bool
-    time_s: float
-    n_samples: int = 0  # samples of the last batch (the one the update was weighted over)
-    samples: SampleTrajectories | None = None  # with MPPI.record_samples, else None
-
-    @property
-    def stats(self) -> StepStats:
-        """The last batch's samples: crash-free count and ESS (no safety mechanism)."""
-        return StepStats(n_samples=self.n_samples,
-                         n_collision_free=self.n_samples - self.n_crashed, ess=self.ess)
-
-
-class MPPI(RecordsSamples):
-    """MPPI on a sampling problem (BaS-MPPI when the problem's model is barrier-embedded).
-
-    The obstacles are the model's own scene until :meth:`set_scene` gives another (a new map
-    or a moved obstacle: no recompilation, the kernels take the scene as an input).
-    :meth:`record_samples` hands out the last batch's samples (``nominal`` None)."""
-
-    def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig()):
-        if len(config.sigma) != sp.nu:
-            raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
-        self.sp, self.cfg = sp, config
-        self.sampler = Sampler(sp, config.backend, config.precision)
-        self.consts, self._goal = plan_constants(sp, goal, config)
-
-    @property
-    def scene(self) -> np.ndarray:
-        """The current scene vector."""
-        return self.consts.scene
-
-    def set_scene(self, scene) -> None:
-        """Plan in ``scene`` from the next step on: circles (a sequence of
-        :class:`~workbench.problem.Circle` or (x, y, radius) triples, at most the model's
-        ``scene_capacity``) or a flat scene vector (see
-        :meth:`~workbench.problem.Model.scene_vector`). Costs microseconds."""
-        self.consts = constants_in_scene(self.sp, self.consts, self._goal, scene)
-
-    def initial_state(self, x0=None) -> MPPIState:
-        return MPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)))
-
-    def step(self, state: MPPIState, x, rng: np.random.Generator):
-        t0 = time.perf_counter()
-        xb = _full_state(self.sp, x, self.consts.scene)
-        U = state.U
-        _check_plan(U, self.cfg.horizon, self.sp.nu)
-        for _ in range(self.cfg.iterations):
-            batch = self.sampler.mppi(xb, U, self.cfg.n_samples, self.consts,
-                                      int(rng.integers(0, 2**63)))
-            W = importance_weights(batch.S, self.cfg.lam)
-            if W.valid:
-                U = self.cfg.smooth(weighted_controls(batch.v, W.w))
-        u = U[0].copy()
-        dt = time.perf_counter() - t0
-        rec = self.sample_recorder
-        samples = None if rec is None else rec.record(
-            x0=xb, v=batch.v, crashed=batch.crashed, weights=W.w, scene=self.consts.scene)
-        info = MPPIInfo(free_energy=W.free_energy, ess=W.ess, n_crashed=int(batch.crashed.sum()),
-                        valid_weights=W.valid, time_s=dt, n_samples=self.cfg.n_samples,
-                        samples=samples)
-        return MPPIState(U=_shift(U, 1, self.cfg.tail)), u, info
 
 
 @dataclass(frozen=True)
@@ -394,12 +169,12 @@ class RobustMPPI(RecordsSamples):
     state with feedback, ``nominal`` from x*_0 without; ``weights`` the nominal weights (the
     update of u*), ``weights_real`` the real ones.
 
-    ``fast`` (default): the gains come from the law's compiled twin when it has one
+    ``fast`` (default): the gains come from the law's compiled fast path when it has one
     (``fast_gains``, e.g. :meth:`ILQGFeedback.fast_gains`: K_safe in one call) and the step's
     arithmetic around the sampler batches runs vectorised
     (:mod:`workbench.sampling.robust_step`): candidate starts compiled, all candidate free
     energies in one pass, the real system's weighted controls only when they are applied.
-    ``fast=False`` runs :meth:`step_reference`, the step-by-step twin (``feedback.gains``);
+    ``fast=False`` runs :meth:`step_twin`, the step-by-step twin (``feedback.gains``);
     both return the same numbers, bit for bit."""
 
     def __init__(self, sp: SamplingProblem, goal, config: MPPIConfig = MPPIConfig(),
@@ -442,7 +217,7 @@ class RobustMPPI(RecordsSamples):
         self._smooth = (None if config.smoothing is None
                         else savgol_matrix(config.horizon, *config.smoothing))
         if self.fast and hasattr(self.feedback, "fast_gains"):
-            getattr(self.feedback, "compiled", None)  # build the law's compiled twin now
+            getattr(self.feedback, "compiled", None)  # build the law's compiled fast path now
         self.set_scene(None)
 
     @property
@@ -464,9 +239,9 @@ class RobustMPPI(RecordsSamples):
 
     def select_nominal(self, state: RMPPIState, xb, rng) -> Selection:
         """Nominal-state selection (assumptions §9.3) with s = 1 plant step since the last call
-        (:meth:`select_nominal_reference` with ``fast=False``)."""
+        (:meth:`select_nominal_twin` with ``fast=False``)."""
         if not self.fast:
-            return self.select_nominal_reference(state, xb, rng)
+            return self.select_nominal_twin(state, xb, rng)
         nc = self.rcfg.n_candidates
         if state.x_nom is None:
             return self._first_selection(state, xb)
@@ -493,11 +268,11 @@ class RobustMPPI(RecordsSamples):
         else:
             i_star = int(ok.max())
         s = int(self._strides[i_star])
-        return Selection(x_nom=starts[i_star], U=_shift(state.U, s, self.cfg.tail),
+        return Selection(x_nom=starts[i_star], U=shift_plan(state.U, s, self.cfg.tail),
                          index=i_star, stride=s, free_energy=F, alpha=alpha,
                          fallback=fallback, alpha_nominal=float(alpha[i_star]))
 
-    def select_nominal_reference(self, state: RMPPIState, xb, rng) -> Selection:
+    def select_nominal_twin(self, state: RMPPIState, xb, rng) -> Selection:
         """:meth:`select_nominal` step by step (its twin: per-candidate free energies in a
         Python loop, the mixture, lift and propagation as separate calls)."""
         nc = self.rcfg.n_candidates
@@ -524,18 +299,18 @@ class RobustMPPI(RecordsSamples):
 
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         """One control step: selection, gains, SAIS batch(es), update (``fast``: the
-        vectorised step, else :meth:`step_reference`)."""
+        vectorised step, else :meth:`step_twin`)."""
         if not self.fast:
-            return self.step_reference(state, x, rng)
+            return self.step_twin(state, x, rng)
         t0 = time.perf_counter()
         sp, cfg = self.sp, self.cfg
-        xb = _full_state(sp, x, self.consts.scene)
-        _check_plan(state.U, cfg.horizon, sp.nu)
+        xb = full_state(sp, x, self.consts.scene)
+        check_plan(state.U, cfg.horizon, sp.nu)
         sel = self.select_nominal(state, xb, rng)
         x_nom, U = sel.x_nom, sel.U
         t1 = time.perf_counter()
         fb = self.feedback
-        # a law's compiled twin of gains(...) when it has one (ILQGFeedback.fast_gains)
+        # a law's compiled fast path of gains(...) when it has one (ILQGFeedback.fast_gains)
         gains = getattr(fb, "fast_gains", fb.gains)(x_nom, U, state.gains, sel.stride)
         K = gains.K
         t2 = time.perf_counter()
@@ -600,12 +375,12 @@ class RobustMPPI(RecordsSamples):
             samples=samples)
         return RMPPIState(U=U, x_nom=x_nom, index=sel.index, gains=gains), u, info
 
-    def step_reference(self, state: RMPPIState, x, rng: np.random.Generator):
+    def step_twin(self, state: RMPPIState, x, rng: np.random.Generator):
         """:meth:`step` step by step (its twin; ``fast=False``)."""
         t0 = time.perf_counter()
-        xb = _full_state(self.sp, x, self.consts.scene)
-        _check_plan(state.U, self.cfg.horizon, self.sp.nu)
-        sel = self.select_nominal_reference(state, xb, rng)
+        xb = full_state(self.sp, x, self.consts.scene)
+        check_plan(state.U, self.cfg.horizon, self.sp.nu)
+        sel = self.select_nominal_twin(state, xb, rng)
         x_nom, U = sel.x_nom, sel.U
         t1 = time.perf_counter()
         gains = self.feedback.gains(x_nom, U, state.gains, sel.stride)
@@ -635,17 +410,3 @@ class RobustMPPI(RecordsSamples):
                             (t0, t1, t2, t3, t4))
 
 
-def _check_plan(U: np.ndarray, T: int, nu: int) -> None:
-    if not isinstance(U, np.ndarray) or U.shape != (T, nu) or not np.all(np.isfinite(U)):
-        raise fail("state.U", getattr(U, "shape", U),
-                   f"the plan must be a finite ({T}, {nu}) array")
-
-
-def physical_model(m: Model) -> Model:
-    """The physical part of a barrier-embedded model, as a plain Model."""
-    n = m.n_physical
-    return Model.from_expressions(
-        m.name.replace("+bas", ""), m.x[:n], m.u, m.x_next[:n], dt=m.dt, u_min=m.u_min,
-        u_max=m.u_max, h=m.h if m.nh else None, state_names=m.state_names[:n],
-        control_names=m.control_names, position=m.position, obstacles=m.obstacles,
-        scene=m.scene, scene_value=m.scene_value, scene_capacity=m.scene_capacity)

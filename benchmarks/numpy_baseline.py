@@ -4,7 +4,7 @@ What a careful Python user writes: states lane-major (nx, N) so every row is con
 vectorised over samples, one Python loop over time, the real and nominal SAIS rollouts
 stacked into one (nx, 2N) array so each time step is one set of NumPy calls, the inverse
 barrier over all obstacles as one (n_obstacles, 2N) array. It is not the exactness twin
-(``workbench/sampling/reference.py``); it is checked equal to the kernels' results when fed the
+(``workbench/sampling/twin.py``); it is checked equal to the kernels' results when fed the
 kernels' noise (``tests/test_bench_baselines.py``, and by ``make bench`` before timing).
 
 Scope: the built-in navigation problem (planar double integrator, Euler or ZOH, circular
@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.sampling.kernels.constants import SamplerConstants
-from workbench.sampling.numpy_model import numpy_navigation_twin
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.twin_model import numpy_navigation_twin
 
 
 class VectorisedNavigation:
@@ -86,7 +86,7 @@ class VectorisedNavigation:
         return self.S @ (E * E)
 
 
-def mppi_numpy(nav: VectorisedNavigation, x0, U, Z, c: SamplerConstants) -> dict:
+def mppi_baseline(nav: VectorisedNavigation, x0, U, Z, c: SamplerConstants) -> dict:
     """MPPI rollouts: Z (T, nu, N) standard normals (the kernels' layout). Returns S (N,),
     crashed (N,), v (T, nu, N)."""
     T, _, N = Z.shape
@@ -112,11 +112,11 @@ def mppi_numpy(nav: VectorisedNavigation, x0, U, Z, c: SamplerConstants) -> dict
     return {"S": S, "crashed": crashed, "v": Vs}
 
 
-def sais_numpy(nav: VectorisedNavigation, x0, xs0, U, K, Z, c: SamplerConstants) -> dict:
+def sais_baseline(nav: VectorisedNavigation, x0, xs0, U, K, Z, c: SamplerConstants) -> dict:
     """Algorithm 1 (SPEC 10.1, clip_in_cost): Z (T, nu, N), K (T, nu, nx). Returns the three
     costs, the crash flags and the applied controls v_nom, v_real (T, nu, N)."""
     if not c.clip_in_cost:
-        raise ValueError("sais_numpy implements clip_in_cost=True only")
+        raise ValueError("sais_baseline implements clip_in_cost=True only")
     T, nu, N = Z.shape
     sig = np.asarray(c.sigma, float)[:, None]
     inv = (1.0 / np.asarray(c.sigma, float) ** 2)[:, None]

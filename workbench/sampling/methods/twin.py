@@ -1,13 +1,27 @@
-"""The slow twin of the safe-MPPI kernel (:mod:`workbench.sampling.kernels.safe`) in plain
-NumPy, vectorised over samples, fed the same standard-normal noise.
+"""The twin of the safe-MPPI kernel (:mod:`workbench.sampling.kernels.safe`):
+:func:`safe_twin`, in plain NumPy, vectorised over samples, fed the same standard-normal noise.
 
 The model (dynamics, margins), the state costs and the discrete CBF values and u-Jacobians
 (:func:`workbench.problem.dcbf.discrete_cbf`) are evaluated by the CasADi virtual machine
-mapped over samples (or the plain-NumPy navigation model, like
-:func:`workbench.sampling.reference.mppi_reference`); the algorithm — clipping, choice of the
+mapped over samples (or the plain-NumPy navigation model,
+:func:`~workbench.sampling.twin_model.model_twin`); the algorithm — clipping, choice of the
 most restrictive constraint, the closed-form projection, the counts, the crash rule, the
 likelihood ratio on the effective noise and the DCBF violation cost — is written here
-independently of the generated step. Noise is sample-major (N, T, nu).
+independently of the generated step.
+
+Twins (the same rules in every ``twin.py`` of the workbench): a twin is the plain NumPy
+counterpart of a fast path, written independently of it, named ``<fast name>_twin`` and compared
+with the fast path element by element at relative tolerance (``tests/test_twins.py``). Batch
+layout: twins are sample-major — states (N, T+1, nx), noise and controls (N, T, nu), per-sample
+results (N,) — while the kernels are lane-major — (T, nu, N). The conversion happens once, at
+the sampler's boundary (:class:`~workbench.sampling.sampler.Sampler`,
+:class:`~workbench.sampling.methods.sampler.SafeSampler`): a twin takes the kernels' noise
+buffer transposed to (N, T, nu), and its controls v are transposed back to (T, nu, N) before the
+batch is returned.
+
+Run-time fallback: :class:`~workbench.sampling.methods.sampler.SafeSampler` runs this twin when
+it has no safe library (no C compiler, or the emitter cannot express an operation of the model:
+one warning) or with ``backend="numpy"``.
 """
 
 from __future__ import annotations
@@ -18,7 +32,7 @@ from workbench.problem.dcbf import check_gamma, discrete_cbf
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import INFEASIBLE_TOL
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.reference import _model
+from workbench.sampling.twin_model import model_twin
 
 
 class _CBF:
@@ -40,9 +54,9 @@ class _CBF:
         return J.reshape(self.nh, -1, self.nu).transpose(1, 0, 2)
 
 
-def safe_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants, project: bool,
-                   w_dcbf: float, gamma: float,
-                   model_backend: str = "auto") -> dict[str, np.ndarray]:
+def safe_twin(sp: SamplingProblem, X0, U, Z, c: SamplerConstants, project: bool,
+              w_dcbf: float, gamma: float,
+              model_backend: str = "auto") -> dict[str, np.ndarray]:
     """Safe-MPPI rollouts (see :mod:`workbench.sampling.kernels.safe`). X0 (N, nx), U (T, nu),
     Z (N, T, nu) standard normals. Returns S (N,), crashed (N,) bool, v (N, T, nu) applied
     controls, projected and infeasible (N,) step counts, dcbf (N,) violation sums and the
@@ -51,7 +65,7 @@ def safe_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants, project: 
     gamma = check_gamma("gamma", gamma)
     N, T = Z.shape[0], Z.shape[1]
     scene = sp.model.scene_vector(c.scene if np.size(c.scene) else None)
-    m = _model(sp, N, scene, model_backend)
+    m = model_twin(sp, N, scene, model_backend)
     cbf = _CBF(sp, N, gamma, scene)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)

@@ -1,10 +1,12 @@
-"""A plain-NumPy twin of the built-in navigation problem (planar double integrator, circular
-obstacles, discrete barrier states, assumptions §8.2 costs), for the NumPy reference sampler.
+"""The model evaluation of the sampler twins (:mod:`workbench.sampling.twin`,
+:mod:`workbench.sampling.methods.twin`): :func:`model_twin` picks a plain-NumPy twin of the
+built-in navigation problem (planar double integrator, circular obstacles, discrete barrier
+states, assumptions §8.2 costs) or, for any other model, the CasADi virtual machine mapped over
+samples. Sample-major like every twin: states X (N, nx), controls V (N, nu).
 
-It shares no code with the CasADi expressions: :func:`numpy_navigation_twin` builds it from the
-model's obstacle list and barrier options and checks it against the CasADi model at random
-points; it returns None when the model is not one it can reproduce (then the reference uses the
-CasADi virtual machine).
+The navigation twin shares no code with the CasADi expressions: :func:`numpy_navigation_twin`
+builds it from the model's obstacle list and barrier options and checks it against the CasADi
+model at random points; it returns None when the model is not one it can reproduce.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import numpy as np
 
 from workbench.problem.models import Model
 from workbench.problem.obstacles import scene_vector
+from workbench.sampling.problem import SamplingProblem
 
 
 class NumpyNavigation:
@@ -111,3 +114,54 @@ def numpy_navigation_twin(model: Model, weights: dict[str, np.ndarray], function
         if same:
             return twin
     return None
+
+
+def model_twin(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
+    """Model evaluation for the twin in ``scene`` (empty: the model's own): plain NumPy for
+    the built-in navigation problem (unless ``model_backend == "casadi"``), otherwise the CasADi
+    virtual machine mapped over samples."""
+    scene = sp.model.scene_vector(scene if np.size(scene) else None)
+    if model_backend != "casadi" and sp.weights is not None:
+        twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
+        if twin is not None:
+            if sp.model.scene_capacity:  # else the twin holds the baked circles
+                twin.set_scene(scene)
+            return NumpyModelTwin(twin)
+    return CasadiModelTwin(sp, N, scene)
+
+
+class CasadiModelTwin:
+    def __init__(self, sp: SamplingProblem, N: int, scene: np.ndarray):
+        f = sp.functions()
+        self.dyn = f["dyn"].map("dyn", "serial", N, [2], [])  # the scene is shared
+        self.margins = (f["margins"].map("margins", "serial", N, [1], []) if sp.model.nh
+                        else None)
+        self.q, self.phi = f["q"].map(N), f["phi"].map(N)
+        self.scene = scene
+
+    def step(self, X, V):
+        return np.asarray(self.dyn(X.T, V.T, self.scene)).T
+
+    def crashed(self, X, eps_h):
+        if self.margins is None:
+            return np.zeros(X.shape[0], bool)
+        return np.any(np.asarray(self.margins(X.T, self.scene)).T <= eps_h, axis=1)
+
+    def cost(self, fn, X, p):
+        return np.asarray(fn(X.T, p)).ravel()
+
+
+class NumpyModelTwin:
+    def __init__(self, twin):
+        self.twin = twin
+        self.q, self.phi = twin.q, twin.phi
+        self.name = "numpy"
+
+    def step(self, X, V):
+        return self.twin.step(X, V)
+
+    def crashed(self, X, eps_h):
+        return self.twin.crashed(X, eps_h)
+
+    def cost(self, fn, X, p):
+        return fn(X, np.asarray(p, float))

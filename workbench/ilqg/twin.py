@@ -1,8 +1,15 @@
-"""The slow twin of the compiled iLQG passes: the same algorithm in plain NumPy.
+"""The twin of the compiled iLQG passes (:class:`~workbench.ilqg.compiled.CompiledPasses`):
+:class:`PassesTwin`, the same algorithm in plain NumPy (derivatives, backward pass with its box
+QP, forward pass, line search), pass by pass.
 
-It also serves as the fallback backend when no C compiler is available. Derivatives come from
-the problem's CasADi Functions evaluated by the CasADi virtual machine, mapped over the horizon.
-Every branch mirrors workbench/ilqg/core.c; tests compare the two pass by pass.
+Derivatives come from the problem's CasADi Functions evaluated by the CasADi virtual machine,
+mapped over the horizon. Every branch mirrors workbench/ilqg/core.c; ``tests/test_twins.py``
+compares the two pass by pass at relative tolerance. Layout: time-major trajectories, X (T+1, nx),
+U (T, nu), gains (T, nu, nx), as the compiled passes (no batch dimension, nothing to convert).
+
+Run-time fallback: :func:`~workbench.ilqg.solver.make_passes` returns this twin when no C
+compiler is available (or with ``backend="numpy"``, ``WORKBENCH_NO_CODEGEN=1``); every iLQG
+solve and every feedback law then runs on it.
 """
 
 from __future__ import annotations
@@ -106,7 +113,7 @@ def _chol_solve(L, b):
     return np.linalg.solve(L.T, y) if L.size else b
 
 
-class NumpyPasses:
+class PassesTwin:
     """Rollout, derivatives, backward and forward passes in NumPy (+ CasADi VM)."""
 
     name = "numpy"

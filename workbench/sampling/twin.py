@@ -1,10 +1,27 @@
-"""The slow twin of the sampler kernels: MPPI rollouts, Algorithm 1 (SAIS) and the candidate
-evaluation in plain NumPy, vectorised over samples, fed the same standard-normal noise.
+"""The twin of the sampler kernels (:mod:`workbench.sampling.kernels`): MPPI rollouts
+(:func:`mppi_twin`, also the candidate evaluation with per-sample controls and delays) and
+Algorithm 1 (:func:`sais_twin`) in plain NumPy, vectorised over samples, fed the same
+standard-normal noise.
 
-The model (dynamics, margins) and the state costs are evaluated by the CasADi virtual machine;
-the algorithm — clipping, feedback, crash rule, likelihood-ratio terms, the three SAIS costs —
-is written here independently of the generated step functions. Noise is sample-major
-(N, T, nu); it is the kernels' (T, nu, N) buffer transposed.
+The model (dynamics, margins) and the state costs come from
+:func:`~workbench.sampling.twin_model.model_twin` (plain NumPy for the built-in navigation
+problem, else the CasADi virtual machine); the algorithm — clipping, feedback, crash rule,
+likelihood-ratio terms, the three SAIS costs — is written here independently of the generated
+step functions.
+
+Twins (the same rules in every ``twin.py`` of the workbench): a twin is the plain NumPy
+counterpart of a fast path, written independently of it, named ``<fast name>_twin`` and compared
+with the fast path element by element at relative tolerance (``tests/test_twins.py``). Batch
+layout: twins are sample-major — states (N, T+1, nx), noise and controls (N, T, nu), per-sample
+results (N,) — while the kernels are lane-major — (T, nu, N). The conversion happens once, at
+the sampler's boundary (:class:`~workbench.sampling.sampler.Sampler`,
+:class:`~workbench.sampling.methods.sampler.SafeSampler`): a twin takes the kernels' noise
+buffer transposed to (N, T, nu), and its controls v are transposed back to (T, nu, N) before the
+batch is returned.
+
+Run-time fallback: :class:`~workbench.sampling.sampler.Sampler` runs these twins when it has no
+sampler library (no C compiler, or the emitter cannot express an operation of the model: one
+warning) or with ``backend="numpy"``.
 """
 
 from __future__ import annotations
@@ -12,63 +29,24 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.sampling.kernels.constants import SamplerConstants
-from workbench.sampling.numpy_model import numpy_navigation_twin
 from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.twin_model import model_twin
 
 
-def _model(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
-    """Model evaluation for the twin in ``scene`` (empty: the model's own): plain NumPy for
-    the built-in navigation problem (unless ``model_backend == "casadi"``), otherwise the CasADi
-    virtual machine mapped over samples."""
-    scene = sp.model.scene_vector(scene if np.size(scene) else None)
-    if model_backend != "casadi" and sp.weights is not None:
-        twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
-        if twin is not None:
-            if sp.model.scene_capacity:  # else the twin holds the baked circles
-                twin.set_scene(scene)
-            return _NumpyModel(twin)
-    return _CasadiModel(sp, N, scene)
+def lane_major(a: np.ndarray) -> np.ndarray:
+    """A twin's sample-major array (N, T, k) in the kernels' lane-major layout (T, k, N) (a
+    view): the samplers' one conversion of a twin's result."""
+    return np.transpose(a, (1, 2, 0))
 
 
-class _CasadiModel:
-    def __init__(self, sp: SamplingProblem, N: int, scene: np.ndarray):
-        f = sp.functions()
-        self.dyn = f["dyn"].map("dyn", "serial", N, [2], [])  # the scene is shared
-        self.margins = (f["margins"].map("margins", "serial", N, [1], []) if sp.model.nh
-                        else None)
-        self.q, self.phi = f["q"].map(N), f["phi"].map(N)
-        self.scene = scene
-
-    def step(self, X, V):
-        return np.asarray(self.dyn(X.T, V.T, self.scene)).T
-
-    def crashed(self, X, eps_h):
-        if self.margins is None:
-            return np.zeros(X.shape[0], bool)
-        return np.any(np.asarray(self.margins(X.T, self.scene)).T <= eps_h, axis=1)
-
-    def cost(self, fn, X, p):
-        return np.asarray(fn(X.T, p)).ravel()
+def sample_major(a: np.ndarray) -> np.ndarray:
+    """A kernel's lane-major array (T, k, N) in the twins' sample-major layout (N, T, k) (a
+    view): how a twin is fed the kernels' noise buffer."""
+    return np.transpose(a, (2, 0, 1))
 
 
-class _NumpyModel:
-    def __init__(self, twin):
-        self.twin = twin
-        self.q, self.phi = twin.q, twin.phi
-        self.name = "numpy"
-
-    def step(self, X, V):
-        return self.twin.step(X, V)
-
-    def crashed(self, X, eps_h):
-        return self.twin.crashed(X, eps_h)
-
-    def cost(self, fn, X, p):
-        return fn(X, np.asarray(p, float))
-
-
-def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
-                   model_backend: str = "auto", delay=None) -> dict[str, np.ndarray]:
+def mppi_twin(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
+              model_backend: str = "auto", delay=None) -> dict[str, np.ndarray]:
     """MPPI rollouts (assumptions §8.1 + 4.6). X0 (N,nx), U (T,nu) or (N,T,nu) per-sample controls,
     Z (N,T,nu) standard normals, delay (N,) leading noise-free steps per sample.
     Returns S (N,), crashed (N,), v (N,T,nu), X (N,T+1,nx)."""
@@ -77,7 +55,7 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
     if delay is not None:
         Z = np.where(np.arange(T)[None, :, None] < np.asarray(delay)[:, None, None], 0.0, Z)
     Ub = np.broadcast_to(U, (N, T, sp.nu))
-    m = _model(sp, N, c.scene, model_backend)
+    m = model_twin(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))
@@ -98,8 +76,8 @@ def mppi_reference(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
     return {"S": S, "crashed": crashed, "v": V, "X": X}
 
 
-def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
-                   model_backend: str = "auto", pure_costs: bool = False) -> dict[str, np.ndarray]:
+def sais_twin(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
+              model_backend: str = "auto", pure_costs: bool = False) -> dict[str, np.ndarray]:
     """Algorithm 1 (assumptions §10.1) with clip_in_cost: real samples with feedback
     K_k (x - x*), nominal samples without, the same noise for both. X0, Xs0 (N,nx) real and
     nominal starts, U (T,nu), K (T,nu,nx), Z (N,T,nu). Returns the three costs and the pieces
@@ -107,7 +85,7 @@ def sais_reference(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
     trajectories X, X_nom (N,T+1,nx); with ``pure_costs`` also the pure state costs Sx_real,
     Sx_nom (Σq + φ without crash cost, assumptions §11.2 item 1)."""
     N, T = Z.shape[0], Z.shape[1]
-    m = _model(sp, N, c.scene, model_backend)
+    m = model_twin(sp, N, c.scene, model_backend)
     inv = 1.0 / (c.sigma**2)
     half = 0.5 * c.lam * (1.0 - c.nu_mix)
     X = np.empty((N, T + 1, sp.nx))

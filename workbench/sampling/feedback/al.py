@@ -1,6 +1,6 @@
 """Feedback laws for Robust MPPI from the two other safety mechanisms: gains K_k (T, nu, nx).
 
-Next to K_safe (barrier states, :class:`~workbench.sampling.feedback.ILQGFeedback` on the
+Next to K_safe (barrier states, :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback` on the
 barrier-embedded model), these laws put the augmented Lagrangian and the ECBF filter inside the
 SAIS sampler, so the three mechanisms can be compared with everything else equal. Both act on a
 plain (physical) model with safety margins and zero-pad their gains to the sampler's state size;
@@ -33,7 +33,7 @@ from workbench.ilqg import make_passes
 from workbench.ilqg.al import al_problem
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import Model
-from workbench.sampling.feedback import (
+from workbench.sampling.feedback.base import (
     FeedbackWeights,
     Gains,
     check_plain_law,
@@ -85,7 +85,7 @@ class ALFeedback:
 
     ``model``: a plain model with margins h(x) (constraints c = -h <= 0); ``nx_full``: the
     sampler's state size (gains zero-padded to it). The scene rides in the AL parameters.
-    Fallbacks as in :class:`~workbench.sampling.feedback.ILQGFeedback`: when the derivatives or
+    Fallbacks as in :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback`: when the derivatives or
     the gains are not finite, or the backward pass fails at every regularisation level, the
     previous gains shifted by the stride are used and the reason is reported (K = 0 only when
     there are no previous gains, also reported). The multiplier update does not depend on the

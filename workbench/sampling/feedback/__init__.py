@@ -1,0 +1,47 @@
+"""Feedback laws for Robust MPPI: gains K_k (T, nu, nx) about the nominal trajectory.
+
+* :mod:`~workbench.sampling.feedback.base` — what every law shares: :class:`FeedbackWeights`,
+  :class:`Gains`, the :class:`FeedbackLaw` protocol, :class:`NoFeedback` (K = 0) and the
+  fallback rules (:data:`FALLBACK_REASONS`, :func:`shifted`, :func:`fallback_gains`);
+* :mod:`~workbench.sampling.feedback.ilqg` — :class:`ILQGFeedback`: K_safe from BaS-iLQG
+  (SA-RMPPI) or plain iLQG tracking gains (RMPPI);
+* :mod:`~workbench.sampling.feedback.compiled` — K_safe in one compiled call (the library
+  behind :meth:`ILQGFeedback.fast_gains`);
+* :mod:`~workbench.sampling.feedback.al` — :class:`ALFeedback`: gains from an augmented
+  Lagrangian iLQG on the plain model;
+* :mod:`~workbench.sampling.feedback.ecbf` — :class:`ECBFFeedback`: the sensitivity of an
+  exponential-CBF safety filter.
+"""
+
+from workbench.sampling.feedback.al import ALFeedback, ALFeedbackOptions, ALGains
+from workbench.sampling.feedback.base import (
+    FALLBACK_REASONS,
+    FeedbackLaw,
+    FeedbackWeights,
+    Gains,
+    NoFeedback,
+    check_plain_law,
+    fallback_gains,
+    pad_gains,
+    shifted,
+)
+from workbench.sampling.feedback.ecbf import ECBFFeedback, FilterSensitivity
+from workbench.sampling.feedback.ilqg import ILQGFeedback
+
+__all__ = [
+    "FALLBACK_REASONS",
+    "ALFeedback",
+    "ALFeedbackOptions",
+    "ALGains",
+    "ECBFFeedback",
+    "FeedbackLaw",
+    "FeedbackWeights",
+    "FilterSensitivity",
+    "Gains",
+    "ILQGFeedback",
+    "NoFeedback",
+    "check_plain_law",
+    "fallback_gains",
+    "pad_gains",
+    "shifted",
+]
