@@ -15,7 +15,7 @@ import numpy as np
 
 from workbench.problem.models import Model
 from workbench.problem.obstacles import scene_vector
-from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.problem import SamplingProblem, barrier_spec
 
 
 class NumpyNavigation:
@@ -24,7 +24,7 @@ class NumpyNavigation:
     def __init__(self, model: Model, zoh: bool, weights: dict[str, np.ndarray]):
         self.dt = model.dt
         self.zoh = zoh
-        self.spec = model.barrier
+        self.spec = barrier_spec(model)
         self.w = weights
         baked = scene_vector(model.obstacles, len(model.obstacles))
         self.set_scene(model.scene_value if model.scene_capacity else baked)
@@ -40,7 +40,10 @@ class NumpyNavigation:
         return d[..., 0] ** 2 + d[..., 1] ** 2 - self.radii2[None]
 
     def _beta(self, h) -> np.ndarray:
-        o = self.spec.options
+        spec = self.spec
+        if spec is None:
+            raise ValueError("barrier-state values of a model without a barrier spec")
+        o = spec.options
         if o.kind == "inverse":
             B = 1.0 / h
         elif o.kind == "log":
@@ -48,7 +51,7 @@ class NumpyNavigation:
         else:
             B = np.exp(-o.kappa * h)
         out = []
-        for g in self.spec.groups:
+        for g in spec.groups:
             raw = B[:, list(g)].sum(axis=1)
             crashed = np.any(h[:, list(g)] <= o.eps_h, axis=1)
             out.append(np.where(crashed, o.beta_max, np.minimum(raw, o.beta_max)))

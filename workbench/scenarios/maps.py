@@ -251,7 +251,7 @@ def difficulty(circles, start, goal, *, resolution: float = 0.05,
     p1 = as_array("difficulty.goal", goal, (2,))
     C = _circle_array(circles)
     nx, ny = (max(1, round((hi - lo) / res)) for lo, hi in b)
-    xs, ys = np.linspace(*b[0], nx + 1), np.linspace(*b[1], ny + 1)
+    xs, ys = np.linspace(b[0, 0], b[0, 1], nx + 1), np.linspace(b[1, 0], b[1, 1], ny + 1)
     hx, hy = xs[1] - xs[0], ys[1] - ys[0]
     X, Y = xs[:, None], ys[None, :]
     edge = np.minimum(np.minimum(X - b[0, 0], b[0, 1] - X), np.minimum(Y - b[1, 0], b[1, 1] - Y))
@@ -345,8 +345,8 @@ class GeneratedMap:
         out = list(self.circles)
         for i, v in self.moving:
             c = self.circles[i]
-            out[i] = Circle(tuple(_bounce(c.center[a], v[a] * k * dt, self.box[a], c.radius)
-                                  for a in range(2)), c.radius)
+            x, y = (_bounce(c.center[a], v[a] * k * dt, self.box[a], c.radius) for a in range(2))
+            out[i] = Circle((x, y), c.radius)
         return tuple(out)
 
     def moving_scene(self, dt: float) -> Callable[[int], tuple[Circle, ...]]:
@@ -642,7 +642,9 @@ def _generate(family: MapFamily, seed: int) -> GeneratedMap:
         C, cells, diff = _occupancy(family, rng)
     for name in ("start", "goal"):
         p = np.array(getattr(family, name))
-        inside = np.flatnonzero(np.hypot(*(C[:, :2] - p).T) <= C[:, 2]) if C.shape[0] else []
+        inside: np.ndarray | list[int] = []
+        if C.shape[0]:
+            inside = np.flatnonzero(np.hypot(*(C[:, :2] - p).T) <= C[:, 2])
         if len(inside):
             i = int(inside[0])
             raise fail(f"map.{name}", getattr(family, name),

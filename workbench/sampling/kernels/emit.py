@@ -211,7 +211,7 @@ def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
             t, expr_d, expr_f = ("p" if typed else "d"), _literal(v), _literal_f(v)
             rank[name] = 0
         else:
-            args = [work[i] for i in ins[: 2 if op in _BINARY else 1]]
+            args: list[str | None] = [work[i] for i in ins[: 2 if op in _BINARY else 1]]
             rank[name] = max(rank[a] for a in args if a is not None)
             if op == ca.OP_CONSTPOW and len(ins) < 2:
                 args.append(None)
@@ -233,9 +233,12 @@ def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
         typ[name] = t
         body.append((key[name], rank[name], declare(name, t, expr_f, expr_d)))
         work[outs[0]] = name
-    out = []
+    out: list[str] = []
     for _, r, stmt in sorted(body):
-        (hoisted[r] if split and r < 2 else out).append(stmt)
+        if split and hoisted is not None and r < 2:
+            hoisted[r].append(stmt)
+        else:
+            out.append(stmt)
     return out + stores
 
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import casadi as ca
 
-from workbench.problem.barrier import min_margin
+from workbench.problem.barrier import BarrierOptions, min_margin
 from workbench.problem.obstacles import SLOT
 from workbench.sampling.kernels.emit import (
     WB_SCHEDULE,
@@ -56,7 +56,7 @@ from workbench.sampling.kernels.flags import kernel_flags
 from workbench.sampling.kernels.specs import candidate_spec, mppi_spec, sais_spec
 from workbench.sampling.kernels.vector_math import prelude
 from workbench.sampling.kernels.vocabulary import clip
-from workbench.sampling.problem import SamplingProblem
+from workbench.sampling.problem import SamplingProblem, barrier_spec
 
 _OPTS = {"cse": True}
 # scene slots from which a library should use the loop kernels. Measured (one thread, N 1024,
@@ -112,7 +112,7 @@ class _SlotModel:
 
     n: int
     g: ca.Function
-    barrier: object | None
+    barrier: BarrierOptions | None
     n_slots: int
 
 
@@ -140,7 +140,7 @@ def _slot_model(sp: SamplingProblem, precision: str = "float64") -> _SlotModel:
                                   "circle slots; margins other than one per circle slot "
                                   "(state limits, other shapes) are not supported")
     n = m.n_physical
-    spec = m.barrier
+    spec = barrier_spec(m)
     if spec is not None:
         o = spec.options
         if o.kind != "inverse":
@@ -270,6 +270,9 @@ def _next_state(sm: _SlotModel, XN, beta, acc: _Acc, e_next: int, e_now: int | N
     o = sm.barrier
     nxt = _beta(acc.sum(e_next), acc.min(e_next), o)
     if o.gamma != 0.0:
+        if e_now is None:
+            raise ValueError("a barrier with gamma != 0 needs the accumulated values of the "
+                             "current state (e_now)")
         now = _beta(acc.sum(e_now), acc.min(e_now), o)
         nxt = nxt - o.gamma * (beta - now)
     return ca.vertcat(XN, nxt)

@@ -40,6 +40,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import NotRequired, TypedDict
 
 from workbench.validation import flag, integer
 
@@ -50,7 +51,15 @@ WINDOW_S = 0.25  # seconds of CPU accounting behind each load estimate
 FREE_MARGIN = 0.5  # cores: use k threads when at least k - FREE_MARGIN cores are free
 WAIT_ENV = {"OMP_WAIT_POLICY": "passive"}  # set before the OpenMP runtime loads, unless given
 
-_STATE = {"max": None, "adaptive": True}
+
+
+class _ThreadState(TypedDict):
+    max: int | None  # the configured maximum (None until a library or set_threads sets it)
+    adaptive: bool
+    default: NotRequired[bool]  # True (or absent): max is OpenMP's default, not set_threads'
+
+
+_STATE: _ThreadState = {"max": None, "adaptive": True}
 _APPLIED: dict[int, int] = {}  # OS thread -> count last applied to its OpenMP setting
 _SETTERS: list[Callable[[int], object]] = []  # wb_set_threads of every loaded library
 
@@ -67,10 +76,11 @@ def register(setter: Callable[[int], object], default: int) -> None:
     """A newly loaded library's thread setter; ``default`` its OpenMP default count (the
     configured maximum until :func:`set_threads` is called)."""
     _SETTERS.append(setter)
-    if _STATE["max"] is None:
-        _STATE["max"] = max(1, int(default))
+    n = _STATE["max"]
+    if n is None:
+        n = _STATE["max"] = max(1, int(default))
         _STATE["default"] = True
-    setter(int(_STATE["max"]))
+    setter(n)
     _APPLIED.pop(threading.get_ident(), None)
 
 
@@ -83,7 +93,7 @@ def set_threads(n: int | str, adaptive: bool = True) -> None:
         n = _cores()
     integer("threads", n, 1)
     flag("adaptive", adaptive)
-    _STATE.update(max=int(n), adaptive=bool(adaptive), default=False)
+    _STATE.update({"max": int(n), "adaptive": bool(adaptive), "default": False})
     _APPLIED.clear()
     for s in _SETTERS:
         s(int(n))
@@ -93,13 +103,14 @@ def set_threads(n: int | str, adaptive: bool = True) -> None:
 def using(n: int | str, adaptive: bool = False) -> Iterator[None]:
     """:func:`set_threads` (``n``, ``adaptive``) inside the block, the previous setting after
     it (benchmarks: ``with using(1): ...`` times exactly one thread)."""
-    saved = dict(_STATE)
+    saved = _STATE.copy()
     set_threads(n, adaptive)
     try:
         yield
     finally:
-        _STATE.clear()
         _STATE.update(saved)
+        if "default" not in saved:
+            _STATE.pop("default", None)
         _APPLIED.clear()
         for s in _SETTERS:
             s(int(saved["max"] or 1))
