@@ -14,9 +14,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
+import workbench.sampling.kernels.robust as robust_kernels
 import workbench.sampling.robust as robust_module
 from workbench.codegen.fastcall import FastFunction
 from workbench.sampling.feedback import Gains, ILQGFeedback
+from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.robust import RMPPIConfig, RobustMPPI, candidate_weights
 from workbench.sampling.robust_step import CandidateStarts, candidate_free_energies
 from workbench.sampling.threshold import ProgressThreshold
@@ -262,6 +264,20 @@ def test_candidate_starts_equal_mix_and_lift(nav, compiled):
         ref = lift(mixed[:, :4], scene)[0].reshape(9, sp.nx)
         ref[-1] = xb
         np.testing.assert_array_equal(cs(a0, u0, xb, scene), ref)
+
+
+def test_candidate_starts_library_kept_under_the_problem_fingerprint(nav):
+    """The starts library is kept per process under the problem's fingerprint (a string), so a
+    second SamplingProblem of the same Problem reuses it (and no SamplingProblem is kept)."""
+    sp = nav.problem
+    other = SamplingProblem(sp.problem, sp.description, sp.weights)
+    W = candidate_weights(9)
+    a, b = CandidateStarts(sp, W), CandidateStarts(other, W)
+    if not a.compiled:
+        pytest.skip("no C compiler")
+    assert all(isinstance(k, str) for k in robust_kernels._STARTS)
+    assert sp.fingerprint() in robust_kernels._STARTS
+    assert b._k is not None and a._k is not None and b._k._c is a._k._c
 
 
 def _gains_pair(fb_fast, fb_ref, x, U, previous=None, stride=1):

@@ -37,7 +37,7 @@ class CandidateStarts:
         self.nc, self.nx, self.n = W.shape[0], sp.nx, m.n_physical
         self._mix = np.ascontiguousarray(W, dtype=float)
         lib = (starts_library(sp.functions()["dyn"], m.lift_function, sp.nx, m.n_physical,
-                              sp.fingerprint) if compiled else None)
+                              sp.fingerprint()) if compiled else None)
         self._k = None if lib is None else StartsKernel(lib, sp.nx, sp.nu, m.n_physical,
                                                         self.nc, m.n_scene)
         if self._k is None:
