@@ -24,7 +24,9 @@ terminal ½|x-x*|²_Q).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 
@@ -78,6 +80,15 @@ class ALGains(Gains):
 
     multipliers: np.ndarray | None = None
     multipliers_used: np.ndarray | None = None
+
+
+class _ALRecord(TypedDict):
+    """The :class:`ALGains` fields a call sets whether or not its gains are computed."""
+
+    nominal_unsafe: bool
+    activity: Mapping[str, float]
+    multipliers: np.ndarray
+    multipliers_used: np.ndarray
 
 
 class ALFeedback:
@@ -171,8 +182,8 @@ class ALFeedback:
             lam_next[1:] = np.minimum(self.opt.lambda_max,
                                       np.maximum(0.0, lam[1:] + self.opt.mu * C[1:]))
         m = self.model
-        record = dict(nominal_unsafe=unsafe, activity=activity, multipliers=lam_next,
-                      multipliers_used=lam)
+        record: _ALRecord = {"nominal_unsafe": unsafe, "activity": activity,
+                             "multipliers": lam_next, "multipliers_used": lam}
         reason = None
         d = self.passes.derivatives(X, Uc, self.params(X, Uc, lam))
         if not all(np.all(np.isfinite(a)) for a in d.values()):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -122,7 +123,9 @@ def ksafe_library(problem: Problem) -> Library | None:
             i, d = ctypes.c_int, ctypes.c_double
             f = lib.cdll.wb_ksafe
             f.restype = i
-            f.argtypes = [i] + [_dp] * 5 + [d, d, i, i, i] + [_dp] * 14
+            args: list[type[ctypes._SimpleCData[Any]]] = [i] + [_dp] * 5 + [d, d, i, i, i]
+            args += [_dp] * 14
+            f.argtypes = args
             f = lib.cdll.wb_ksafe_table
             f.restype = i
             f.argtypes = [i, d, d, i, i, i, _dp]

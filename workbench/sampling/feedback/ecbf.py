@@ -16,7 +16,7 @@ terminal ½|x-x*|²_Q).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 import casadi as ca
@@ -322,6 +322,7 @@ class ECBFFeedback:
         infeasible = np.zeros(self.T, bool)
         reason = None
         ks = np.flatnonzero(active)
+        steps: Iterable[tuple[np.ndarray, bool] | None]
         if fast:  # (gain, infeasible) or None per active step
             rows = self._row_batch(X[ks])
             steps = self._sensitivities(rows, Uc[ks], g.K[ks])
@@ -426,7 +427,7 @@ class ECBFFeedback:
                 mask[j, np.asarray(idx, dtype=int)] = True
         return hard, soft, upper, lower, none
 
-    def _sensitivities(self, rows, U_ref, K) -> list:
+    def _sensitivities(self, rows, U_ref, K) -> list[tuple[np.ndarray, bool] | None]:
         """(gain, infeasible) or None per step, as :meth:`sensitivity` with references U_ref
         (m, nu), tracking gains K (m, nu, nx) and rows from :meth:`_row_batch`: the same QPs,
         then the KKT solves of steps with the same shape of active set batched; a step whose
@@ -436,20 +437,21 @@ class ECBFFeedback:
         # box bounds as one block (upper, then lower, as sensitivity() holds them)
         box = np.concatenate([sets[2], sets[3]], axis=1)
         counts = np.stack([sets[0].sum(axis=1), sets[1].sum(axis=1), box.sum(axis=1)], axis=1)
-        out: list = [None] * len(U_ref)
-        groups: dict[tuple[int, ...], list[int]] = {}
+        out: list[tuple[np.ndarray, bool] | None] = [None] * len(U_ref)
+        groups: dict[tuple[int, ...], list[np.intp]] = {}
         for j in np.flatnonzero(~none):
             groups.setdefault(tuple(counts[j]), []).append(j)
+        a, b, da, db = rows
         for key, js in groups.items():
             J = np.array(js)
-            idx = [np.nonzero(s[J])[1].reshape(len(J), c)
-                   for s, c in zip((sets[0], sets[1], box), key, strict=True)]
-            gains = self._kkt_batch(rows, J, *idx, U_ref[J], K[J])
+            hard, soft, held = (np.nonzero(s[J])[1].reshape(len(J), c)
+                                for s, c in zip((sets[0], sets[1], box), key, strict=True))
+            gains = self._kkt_batch(rows, J, hard, soft, held, U_ref[J], K[J])
             for r, j in enumerate(J):
                 if gains[r] is None:  # a bound or row dropped: the per-step law
-                    bounds = idx[2][r]
+                    bounds = held[r]
                     out[j] = _pair(self._held(
-                        *(v[j] for v in rows), U_ref[j], K[j], list(idx[0][r]), idx[1][r],
+                        a[j], b[j], da[j], db[j], U_ref[j], K[j], list(hard[r]), soft[r],
                         list(bounds[bounds < self.nu]), list(bounds[bounds >= self.nu] - self.nu)))
                 else:
                     out[j] = (gains[r], key[1] > 0)

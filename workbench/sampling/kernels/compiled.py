@@ -34,7 +34,8 @@ class KernelOutput:
 def address(a: np.ndarray) -> int:
     """The address of an array's first byte, for a C pointer argument."""
     try:  # 3x faster than the array interface (kernel calls pass a dozen arrays)
-        return ctypes.addressof(ctypes.c_char.from_buffer(a))
+        # numpy's stubs declare ndarray.__buffer__ only for Python >= 3.12; it is a buffer
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))  # type: ignore[arg-type]
     except (TypeError, ValueError):  # read-only or empty
         return a.__array_interface__["data"][0]
 

@@ -47,6 +47,8 @@ def layouts(sp: SamplingProblem, kernel: str,
     """(carry, result) layouts of a kernel ("mppi", "sais" or "candidates"); the specs below
     index their carries in this order. Float32 kernels add a ``guard`` field to both."""
     nx = sp.nx
+    carry: tuple[tuple[str, int], ...]
+    result: tuple[tuple[str, int], ...]
     if kernel == "sais":
         carry = (("x", nx), ("x_nom", nx), ("S_state_nom", 1), ("S_hat", 1), ("S_real", 1),
                  ("LR", 1), ("crashed_real", 1), ("crashed_nom", 1))
