@@ -154,7 +154,10 @@ class Sampler:
         carry fields given per sample (N rows; none: every sample starts from the same carry).
         Results are contiguous copies; lane outputs are the kernel's (:class:`~workbench.
         sampling.kernels.compiled.KernelOutput`: never overwritten while referenced)."""
-        k = getattr(self.lib, name)
+        lib = self.lib
+        if lib is None:
+            raise RuntimeError(f"kernel {name} run on the numpy backend (no sampler library)")
+        k = getattr(lib, name)
         consts = c.kernel_consts()
         k = k if not float32 else getattr(self.lib32, name)
         out = k(k.carry.pack(N if rows else 1, **carry), n=N, consts=consts, time_in=time_in,
@@ -162,13 +165,13 @@ class Sampler:
         r = {f: np.array(v) for f, v in k.result.unpack(out.result).items()}
         if not float32:
             return r, out.lane_out
-        k = getattr(self.lib, name)
+        k = getattr(lib, name)
         idx = np.flatnonzero(r["guard"] > 0)
         g = self.guard
         g.batches, g.samples, g.rechecked = g.batches + 1, g.samples + N, g.rechecked + idx.size
         if idx.size:
             T = next(iter(time_in.values())).shape[0]
-            z = self.lib.normals_at(idx, T, k.spec.n_noise, seed)
+            z = lib.normals_at(idx, T, k.spec.n_noise, seed)
             sub = {f: (np.asarray(v)[idx] if f in rows else v) for f, v in carry.items()}
             o = k(k.carry.pack(idx.size if rows else 1, **sub), n=idx.size, consts=consts,
                   time_in=time_in, noise=z)

@@ -44,6 +44,9 @@ class NavigationSetup:
     def physical_problem(self) -> SamplingProblem:
         """The same costs on the plant without a barrier state (crash cost only)."""
         w = self.problem.weights
+        if w is None:
+            raise fail("NavigationSetup.problem.weights", None, "must be set (by "
+                       "navigation_costs or goal_costs) to form the physical problem")
         S = w["S"][: self.plant.nx]
         if self.system.cost_form == "navigation":
             return navigation_costs(self.plant, S=tuple(S), q_beta=0.0)

@@ -46,6 +46,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.models import Model, double_integrator
+from workbench.problem.obstacles import Circle
 from workbench.problem.vehicles import (
     QUAD_ARM,
     QUAD_GRAVITY,
@@ -168,7 +169,7 @@ class System:
         if self.scale == 1.0:
             return scene
         s = self.scale
-        circles = tuple((c.center[0] * s, c.center[1] * s, c.radius * s)
+        circles = tuple(Circle((c.center[0] * s, c.center[1] * s), c.radius * s)
                         for c in scene.obstacles())
         return CircleScene(circles, tuple(np.asarray(scene.start, float) * s),
                            tuple(np.asarray(scene.goal, float) * s), dt=scene.dt,

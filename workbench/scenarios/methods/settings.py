@@ -20,6 +20,13 @@ from workbench.study.config_io import load
 from workbench.validation import fail
 
 
+def _options_type(f: dataclasses.Field[Any]) -> type | None:
+    """The type of a method-options field: that of its default_factory's value (None: the
+    field has no default_factory, so it holds no method's options)."""
+    factory = f.default_factory
+    return type(factory()) if callable(factory) else None
+
+
 @dataclass(frozen=True)
 class MethodSettings:
     """Each method's own options: one field per built-in method's options (config files set
@@ -44,7 +51,10 @@ class MethodSettings:
         for f in dataclasses.fields(self):
             if f.name in ("braking_gain", "extra"):
                 continue
-            kind = type(f.default_factory())  # type: ignore[misc]
+            kind = _options_type(f)
+            if kind is None:
+                raise TypeError(f"MethodSettings.{f.name} has no default_factory: a method's "
+                                "options field is built by its options type")
             if not isinstance(getattr(self, f.name), kind):
                 raise fail(f"methods.{f.name}", getattr(self, f.name),
                            f"must be a {kind.__name__}")
@@ -95,7 +105,8 @@ class MethodSettings:
             raise fail(f"methods.{spec.key}", options,
                        f"must be a {getattr(spec.options, '__name__', 'None')}")
         if spec.options_key is not None:
-            return dataclasses.replace(self, **{spec.options_key: options})
+            changes: dict[str, Any] = {spec.options_key: options}
+            return dataclasses.replace(self, **changes)
         extra = dict(self.extra or ())
         extra[spec.name] = options
         return dataclasses.replace(self, extra=tuple(extra.items()))
@@ -107,6 +118,6 @@ def check_fields() -> None:
     for s in methods():
         if s.options_key is not None:
             f = fields.get(s.options_key)
-            if f is None or type(f.default_factory()) is not s.options:  # type: ignore[misc]
+            if f is None or _options_type(f) is not s.options:
                 raise fail(f"MethodSpec({s.name}).options_key", s.options_key,
                            "must name a field of MethodSettings holding its options type")
