@@ -444,14 +444,14 @@ class ECBFFeedback:
         a, b, da, db = rows
         for key, js in groups.items():
             J = np.array(js)
-            hard, soft, held = (np.nonzero(s[J])[1].reshape(len(J), c)
-                                for s, c in zip((sets[0], sets[1], box), key, strict=True))
-            gains = self._kkt_batch(rows, J, hard, soft, held, U_ref[J], K[J])
+            hard_i, soft_i, box_i = (np.nonzero(s[J])[1].reshape(len(J), c)
+                                     for s, c in zip((sets[0], sets[1], box), key, strict=True))
+            gains = self._kkt_batch(rows, J, hard_i, soft_i, box_i, U_ref[J], K[J])
             for r, j in enumerate(J):
                 if gains[r] is None:  # a bound or row dropped: the per-step law
-                    bounds = held[r]
+                    bounds = box_i[r]
                     out[j] = _pair(self._held(
-                        a[j], b[j], da[j], db[j], U_ref[j], K[j], list(hard[r]), soft[r],
+                        a[j], b[j], da[j], db[j], U_ref[j], K[j], list(hard_i[r]), soft_i[r],
                         list(bounds[bounds < self.nu]), list(bounds[bounds >= self.nu] - self.nu)))
                 else:
                     out[j] = (gains[r], key[1] > 0)

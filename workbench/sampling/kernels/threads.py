@@ -52,7 +52,6 @@ FREE_MARGIN = 0.5  # cores: use k threads when at least k - FREE_MARGIN cores ar
 WAIT_ENV = {"OMP_WAIT_POLICY": "passive"}  # set before the OpenMP runtime loads, unless given
 
 
-
 class _ThreadState(TypedDict):
     max: int | None  # the configured maximum (None until a library or set_threads sets it)
     adaptive: bool
