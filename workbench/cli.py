@@ -26,6 +26,7 @@ import textwrap
 from pathlib import Path
 
 from workbench.study import config_io
+from workbench.study.checkout import StudiesLocationError
 from workbench.study.config_io import ConfigError
 from workbench.study.io import StorageError
 
@@ -416,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     with terminal_logging(getattr(args, "quiet", False)):
         try:
             return args.fn(args)
-        except ConfigError as exc:
+        except (ConfigError, StudiesLocationError) as exc:
             print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
             return 2
         except StorageError as exc:  # disk full, file-size limit, read-only: names the file

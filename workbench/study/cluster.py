@@ -14,6 +14,7 @@ returns (its result is discarded).
 from __future__ import annotations
 
 import os
+import pickle
 import threading
 import time
 import traceback
@@ -24,6 +25,7 @@ from typing import Any
 from distributed import Client, wait
 from distributed.diagnostics.plugin import WorkerPlugin
 
+from workbench.study.checkout import has_checkout_studies, use_checkout_studies
 from workbench.study.scheduler import SchedulerError, check_scheduler
 from workbench.study.store import TaskRecord
 from workbench.study.tasks import Study
@@ -34,17 +36,22 @@ CLIENT_TIMEOUT_S = 10.0
 
 
 class WorkerInit(WorkerPlugin):
-    """Runs the study's worker initialiser (and the one-thread environment) on each worker."""
+    """Sets up each worker: the repository's ``studies`` first on ``sys.path`` (from the checkout
+    beside the worker's ``workbench``, :mod:`workbench.study.checkout`), the one-thread
+    environment, then the study's worker initialiser. The initialiser travels pickled and is
+    loaded only after the path is set, since it may live in ``studies``."""
 
     def __init__(self, init: Callable[[], None] | None):
-        self.init = init
+        self.init = None if init is None else pickle.dumps(init)
         self.client_pid = os.getpid()
 
     def setup(self, worker) -> None:
+        if has_checkout_studies():
+            use_checkout_studies()
         if os.getpid() != self.client_pid:  # not the caller's own process (processes=False)
             limit_threads()
         if self.init is not None:
-            self.init()
+            pickle.loads(self.init)()
 
 
 def connect(scheduler: Any) -> tuple[Client, bool, str]:

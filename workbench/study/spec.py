@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+from workbench.study.checkout import use_checkout_studies
 from workbench.validation import fail
 
 if TYPE_CHECKING:
@@ -154,9 +155,11 @@ ENVIRONMENT = "WORKBENCH_STUDIES"
 
 
 def registry(modules: list[str] | None = None) -> dict[str, StudySpec]:
-    """Every registered study by name: the modules listed in ``studies/registry.py`` plus those
-    in ``$WORKBENCH_STUDIES`` (comma-separated), each defining ``STUDY``."""
+    """Every registered study by name: the modules listed in ``studies/registry.py`` (read from
+    the checkout beside ``workbench``: :func:`workbench.study.checkout.use_checkout_studies`)
+    plus those in ``$WORKBENCH_STUDIES`` (comma-separated), each defining ``STUDY``."""
     if modules is None:
+        use_checkout_studies()
         modules = list(importlib.import_module(REGISTRY_MODULE).STUDIES)
         modules += [m.strip() for m in os.environ.get(ENVIRONMENT, "").split(",") if m.strip()]
     out: dict[str, StudySpec] = {}
