@@ -187,7 +187,7 @@ class Disturbance:
         built-in planar integrators' own, or () for any other plant when ``level`` is 0 (nothing
         to disturb). Any other plant with ``level != 0`` must name them: ValueError."""
         if self.states is not None:
-            return self._resolve(plant)
+            return self._resolve(plant, self.states)
         if self.velocity_index is None:
             if is_planar_integrator(plant):
                 return disturbed_states(plant)
@@ -208,9 +208,9 @@ class Disturbance:
     def _listing(plant: Model) -> str:
         return ", ".join(f"{i}: {n!r}" for i, n in enumerate(plant.state_names))
 
-    def _resolve(self, plant: Model) -> tuple[int, ...]:
+    def _resolve(self, plant: Model, states: tuple[str | int, ...]) -> tuple[int, ...]:
         out = []
-        for s in self.states:
+        for s in states:
             if isinstance(s, str):
                 if s not in plant.state_names:
                     raise fail("Disturbance.states", self.states,
@@ -240,7 +240,7 @@ class Disturbance:
             if not all(isinstance(s, int) for s in self.states):
                 raise fail("Disturbance.states", self.states, "names need the plant: pass "
                            "index=disturbance.indices(plant)")
-            index = self.states
+            index = tuple(s for s in self.states if isinstance(s, int))  # all of them
         idx = list(index if index is not None else self.velocity_index or ())
         if not idx:
             raise fail("Disturbance.velocity_index", self.velocity_index,
@@ -410,7 +410,7 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     if stop_at_goal is None and goal is not None:
         raise fail("goal", goal, "is only read with stop_at_goal (give both, or neither)")
     reached, goal_step = False, None
-    pos = list(plant.position) if goal_p is not None else []
+    pos = list(plant.position) if goal_p is not None and plant.position is not None else []
     if scene is not None and not plant.n_scene:
         raise fail("scene", "given", f"the plant {plant.name} has no run-time scene (its "
                    "obstacles are baked in); build it with runtime obstacles")
@@ -418,7 +418,7 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     static = None if scene is None or moving else plant.scene_vector(scene)
 
     def scene_at(k: int) -> np.ndarray:
-        if not moving:
+        if not callable(scene):  # a static scene
             return plant.scene_value if static is None else static
         try:
             return plant.scene_vector(scene(k))
@@ -453,7 +453,7 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
         s = scene_at(k + 1)
         X.append(x.copy())
         U.append(u)
-        if moving:
+        if scenes is not None:  # the scene moves
             scenes.append(s)
         if keep_infos:
             infos.append(info)
@@ -463,7 +463,8 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
             if h <= 0:
                 crashed, crash_step = True, k + 1
                 break
-        if goal_p is not None and np.linalg.norm(x[pos] - goal_p) <= stop_at_goal:
+        if (goal_p is not None and stop_at_goal is not None
+                and np.linalg.norm(x[pos] - goal_p) <= stop_at_goal):
             reached, goal_step = True, k + 1
             break
     return Episode(X=np.array(X), U=np.array(U), crashed=crashed, crash_step=crash_step,

@@ -54,15 +54,22 @@ def as_array(field: str, value: object, shape: Sequence[int | None], *, finite: 
     return arr
 
 
+def _isfinite(value: Real) -> bool:
+    """``np.isfinite`` of the number as given (NumPy's stubs do not list ``numbers.Real``)."""
+    return bool(np.isfinite(value))  # type: ignore[call-overload]
+
+
+def _isnan(value: Real) -> bool:
+    """``np.isnan`` of the number as given (NumPy's stubs do not list ``numbers.Real``)."""
+    return bool(np.isnan(value))  # type: ignore[call-overload]
+
+
 def integer(field: str, value: object, minimum: int | None = None,
             maximum: int | None = None) -> int:
     """An integer (Python or NumPy; never ``bool``) within [minimum, maximum]."""
-    ok = isinstance(value, Integral) and not isinstance(value, bool | np.bool_)
-    if ok and minimum is not None and value < minimum:
-        ok = False
-    if ok and maximum is not None and value > maximum:
-        ok = False
-    if not ok:
+    if (not isinstance(value, Integral) or isinstance(value, bool | np.bool_)
+            or (minimum is not None and value < minimum)
+            or (maximum is not None and not value <= maximum)):
         rng = ("" if minimum is None and maximum is None else
                f" >= {minimum}" if maximum is None else
                f" <= {maximum}" if minimum is None else f" in [{minimum}, {maximum}]")
@@ -74,18 +81,15 @@ def real(field: str, value: object, minimum: float | None = None, *, strict: boo
          maximum: float | None = None) -> float:
     """A finite real number (never ``bool``); above ``minimum`` (``strict``: strictly), at most
     ``maximum``."""
-    ok = (isinstance(value, Real) and not isinstance(value, bool | np.bool_)
-          and bool(np.isfinite(value)))
-    if ok and minimum is not None:
-        ok = value > minimum if strict else value >= minimum
-    if ok and maximum is not None:
-        ok = value <= maximum
-    if not ok:
-        parts = ([f"{'>' if strict else '>='} {minimum:g}"] if minimum is not None else []) + (
-            [f"<= {maximum:g}"] if maximum is not None else [])
-        raise fail(field, value, "must be a finite number" + (" " + " and ".join(parts)
-                                                              if parts else ""))
-    return float(value)
+    if isinstance(value, Real) and not isinstance(value, bool | np.bool_) and _isfinite(value):
+        # (numbers.Real declares < and <= only; value is finite here)
+        above = minimum is None or (not value <= minimum if strict else not value < minimum)
+        if above and (maximum is None or value <= maximum):
+            return float(value)
+    parts = ([f"{'>' if strict else '>='} {minimum:g}"] if minimum is not None else []) + (
+        [f"<= {maximum:g}"] if maximum is not None else [])
+    raise fail(field, value, "must be a finite number" + (" " + " and ".join(parts)
+                                                          if parts else ""))
 
 
 def scale(field: str, value: object, power: int = 1) -> float:
@@ -94,8 +98,7 @@ def scale(field: str, value: object, power: int = 1) -> float:
     ``value**power`` neither underflows to 0 (a degenerate distribution, weights of 0/0) nor
     overflows: ``value`` in [tiny^(1/power), tiny^(-1/power)], tiny = 2.2e-308 (about
     [2.2e-308, 4.5e307] for power 1, [1.5e-154, 6.7e153] for power 2)."""
-    ok = isinstance(value, Real) and not isinstance(value, bool | np.bool_)
-    if ok:
+    if isinstance(value, Real) and not isinstance(value, bool | np.bool_):
         with np.errstate(all="ignore"):
             try:
                 v = np.float64(value)
@@ -103,15 +106,13 @@ def scale(field: str, value: object, power: int = 1) -> float:
                 v = np.float64(np.inf)
             p = v**power
             inv = 1.0 / p if p != 0 else np.inf
-        ok = bool(np.isfinite(v) and v > 0 and np.isfinite(p) and p >= _TINY
-                  and np.isfinite(inv) and inv >= _TINY)
-    if not ok:
-        lo, hi = _TINY ** (1.0 / power), _TINY ** (-1.0 / power)
-        what = "the value" if power == 1 else "its square" if power == 2 else f"value^{power}"
-        raise fail(field, value, f"must be a finite number in [{lo:.4g}, {hi:.4g}] ({what} and "
-                   "its reciprocal must be normal float64 numbers: no underflow to 0, no "
-                   "overflow)")
-    return float(value)
+        if (np.isfinite(v) and v > 0 and np.isfinite(p) and p >= _TINY
+                and np.isfinite(inv) and inv >= _TINY):
+            return float(value)
+    lo, hi = _TINY ** (1.0 / power), _TINY ** (-1.0 / power)
+    what = "the value" if power == 1 else "its square" if power == 2 else f"value^{power}"
+    raise fail(field, value, f"must be a finite number in [{lo:.4g}, {hi:.4g}] ({what} and "
+               "its reciprocal must be normal float64 numbers: no underflow to 0, no overflow)")
 
 
 def at_most(field: str, value: object, total: int, limit: int, what: str) -> None:
@@ -123,9 +124,8 @@ def at_most(field: str, value: object, total: int, limit: int, what: str) -> Non
 
 def real_or_inf(field: str, value: object) -> float:
     """A real number (never ``bool``) or +inf: NaN and -inf are rejected."""
-    ok = (isinstance(value, Real) and not isinstance(value, bool | np.bool_)
-          and not np.isnan(value) and value != -np.inf)
-    if not ok:
+    if (not isinstance(value, Real) or isinstance(value, bool | np.bool_) or _isnan(value)
+            or value == -np.inf):
         raise fail(field, value, "must be a number or +inf")
     return float(value)
 

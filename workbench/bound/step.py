@@ -206,8 +206,11 @@ def independent_batch(ctrl: RobustMPPI, batch: SAISDiagBatch, seed: int) -> SAIS
     check_batch(batch)
     if int(seed) == batch.seed:
         raise fail("seed", seed, "an independent batch needs a seed other than the batch's")
-    return ctrl.sampler.sais(batch.X[0, :, 0], batch.X_nom[0, :, 0], batch.U, batch.K,
-                             batch.X.shape[2], batch.consts, int(seed), diagnostics=True)
+    out = ctrl.sampler.sais(batch.X[0, :, 0], batch.X_nom[0, :, 0], batch.U, batch.K,
+                            batch.X.shape[2], batch.consts, int(seed), diagnostics=True)
+    if not isinstance(out, SAISDiagBatch):  # the sampler's annotation omits diagnostics=True
+        raise TypeError(f"the sampler returned {type(out).__name__} for diagnostics=True")
+    return out
 
 
 def with_diagnostics(ctrl: RobustMPPI) -> RobustMPPI:

@@ -61,6 +61,8 @@ from workbench.codegen.toolchain import Toolchain, find_toolchain
 from workbench.codegen.toolchain import compile_timeout as _env_timeout
 from workbench.validation import as_array, fail, real
 
+CASADI_VERSION: str = ca.__version__  # type: ignore[attr-defined]  # casadi's stub omits it
+
 log = logging.getLogger("workbench.codegen")
 
 VERIFY_RTOL = 1e-12
@@ -566,7 +568,7 @@ def build_library(
     base, fld = _cache_root(root)
     _COUNTS["generated"] += 1
     source = generate_source(functions, extra_source)
-    ident = "\n".join([source, tc.key(), *extra_flags, ca.__version__, platform.platform(),
+    ident = "\n".join([source, tc.key(), *extra_flags, CASADI_VERSION, platform.platform(),
                        _cpu_signature() if any("native" in f for f in extra_flags) else ""])
     full_key = hashlib.sha256(ident.encode()).hexdigest()
     key = full_key[:20]
@@ -579,7 +581,7 @@ def build_library(
     lib, manifest = folder / f"lib{name}.so", folder / "manifest.json"
     digest = None if rebuild else _identity(lib, manifest, full_key, f"{fld} file")
     hit = digest is not None
-    if not hit:
+    if digest is None:
         digest = _compile_and_publish(tc, source, folder, name, extra_flags, full_key)
     try:
         cdll, loaded = _load_and_verify(lib, digest, functions, checks)
@@ -655,6 +657,6 @@ def _compile_and_publish(tc, source: str, folder: Path, stem: str, extra_flags,
         if os.path.exists(tmp):
             os.unlink(tmp)
     meta = {"key": key, "sha256": digest, "cc": tc.cc, "cc_version": tc.version,
-            "flags": [*tc.flags, *extra_flags], "casadi": ca.__version__}
+            "flags": [*tc.flags, *extra_flags], "casadi": CASADI_VERSION}
     _atomic_write(manifest, json.dumps(meta, indent=1))
     return digest

@@ -7,8 +7,21 @@ controllers and the simulator. Not thread-safe: one instance per thread.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import casadi as ca
 import numpy as np
+
+
+def bind(buffer: ca.FunctionBuffer, inputs: Sequence[np.ndarray],
+         outputs: Sequence[np.ndarray]) -> None:
+    """Bind C-contiguous float64 arrays, in place, to a ``Function.buffer()``: each evaluation
+    reads ``inputs[i]`` and writes ``outputs[i]``."""
+    # casadi's stub lists a byte size that its wrapper takes from the buffer itself
+    for i, a in enumerate(inputs):
+        buffer.set_arg(i, a.data)  # type: ignore[call-arg]
+    for i, a in enumerate(outputs):
+        buffer.set_res(i, a.data)  # type: ignore[call-arg]
 
 
 class FastFunction:
@@ -22,10 +35,7 @@ class FastFunction:
         self._in = [np.zeros(self.f.numel_in(i)) for i in range(self.f.n_in())]
         self._out = [np.zeros(self.f.numel_out(i)) for i in range(self.f.n_out())]
         self._buf, self._trigger = self.f.buffer()
-        for i, a in enumerate(self._in):
-            self._buf.set_arg(i, memoryview(a))
-        for i, a in enumerate(self._out):
-            self._buf.set_res(i, memoryview(a))
+        bind(self._buf, self._in, self._out)
 
     def __call__(self, *args) -> list[np.ndarray]:
         """Inputs flattened column-major (for mapped calls: one column per evaluation, i.e.

@@ -29,6 +29,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from workbench.codegen.fastcall import bind
 from workbench.problem.models import Model
 from workbench.validation import fail, flag, integer, one_of, real
 
@@ -280,17 +281,16 @@ class ECBFFilter:
         self._b = np.zeros(self.nh)
         self._scene = model.scene_value.copy()
         self._buf, self._eval = self.ecbf.rows.buffer()
-        self._buf.set_arg(0, memoryview(self._x))
-        self._buf.set_arg(1, memoryview(self._scene))
-        self._buf.set_res(0, memoryview(self._a_t))
-        self._buf.set_res(1, memoryview(self._b))
+        bind(self._buf, (self._x, self._scene), (self._a_t, self._b))
         self._setup()
 
     def _setup(self) -> None:
         nu, nh, soft = self.nu, self.nh, self.options.mode == "soft"
         ns = nh if soft else 0
         n, m = nu + ns, nh + ns + nu
-        data, indices, indptr = [], [], [0]
+        data: list[float] = []
+        indices: list[int] = []
+        indptr = [0]
         self._a_pos = np.zeros((nh, nu), dtype=np.int64)
         for j in range(nu):  # u columns: dense ECBF block, then the box row
             for i in range(nh):

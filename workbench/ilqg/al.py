@@ -231,6 +231,7 @@ def al_ilqg(alp: ALProblem, x0, U0, P_base, options: ALOptions | None = None,
         grow[0] = False
         mu = np.where(grow, np.minimum(opts.mu_max, opts.phi * mu), mu)
         viol_prev = viol
+    assert res is not None and C is not None  # ALOptions.max_outer >= 1: the loop ran
     return ALResult(
         X=res.X, U=res.U, k=res.k, K=res.K, cost=alp.base_cost(res.X, res.U, P_base),
         al_cost=res.cost, multipliers=lam.copy(), penalties=mu.copy(),

@@ -136,14 +136,13 @@ def _declare(c: ctypes.CDLL) -> None:
     c.wb_forward.restype = d
     c.wb_forward.argtypes = [i, _dp, _dp, _dp, _dp, _dp, _dp, d, _dp, _dp, i, _dp, _dp]
     c.wb_derivatives.restype = None
-    c.wb_derivatives.argtypes = [i, _dp, _dp, _dp] + [_dp] * 7
+    c.wb_derivatives.argtypes = [i, _dp, _dp, _dp, *[_dp] * 7]
     c.wb_line_search.restype = i
     c.wb_line_search.argtypes = [i] + [_dp] * 6 + [d, _dp, _dp, i, d, _dp, _dp, _dp, _dp, _dp]
     c.wb_backward.restype = i
-    c.wb_backward.argtypes = [i] + [_dp] * 10 + [d, i, i, _dp, _dp, _dp, _dp, i]
+    c.wb_backward.argtypes = [i, *[_dp] * 10, d, i, i, _dp, _dp, _dp, _dp, i]
     c.wb_solve.restype = None
-    c.wb_solve.argtypes = ([i] + [_dp] * 7 + [ctypes.POINTER(SolveOptions), _dp, i]
-                           + [_dp] * 16)
+    c.wb_solve.argtypes = [i, *[_dp] * 7, ctypes.POINTER(SolveOptions), _dp, i, *[_dp] * 16]
     c.wb_solve_options_layout.restype = i
     c.wb_solve_options_layout.argtypes = [ctypes.POINTER(ctypes.c_longlong),
                                           ctypes.POINTER(ctypes.c_char_p)]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -55,8 +56,8 @@ def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = Fa
             g.append(f["margins"](x, s))
     J += f["term"](x, P[T])
     nlp = {"x": ca.vec(u), "f": J, "g": ca.vertcat(*g) if g else ca.SX(0, 1)}
-    opts = {"print_time": False, "ipopt": {"print_level": 0, "tol": tol, "max_iter": max_iter,
-                                           "sb": "yes"}}
+    opts: dict[str, Any] = {"print_time": False, "ipopt": {
+        "print_level": 0, "tol": tol, "max_iter": max_iter, "sb": "yes"}}
     solver = ca.nlpsol("oracle", "ipopt", nlp, opts)
     lbx = np.tile(problem.model.u_min, T)
     ubx = np.tile(problem.model.u_max, T)
@@ -115,6 +116,7 @@ class MultipleShootingNLP:
         self._eq = np.array(eq)
         nlp = {"x": ca.vertcat(*w), "f": J, "g": ca.vertcat(*g),
                "p": ca.vertcat(x0, *Ps, sc)}
+        opts: dict[str, Any]
         if solver == "ipopt":
             opts = {"print_time": False, "ipopt": {"print_level": 0, "tol": tol,
                                                    "max_iter": max_iter, "sb": "yes"}}

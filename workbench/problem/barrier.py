@@ -87,9 +87,11 @@ class BarrierSpec:
 
 def min_margin(h: ca.SX, indices) -> ca.SX:
     """min_i h_i as a chain of fmin (one vector min per margin in generated kernels)."""
-    out = None
+    out: ca.SX | None = None
     for i in indices:
         out = h[i] if out is None else ca.fmin(out, h[i])
+    if out is None:
+        raise fail("indices", indices, "must name at least one margin")
     return out
 
 

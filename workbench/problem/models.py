@@ -17,12 +17,15 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import casadi as ca
 import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
+
+if TYPE_CHECKING:
+    from workbench.problem.barrier import BarrierSpec
 from workbench.problem.obstacles import (
     Circle,
     HForm,
@@ -71,7 +74,7 @@ class Model:
     position: tuple[int, int] | None = None
     obstacles: tuple[Circle, ...] = ()
     n_physical: int = -1
-    barrier: object | None = None  # workbench.problem.barrier.BarrierSpec for embedded models
+    barrier: BarrierSpec | None = None  # for barrier-embedded models
     lift_expr: ca.SX | None = field(default=None, repr=False)  # full state in physical symbols
     scene: ca.SX = field(default_factory=lambda: ca.SX(0, 1), repr=False)
     scene_value: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
@@ -196,6 +199,9 @@ class Model:
     @functools.cached_property
     def lift_function(self) -> ca.Function:
         """(x_physical, scene) -> full state."""
+        if self.lift_expr is None:
+            raise fail("Model.lift_expr", None, "must be the full state in the physical "
+                       "symbols to build the lift (Model.from_expressions sets it)")
         return ca.Function("lift", [self.x[: self.n_physical], self.scene], [self.lift_expr],
                            ["x", "scene"], ["x_full"])
 

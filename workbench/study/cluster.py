@@ -19,7 +19,7 @@ import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from typing import Any
 
 from distributed import Client, wait
@@ -95,7 +95,8 @@ def _timeout_record(item, timeout: float) -> TaskRecord:
 
 
 def dask_records(study: Study, pending: list, client: Client, execute: Callable,
-                 task_timeout_s: float | None = None) -> Iterator[tuple[Any, TaskRecord]]:
+                 task_timeout_s: float | None = None
+                 ) -> Generator[tuple[Any, TaskRecord], None, None]:
     """Submit the pending tasks to the cluster (all at once, or as many as it has threads when
     there is a time limit); yield records as they finish. Closing the iterator (e.g. on an
     interrupt) cancels what is left."""

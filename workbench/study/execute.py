@@ -48,7 +48,7 @@ import threading
 import time
 import traceback
 from collections import Counter, deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from multiprocessing import connection, get_context
 from pathlib import Path
@@ -260,7 +260,7 @@ class _Worker:
 
 
 def _local(study: Study, pending: list, workers: int,
-           timeout: float | None) -> Iterator[tuple[Any, TaskRecord]]:
+           timeout: float | None) -> Generator[tuple[Any, TaskRecord], None, None]:
     mp = get_context("spawn")
     queue = deque(pending)
     pool = [_Worker(mp, study.run_task, study.worker_init) for _ in range(workers)]
@@ -286,7 +286,7 @@ def _local(study: Study, pending: list, workers: int,
                 if rec is None and not w.proc.is_alive():
                     rec = TaskRecord(item[1].task_id, error=f"worker process died (exit code "
                                      f"{w.proc.exitcode}) while running this task")
-                elif rec is None and w.over(timeout):
+                elif rec is None and timeout is not None and w.over(timeout):
                     rec = TaskRecord(item[1].task_id, error=_timeout_text(
                         timeout, "its worker process was stopped"))
                 else:
@@ -304,7 +304,7 @@ def _local(study: Study, pending: list, workers: int,
 
 
 def _in_process(study: Study, pending: list,
-                timeout: float | None) -> Iterator[tuple[Any, TaskRecord]]:
+                timeout: float | None) -> Generator[tuple[Any, TaskRecord], None, None]:
     for task, ctx in pending:
         rec = _execute(study.run_task, task, ctx)
         if _STOP.is_set():  # the task swallowed the interrupt: its result is not trusted
@@ -377,7 +377,7 @@ def scheduler_client(scheduler: Any) -> Iterator[tuple[Any, str | None]]:
 
 def _mixed(store: RunStore, headers: dict, current: dict) -> MixedResultsError | None:
     """The error for stored tasks computed by other code or another evaluator, or None."""
-    other = Counter()
+    other: Counter[str] = Counter()
     for h in headers.values():
         p = h.get("provenance")
         if p != current:
@@ -440,7 +440,8 @@ def _run_claimed(study: Study, store: RunStore, workers: int, client: Any, addre
     ids = study.task_ids()
     threads = 1 if (workers or client is not None) else max(1, os.cpu_count() or 1)
     errors: list[TaskError] = []
-    computed, records, bar = 0, None, None
+    computed, bar = 0, None
+    records: Generator[tuple[Any, TaskRecord], None, None] | None = None
     headers = store.headers(ids)
     done = set(headers)
     mixed = _mixed(store, headers, current)
@@ -459,7 +460,8 @@ def _run_claimed(study: Study, store: RunStore, workers: int, client: Any, addre
                        file=sys.stderr, disable=not progress, smoothing=0.05,
                        dynamic_ncols=True)
             if not pending:
-                records = (r for r in ())
+                nothing: tuple[tuple[Any, TaskRecord], ...] = ()
+                records = (r for r in nothing)
             elif client is not None:
                 from workbench.study.cluster import dask_records
                 records = dask_records(study, pending, client, _execute, timeout)

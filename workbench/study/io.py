@@ -176,7 +176,7 @@ def manifest() -> dict[str, object]:
                              cwd=Path(__file__).parent, timeout=10).stdout.strip() or None
     except (OSError, subprocess.TimeoutExpired):
         rev = None
-    versions = {}
+    versions: dict[str, str | None] = {}
     for pkg in ("casadi", "numpy", "scipy", "osqp", "qpsolvers", "daqp", "pandas", "matplotlib",
                 "pyarrow", "tqdm", "dask", "distributed"):
         try:

@@ -341,7 +341,9 @@ def _profile(d: Path) -> str:
         data = read_json(d / name)
         if data is None:
             continue
-        config = data.get("config") if isinstance(data.get("config"), dict) else {}
+        config = data.get("config")
+        if not isinstance(config, dict):
+            config = {}
         prof = config.get("profile") or data.get("profile")
         if prof:
             return str(prof)

@@ -191,8 +191,9 @@ def _run_record(spec: StudySpec, out: Path, this: dict) -> dict:
     """run.json: the fields of the invocation that computed tasks (this one, unless it computed
     nothing and an earlier one did) and ``last_invocation`` (this one)."""
     previous = _read_record(out)
-    keep = this["tasks"]["computed"] == 0 and _computed(previous) > 0
-    base = {k: previous[k] for k in RECORD_KEYS if k in previous} if keep else this
+    base = this
+    if previous is not None and this["tasks"]["computed"] == 0 and _computed(previous) > 0:
+        base = {k: previous[k] for k in RECORD_KEYS if k in previous}
     return {"study": spec.name, **base, "last_invocation": this}
 
 
@@ -233,6 +234,7 @@ def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers:
     except ValueError as exc:  # before anything is written, as a config error
         raise ConfigError(str(exc)) from exc
     t0, load0 = time.perf_counter(), os.getloadavg()[0]
+    assert spec.default_out is not None  # set by StudySpec.__post_init__
     out = _user_path(out or spec.default_out)
     dry = declare(spec, config)[0]
     with scheduler_client(scheduler) as (client, _), claim(out, study_manifest(dry)):

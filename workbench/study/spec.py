@@ -135,10 +135,13 @@ class StudySpec:
         object.__setattr__(self, "default_out",
                            Path(self.default_out or Path("reports") / directory.name))
 
-    def fn(self, name: str) -> Callable[..., Any] | None:
+    def fn(self, name: str) -> Callable[..., Any]:
         """The study's function ``name`` (tasks, summarise, report, prepare, paper), imported
-        if it was given as ``"module:function"``."""
+        if it was given as ``"module:function"``; ValueError for an optional one (prepare,
+        paper) that the study does not declare."""
         value = getattr(self, name)
+        if value is None:
+            raise fail(f"StudySpec.{name}", None, f"is not declared by study {self.name!r}")
         if isinstance(value, str):
             module, attr = value.split(":")
             value = getattr(importlib.import_module(module), attr)

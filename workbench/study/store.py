@@ -124,11 +124,14 @@ class RunStore:
     def save(self, task: Any, record: TaskRecord) -> None:
         """Write a finished task atomically (one file: record, rows, arrays)."""
         out = record.output
+        if out is None:
+            raise ValueError(f"task {record.task_id}: only a finished task (a record with an "
+                             "output) can be saved; use save_error for one that raised")
         header = {"task_id": record.task_id, "task": describe(task), "meta": dict(out.meta),
                   "tables": {t: list(cols) for t, cols in out.tables.items()},
                   "arrays": list(out.arrays),
                   "provenance": dict(record.provenance) if record.provenance else None}
-        entries = {_RECORD: np.array(json.dumps(header, default=numpy_default))}
+        entries: dict[str, Any] = {_RECORD: np.array(json.dumps(header, default=numpy_default))}
         for t, cols in out.tables.items():
             for c, v in cols.items():
                 entries[f"{_TABLE}{t}:{c}"] = np.asarray(v)

@@ -15,7 +15,7 @@ import pickle
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from numbers import Integral
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -27,7 +27,7 @@ SCALARS = (str, int, float, bool, np.integer, np.floating, np.bool_)
 def _fields(task: Any, prefix: str = "") -> dict[str, Any]:
     if not dataclasses.is_dataclass(task) or isinstance(task, type):
         raise fail("task", task, "must be a frozen dataclass instance")
-    if not task.__dataclass_params__.frozen:
+    if not cast(Any, task).__dataclass_params__.frozen:  # not in the DataclassInstance protocol
         raise fail("task", task, f"{type(task).__name__} must be declared frozen=True")
     out: dict[str, Any] = {}
     for f in dataclasses.fields(task):
