@@ -12,7 +12,7 @@ STUDY_EXEC = --workers $(WORKERS) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 export OPENBLAS_NUM_THREADS ?= 1
 export WORKBENCH_CACHE_DIR ?= $(CURDIR)/.cache/codegen
 
-.PHONY: venv test study study-tracking-demo study-tracking study-navigation study-bound \
+.PHONY: venv test typecheck study study-tracking-demo study-tracking study-navigation study-bound \
 	study-sampling-safety study-arena tune-arena reports docs bench lint clean-cache clean
 
 venv: $(STAMP)
@@ -23,8 +23,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-test: $(STAMP)
+# the type check ([tool.mypy] in pyproject.toml) first, then the test suite
+test: typecheck
 	$(PY) -m pytest
+
+typecheck: $(STAMP)
+	$(VENV)/bin/mypy
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check workbench studies tests benchmarks examples
@@ -85,4 +89,4 @@ clean-cache:
 	rm -rf .cache/codegen
 
 clean:
-	rm -rf $(VENV) .cache build *.egg-info
+	rm -rf $(VENV) .cache .mypy_cache build *.egg-info
