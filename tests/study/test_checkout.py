@@ -19,12 +19,18 @@ ROOT = Path(__file__).parents[2]
 
 # Imports workbench from the checkout, then leaves only the foreign folder on sys.path in its
 # place: what an editable install of the library alone sees beside a foreign `studies`.
+# forget(): as a fresh process of that install (no studies imported, the checkout not on the path).
 PRELUDE = """\
 import sys
 sys.path.insert(0, {root!r})
 import workbench.cli, workbench.study.checkout, workbench.study.cluster
 sys.path[:] = [p for p in sys.path if p not in ("", {root!r})]
 sys.path.insert(0, {foreign!r})
+
+def forget():
+    for name in [m for m in sys.modules if m == "studies" or m.startswith("studies.")]:
+        del sys.modules[name]
+    sys.path[:] = [p for p in sys.path if p != {root!r}]
 """
 
 
@@ -72,26 +78,32 @@ def test_a_foreign_studies_package_already_imported_is_refused_naming_both(tmp_p
     assert str(foreign / "studies") in r.stderr and str(ROOT / "studies") in r.stderr
 
 
-def test_spawned_workers_and_the_dask_plugin_import_the_checkout_studies(tmp_path):
+def test_spawned_workers_and_dask_workers_import_the_checkout_studies(tmp_path):
     foreign = foreign_studies(tmp_path, raising=True)
     r = run(tmp_path, foreign, """\
         import multiprocessing
-        workbench.study.checkout.use_checkout_studies()
+        import pickle
+        from workbench.study.spec import registry
+        config_type = registry()["tracking-demo"].config_type  # a class defined in studies
+        payload = pickle.dumps(("RAN", config_type, None))  # as a Dask task travels
         with multiprocessing.get_context("spawn").Pool(1) as pool:  # inherits sys.path
             print("SPAWNED", pool.apply(eval, ("__import__('studies.registry').__file__",)))
-        for name in [m for m in sys.modules if m == "studies" or m.startswith("studies.")]:
-            del sys.modules[name]
-        sys.path[:] = [p for p in sys.path if p != {root!r}]
+        forget()
         import functools
         init = functools.partial(print, "INIT")  # the study's initialiser, run after the path
         workbench.study.cluster.WorkerInit(init).setup(worker=None)  # as on a fresh Dask worker
         import studies
         print("DASK", studies.__file__)
-    """.replace("{root!r}", repr(str(ROOT))))
+        forget()
+        workbench.study.cluster.run_pickled(print, payload)  # a task on a Dask worker
+        print("TASK", sys.modules["studies"].__file__)
+    """)
     assert r.returncode == 0, r.stderr
     assert f"SPAWNED {ROOT / 'studies' / '__init__.py'}" in r.stdout
     assert f"DASK {ROOT / 'studies' / '__init__.py'}" in r.stdout
     assert "INIT" in r.stdout
+    assert "RAN <class 'studies.tracking_demo." in r.stdout
+    assert f"TASK {ROOT / 'studies' / '__init__.py'}" in r.stdout
 
 
 def test_no_studies_beside_workbench_is_a_clear_error(monkeypatch, tmp_path):

@@ -9,6 +9,12 @@ so that waiting in the queue does not count, only as many tasks are handed over 
 the cluster has worker threads. A task over the limit is cancelled and recorded as an error;
 Dask cannot stop a running Python function, so its worker thread may go on until the function
 returns (its result is discarded).
+
+The repository's ``studies`` is not installed (:mod:`workbench.study.checkout`): each task's
+function, description and context travel pickled as bytes (:func:`run_pickled`), so the
+scheduler, which unpickles the task graph, never imports them; each worker first puts the
+checkout beside its own ``workbench`` on ``sys.path``. Start the workers from an editable install
+of the same revision.
 """
 
 from __future__ import annotations
@@ -46,12 +52,26 @@ class WorkerInit(WorkerPlugin):
         self.client_pid = os.getpid()
 
     def setup(self, worker) -> None:
-        if has_checkout_studies():
-            use_checkout_studies()
+        _use_checkout()
         if os.getpid() != self.client_pid:  # not the caller's own process (processes=False)
             limit_threads()
         if self.init is not None:
             pickle.loads(self.init)()
+
+
+def _use_checkout() -> None:
+    if has_checkout_studies():
+        use_checkout_studies()
+
+
+def run_pickled(execute: Callable[..., TaskRecord], payload: bytes) -> TaskRecord:
+    """Run one task on a worker: ``execute(run_task, task, ctx)`` from the pickled
+    ``(run_task, task, ctx)``. The study's objects (which live in ``studies``) travel as bytes,
+    so that the scheduler, which unpickles the task graph, never imports them, and they are
+    loaded here after the checkout's ``studies`` is first on ``sys.path``."""
+    _use_checkout()
+    run_task, task, ctx = pickle.loads(payload)
+    return execute(run_task, task, ctx)
 
 
 def connect(scheduler: Any) -> tuple[Client, bool, str]:
@@ -113,7 +133,8 @@ def dask_records(study: Study, pending: list, client: Client, execute: Callable,
             while queue and len(remaining) < window:
                 item = queue.popleft()
                 task, ctx = item
-                fut = client.submit(execute, study.run_task, task, ctx, pure=False)
+                fut = client.submit(run_pickled, execute,
+                                    pickle.dumps((study.run_task, task, ctx)), pure=False)
                 futures[fut], started[fut] = item, time.monotonic()
                 remaining.add(fut)
             try:  # short waits, so that an interrupt acts within a second
