@@ -114,7 +114,7 @@ class _Interleaved:
         self.plain_s: list[float] = []
         self.same = True
 
-    def initial_state(self, x0):
+    def initial_state(self, x0=None):
         return self.rec.initial_state(x0)
 
     def step(self, state, x, rng):
@@ -124,6 +124,15 @@ class _Interleaved:
         state, u, info = self.rec.step(state, x, rng)
         self.same &= bool(np.array_equal(u0, u))
         return state, u, info
+
+    def set_scene(self, scene) -> None:
+        """Both controllers see the same obstacles."""
+        self.ctrl.set_scene(scene)
+        self.rec.ctrl.set_scene(scene)
+
+    def record_samples(self, k: int = 64, keep="spread") -> None:
+        self.ctrl.record_samples(k, keep)
+        self.rec.ctrl.record_samples(k, keep)
 
 
 def _why(c, steps, i) -> str:
