@@ -9,15 +9,9 @@ most restrictive constraint, the closed-form projection, the counts, the crash r
 likelihood ratio on the effective noise and the DCBF violation cost — is written here
 independently of the generated step.
 
-Twins (the same rules in every ``twin.py`` of the workbench): a twin is the plain NumPy
-counterpart of a fast path, written independently of it, named ``<fast name>_twin`` and compared
-with the fast path element by element at relative tolerance (``tests/test_twins.py``). Batch
-layout: twins are sample-major — states (N, T+1, nx), noise and controls (N, T, nu), per-sample
-results (N,) — while the kernels are lane-major — (T, nu, N). The conversion happens once, at
-the sampler's boundary (:class:`~workbench.sampling.sampler.Sampler`,
-:class:`~workbench.sampling.methods.sampler.SafeSampler`): a twin takes the kernels' noise
-buffer transposed to (N, T, nu), and its controls v are transposed back to (T, nu, N) before the
-batch is returned.
+Twins follow one convention (:mod:`workbench.sampling.twin`): sample-major arrays, converted
+from and to the kernels' lane-major layout at the sampler's boundary
+(:class:`~workbench.sampling.methods.sampler.SafeSampler`).
 
 Run-time fallback: :class:`~workbench.sampling.methods.sampler.SafeSampler` runs this twin when
 it has no safe library (no C compiler, or the emitter cannot express an operation of the model:
