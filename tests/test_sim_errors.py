@@ -91,3 +91,19 @@ def test_disturbance_step_counts_are_bounded(field):
     with pytest.raises(ValueError, match=rf"^Disturbance\.{field} = {10**30} is invalid: must "
                        rf"be an integer in \[\d, {MAX_STEPS}\]$"):
         Disturbance(1.0, model="impulse", **{field: 10**30})
+
+
+def test_stop_at_goal_reads_the_goal_of_a_controller_built_by_hand():
+    """Before: ``closed_loop(wb.MPPI(...), stop_at_goal=...)`` failed with "MPPI has no goal
+    attribute" although the docstring promised ``controller.goal``."""
+    import workbench as wb
+
+    scene = wb.CircleScene(((2.0, 2.0, 0.3),), start=(0.5, 0.5), goal=(1.0, 0.5))
+    nav = wb.navigation_setup(scene, mppi=wb.MPPIConfig(n_samples=64, horizon=20,
+                                                        sigma=(5.0, 5.0), lam=10.0))
+    ctrl = wb.MPPI(nav.problem, nav.goal, nav.mppi)
+    assert np.array_equal(ctrl.goal, nav.goal) and not ctrl.goal.flags.writeable
+    ep = wb.closed_loop(ctrl, nav.plant, nav.x0, 300, np.random.default_rng(0),
+                        np.random.default_rng(1), stop_at_goal=0.1)
+    assert len(ep.U) < 300  # it stopped at the goal
+    assert np.linalg.norm(ep.X[-1, :2] - nav.goal[:2]) <= 0.1

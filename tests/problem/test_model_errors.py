@@ -98,4 +98,26 @@ def test_margin_violation_words():
     assert margin_violation(m, np.array([1e-9, 3.0]), 1e-6) == \
         "lies within 1e-06 of the boundary of obstacle 0 (h[0] = 1e-09 <= 1e-06)"
     assert margin_violation(m, np.array([1.0, 1.0, -1.0])) == (
-        "lies inside the safe set of margin 2 (a state limit or constraint) (h[2] = -1 < 0)")
+        "violates constraint h[2] > 0 of the model (a state limit or a constraint of its h(x)): "
+        "h[2] = -1 < 0")
+
+
+def test_expressions_given_as_lists_are_stacked_and_bad_ones_name_the_field():
+    import casadi as ca
+
+    from workbench.problem.models import Model
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    m = Model.from_expressions("list", x, u, [x[0] + 0.1 * x[1], x[1] + 0.1 * u[0]], dt=0.1,
+                               u_min=[-1.0], u_max=[1.0], h=[1.0 - x[0], x[0] + 1.0])
+    assert m.nh == 2 and m.x_next.shape == (2, 1)
+    assert np.allclose(m.margins(np.array([0.5, 0.0])), [0.5, 1.5])
+    with pytest.raises(ValueError, match=r"^h = .* is invalid: must be a CasADi SX expression"):
+        Model.from_expressions("bad", x, u, x + ca.vertcat(0, u), dt=0.1, u_min=[-1.0],
+                               u_max=[1.0], h=["not an expression"])
+    with pytest.raises(ValueError, match=r"^position = .* must be 2 or 3 distinct"):
+        Model.from_expressions("bad", x, u, x + ca.vertcat(0, u), dt=0.1, u_min=[-1.0],
+                               u_max=[1.0], position=(0, 1, 1))
+    with pytest.raises(ValueError, match=r"^position = .* must be 2 or 3 distinct"):
+        Model.from_expressions("bad", x, u, x + ca.vertcat(0, u), dt=0.1, u_min=[-1.0],
+                               u_max=[1.0], position=(0,))

@@ -18,6 +18,7 @@ def check_method_runs(nav, name: str, steps: int = 3, level: float = 1.0,
     spec = method(name)
     ctrl = nav.controller(name, rule=wb.AlphaRule(kappa=0.1, calibration_steps=10))
     assert isinstance(ctrl, Controller), name  # initial_state, step, set_scene, record_samples
+    assert np.array_equal(ctrl.goal, nav.goal), name  # closed_loop(stop_at_goal=) reads it
     ep = wb.closed_loop(ctrl, nav.plant, nav.x0, steps, np.random.default_rng(0),
                         np.random.default_rng(1), wb.Disturbance(level, states=states))
     assert ep.U.shape == (steps, nav.plant.nu) and np.all(np.isfinite(ep.X))

@@ -217,6 +217,10 @@ def samples(ax=None, info_or_samples=None, scene=None, *, real: bool = True,
     dr = real_number("dynamic_range", dynamic_range, 1.0, strict=True)
     if rec.position is None:
         raise fail("samples.position", None, "the model has no planar position to draw")
+    if len(rec.position) != 2:
+        raise fail("samples.position", rec.position, "this plot draws a planar position (2 "
+                   "state indices); the model's position has 3: project it yourself from "
+                   "samples.real")
     ax = _axes(ax)
     sc = rec.scene if scene is None else scene
     if sc is not None and np.size(sc):

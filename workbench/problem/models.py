@@ -71,7 +71,7 @@ class Model:
     u_max: np.ndarray
     state_names: tuple[str, ...]
     control_names: tuple[str, ...]
-    position: tuple[int, int] | None = None
+    position: tuple[int, ...] | None = None
     obstacles: tuple[Circle, ...] = ()
     n_physical: int = -1
     barrier: BarrierSpec | None = None  # for barrier-embedded models
@@ -137,7 +137,7 @@ class Model:
         h: ca.SX | None = None,
         state_names: tuple[str, ...] | None = None,
         control_names: tuple[str, ...] | None = None,
-        position: tuple[int, int] | None = None,
+        position: tuple[int, ...] | None = None,
         obstacles: tuple[Circle, ...] = (),
         scene: ca.SX | None = None,
         scene_value=None,
@@ -154,10 +154,10 @@ class Model:
                 raise fail(fname, str(sym), "must be a column vector of CasADi SX symbols")
         _check_sizes(x, u)
         nx, nu = x.numel(), u.numel()
-        x_next = ca.SX(x_next)
+        x_next = _column("x_next", x_next)
         if x_next.shape != (nx, 1):
             raise fail("x_next", str(x_next.shape), f"must have shape ({nx}, 1) like x")
-        h = ca.SX(0, 1) if h is None else ca.SX(h)
+        h = ca.SX(0, 1) if h is None else _column("h", h)
         if h.numel() and h.size2() != 1:
             h = ca.vec(h)
         scene = ca.SX(0, 1) if scene is None else scene
@@ -187,8 +187,13 @@ class Model:
         if len(cn) != nu:
             raise fail("control_names", cn, f"need {nu} names")
         if position is not None:
+            if (not isinstance(position, tuple | list) or len(position) not in (2, 3)
+                    or len(set(position)) != len(position)):
+                raise fail("position", position, "must be 2 or 3 distinct state indices (the "
+                           "planar or spatial position), or None")
             for i in position:
                 integer("position", i, 0, nx - 1)
+            position = tuple(int(i) for i in position)
         return cls(
             name=name, x=x, u=u, x_next=x_next, h=h, dt=float(dt), u_min=lo, u_max=hi,
             state_names=tuple(sn), control_names=tuple(cn), position=position,
@@ -246,16 +251,36 @@ def margin_violation(model: Model, h: np.ndarray, eps: float = 0.0) -> str | Non
     if not bad.size:
         return None
     i = int(bad[np.argmin(np.nan_to_num(h[bad], nan=-np.inf))])
-    what = (f"obstacle {i}" if i < (model.scene_capacity or len(model.obstacles))
-            else f"the safe set of margin {i} (a state limit or constraint)")
     v = h[i]
+    if i < (model.scene_capacity or len(model.obstacles)):
+        what = f"obstacle {i}"
+        if np.isnan(v):
+            return f"has an undefined margin h[{i}] = nan ({what})"
+        if v < 0:
+            return f"lies inside {what} (h[{i}] = {v:.4g} < 0)"
+        if v == 0:
+            return f"lies on the boundary of {what} (h[{i}] = 0)"
+        return f"lies within {eps:g} of the boundary of {what} (h[{i}] = {v:.4g} <= {eps:g})"
+    what = f"constraint h[{i}] > 0 of the model (a state limit or a constraint of its h(x))"
     if np.isnan(v):
-        return f"has an undefined margin h[{i}] = nan ({what})"
+        return f"has an undefined margin h[{i}] = nan: {what}"
     if v < 0:
-        return f"lies inside {what} (h[{i}] = {v:.4g} < 0)"
+        return f"violates {what}: h[{i}] = {v:.4g} < 0"
     if v == 0:
-        return f"lies on the boundary of {what} (h[{i}] = 0)"
-    return f"lies within {eps:g} of the boundary of {what} (h[{i}] = {v:.4g} <= {eps:g})"
+        return f"lies on the boundary of {what}: h[{i}] = 0"
+    return f"lies within {eps:g} of the boundary of {what}: h[{i}] = {v:.4g} <= {eps:g}"
+
+
+def _column(field: str, value) -> ca.SX:
+    """``value`` as a CasADi SX column: an SX expression, or a list or tuple of SX expressions
+    and numbers (stacked); anything else is a ValueError naming ``field``."""
+    try:
+        if isinstance(value, list | tuple):
+            return ca.vertcat(*[ca.SX(v) for v in value]) if value else ca.SX(0, 1)
+        return ca.SX(value)
+    except (NotImplementedError, TypeError, RuntimeError) as exc:
+        raise fail(field, value, "must be a CasADi SX expression in the model's symbols, or "
+                   "a list of them (stacked into a column)") from exc
 
 
 def _check_sizes(x: ca.SX, u: ca.SX, prefix: str = "") -> None:

@@ -26,6 +26,7 @@ from workbench.sampling.kernels.constants import FLOAT32_MAX, check_scales32
 from workbench.sampling.planning import (
     check_plan,
     constants_in_scene,
+    frozen_goal,
     full_state,
     plan_constants,
     shift_plan,
@@ -174,6 +175,13 @@ class MPPI(RecordsSamples):
         self.sp, self.cfg = sp, config
         self.sampler = Sampler(sp, config.backend, config.precision)
         self.consts, self._goal = plan_constants(sp, goal, config)
+        self._target = frozen_goal(goal)
+
+    @property
+    def goal(self) -> np.ndarray:
+        """The goal this controller was built with (read-only; a physical state, or the cost
+        parameters of a problem whose goal is not a state)."""
+        return self._target
 
     @property
     def scene(self) -> np.ndarray:

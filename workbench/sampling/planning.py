@@ -40,6 +40,13 @@ def full_state(sp: SamplingProblem, x, scene=None) -> np.ndarray:
     return as_array("x", x, (sp.nx,))
 
 
+def frozen_goal(goal) -> np.ndarray:
+    """``goal`` as a read-only float vector (a controller's public ``goal``)."""
+    g = np.array(goal, dtype=float).ravel()
+    g.flags.writeable = False
+    return g
+
+
 def plan_constants(sp: SamplingProblem, goal,
                    config: MPPIConfig) -> tuple[SamplerConstants, np.ndarray | None]:
     """The batch constants of a controller planning to ``goal`` with ``config`` in the model's

@@ -187,6 +187,7 @@ class RobustMPPI(RecordsSamples):
                 MAX_BATCH, "n_candidates * candidate_samples * horizon * nu (entries of the "
                 "candidate batch)")
         self.mppi = MPPI(sp, goal, config)
+        self.goal = self.mppi.goal  # read-only, as given
         self.sp, self.cfg, self.rcfg = sp, config, robust
         self.sampler = self.mppi.sampler
         self.consts = replace(self.mppi.consts, alpha=robust.alpha,

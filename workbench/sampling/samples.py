@@ -68,7 +68,7 @@ class SampleTrajectories:
     method has them (Robust MPPI's real weights; Tube-MPPI's actual batch), else None.
     ``crashed``/``crashed_nominal`` (K,): the batch's crash flags. ``index`` (K,): the batch
     lanes kept, ascending; ``keep``: how they were chosen; ``scene``: the step's scene vector;
-    ``position``: the state indices of the planar position (None if the model has none);
+    ``position``: the state indices of the position, 2 or 3 (None if the model has none);
     ``time_s``: wall time of the recording (not part of the step's own ``time_s``)."""
 
     real: np.ndarray
@@ -79,7 +79,7 @@ class SampleTrajectories:
     n_samples: int
     keep: str = "spread"
     scene: np.ndarray | None = None
-    position: tuple[int, int] | None = (0, 1)
+    position: tuple[int, ...] | None = (0, 1)
     nominal: np.ndarray | None = None
     controls_nominal: np.ndarray | None = None
     crashed_nominal: np.ndarray | None = None

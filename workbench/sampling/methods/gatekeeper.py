@@ -206,6 +206,11 @@ class Gatekeeper:
         self._scene = m.scene_vector(None)
 
     @property
+    def goal(self) -> np.ndarray | None:
+        """The inner controller's goal (None when it has none)."""
+        return getattr(self.inner, "goal", None)
+
+    @property
     def scene(self) -> np.ndarray:
         """The current scene vector of the check."""
         return self._scene

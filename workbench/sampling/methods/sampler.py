@@ -22,7 +22,13 @@ from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import safe_library
 from workbench.sampling.methods.twin import safe_twin
 from workbench.sampling.mppi import MPPIConfig
-from workbench.sampling.planning import check_plan, constants_in_scene, full_state, plan_constants
+from workbench.sampling.planning import (
+    check_plan,
+    constants_in_scene,
+    frozen_goal,
+    full_state,
+    plan_constants,
+)
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.sampler import Backend, check_batch
 from workbench.sampling.twin import lane_major
@@ -127,6 +133,13 @@ class SafeMPPIPlanner:
         self.sp, self.cfg, self.options = sp, config, options
         self.sampler = SafeSampler(sp, config.backend)
         self.consts, self._goal = plan_constants(sp, goal, config)
+        self._target = frozen_goal(goal)
+
+    @property
+    def goal(self) -> np.ndarray:
+        """The goal this controller was built with (read-only; a physical state, or the cost
+        parameters of a problem whose goal is not a state)."""
+        return self._target
 
     @property
     def scene(self) -> np.ndarray:
@@ -167,6 +180,11 @@ class SafeMPPIController:
     (its ``planner``): shared by the CBF-projection and Shield-MPPI controllers."""
 
     planner: SafeMPPIPlanner
+
+    @property
+    def goal(self) -> np.ndarray:
+        """The planner's goal (read-only)."""
+        return self.planner.goal
 
     @property
     def consts(self) -> SamplerConstants:

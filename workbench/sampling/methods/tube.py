@@ -134,6 +134,7 @@ class TubeMPPI(RecordsSamples):
         if not isinstance(tube, TubeConfig):
             raise fail("tube", tube, "must be a TubeConfig")
         self._mppi = MPPI(sp, goal, config)
+        self.goal = self._mppi.goal  # read-only, as given
         self.sp, self.cfg, self.tcfg = sp, config, tube
         self.sampler = self._mppi.sampler
         self.feedback = feedback if feedback is not None else default_tracker(
