@@ -17,6 +17,7 @@ from studies.arena.config import RESULT_VERSION, ArenaConfig, DisturbanceSpec
 from studies.arena.episodes import Controls, Where, capacity, run_episode
 from workbench.scenarios.maps import MAP_FAMILIES, MapFamily
 from workbench.scenarios.methods import slowest_first
+from workbench.scenarios.methods.settings import fingerprint as settings_data
 from workbench.scenarios.systems import SYSTEMS, system
 from workbench.scenarios.tuned import ControllerSettings, tuned
 from workbench.study import TaskContext, TaskOutput
@@ -136,7 +137,7 @@ def system_values(names: tuple[str, ...]) -> dict:
 
 
 def fingerprint(config: ArenaConfig) -> dict:
-    d = asdict(config)
+    d = settings_data(config)
     d["system_values"] = system_values(config.systems)
     for k in ("controllers", "systems", "test_maps", "disturbances", "realisations", "tunings",
               "seed", "tuning", "tuning_maps", "tuning_seed", "tuning_disturbance"):
@@ -145,7 +146,7 @@ def fingerprint(config: ArenaConfig) -> dict:
     d["capacity"] = {f.family: capacity(f, config.map_seeds() + config.tuning_seeds())
                      for f in config.families}
     if "tuned" in config.tunings:
-        d["tuned"] = {f"{s}/{c}": asdict(settings(config, s, c, "tuned"))
+        d["tuned"] = {f"{s}/{c}": settings_data(settings(config, s, c, "tuned"))
                       for s in config.systems for c in config.controllers}
     return d
 

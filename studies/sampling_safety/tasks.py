@@ -8,7 +8,7 @@ controller stream (``ctx.rng(0)``) in realisation j at a variance.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
@@ -21,6 +21,7 @@ from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.methods import MethodSettings, build, feedback_law, method, slowest_first
+from workbench.scenarios.methods.settings import fingerprint as settings_data
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
@@ -149,7 +150,7 @@ def plan(config: StudyConfig) -> Plan:
 
 
 def fingerprint(config: StudyConfig) -> dict:
-    d = asdict(config)
+    d = settings_data(config)
     for k in ("controllers", "variances", "realisations", "seed"):
         d.pop(k)
     return d

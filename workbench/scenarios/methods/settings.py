@@ -112,6 +112,25 @@ class MethodSettings:
         return dataclasses.replace(self, extra=tuple(extra.items()))
 
 
+def fingerprint(value: Any) -> Any:
+    """``dataclasses.asdict``-like data of ``value`` (a config, or any data holding
+    MethodSettings) with every MethodSettings' ``extra`` left out while it is unset: a study's
+    fingerprint, and so its task ids, are those of a workbench without run-time methods until
+    one has options."""
+    if isinstance(value, MethodSettings):
+        d = {f.name: fingerprint(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if value.extra is None:
+            del d["extra"]
+        return d
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: fingerprint(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, tuple | list):
+        return type(value)(fingerprint(v) for v in value)
+    if isinstance(value, dict):
+        return {k: fingerprint(v) for k, v in value.items()}
+    return value
+
+
 def check_fields() -> None:
     """Every built-in method's ``options_key`` names a field of MethodSettings of its type."""
     fields = {f.name: f for f in dataclasses.fields(MethodSettings)}
