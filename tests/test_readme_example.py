@@ -35,7 +35,7 @@ def named(name: str) -> str:
 
 
 def run_block(name: str, scope: dict) -> dict:
-    exec(compile(named(name), f"README.md:{name}", "exec"), scope)
+    exec(compile(named(name), f"README.md:{name}", "exec", dont_inherit=True), scope)
     return scope
 
 
@@ -51,7 +51,8 @@ def test_unmarked_python_blocks_run_each_in_a_fresh_namespace(tmp_path, monkeypa
     monkeypatch.chdir(tmp_path)  # whatever a block writes stays in the test's directory
     for i, (name, lang, code) in enumerate(blocks()):
         if lang == "python" and name is None:
-            exec(compile(code, f"README.md:block{i}", "exec"), {"__name__": "__readme__"})
+            exec(compile(code, f"README.md:block{i}", "exec", dont_inherit=True),
+                 {"__name__": "__readme__"})
 
 
 @pytest.fixture(scope="module")
