@@ -24,11 +24,9 @@ from scipy.signal import savgol_filter
 
 from workbench.sampling.kernels.constants import FLOAT32_MAX, check_scales32
 from workbench.sampling.planning import (
+    PlansToGoal,
     check_plan,
-    constants_in_scene,
-    frozen_goal,
     full_state,
-    plan_constants,
     shift_plan,
 )
 from workbench.sampling.problem import SamplingProblem
@@ -162,7 +160,7 @@ class MPPIInfo:
                          n_collision_free=self.n_samples - self.n_crashed, ess=self.ess)
 
 
-class MPPI(RecordsSamples):
+class MPPI(RecordsSamples, PlansToGoal):
     """MPPI on a sampling problem (BaS-MPPI when the problem's model is barrier-embedded).
 
     The obstacles are the model's own scene until :meth:`set_scene` gives another (a new map
@@ -174,26 +172,7 @@ class MPPI(RecordsSamples):
             raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
         self.sp, self.cfg = sp, config
         self.sampler = Sampler(sp, config.backend, config.precision)
-        self.consts, self._goal = plan_constants(sp, goal, config)
-        self._target = frozen_goal(goal)
-
-    @property
-    def goal(self) -> np.ndarray:
-        """The goal this controller was built with (read-only; a physical state, or the cost
-        parameters of a problem whose goal is not a state)."""
-        return self._target
-
-    @property
-    def scene(self) -> np.ndarray:
-        """The current scene vector."""
-        return self.consts.scene
-
-    def set_scene(self, scene) -> None:
-        """Plan in ``scene`` from the next step on: circles (a sequence of
-        :class:`~workbench.problem.Circle` or (x, y, radius) triples, at most the model's
-        ``scene_capacity``) or a flat scene vector (see
-        :meth:`~workbench.problem.Model.scene_vector`). Costs microseconds."""
-        self.consts = constants_in_scene(self.sp, self.consts, self._goal, scene)
+        self._plan_to(goal, config)
 
     def initial_state(self, x0=None) -> MPPIState:
         return MPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)))

@@ -87,3 +87,34 @@ def physical_model(m: Model) -> Model:
         u_max=m.u_max, h=m.h if m.nh else None, state_names=m.state_names[:n],
         control_names=m.control_names, position=m.position, obstacles=m.obstacles,
         scene=m.scene, scene_value=m.scene_value, scene_capacity=m.scene_capacity)
+
+
+class PlansToGoal:
+    """What MPPI and the safe-MPPI planner share: the goal they plan to (``goal``, read-only,
+    as given), the scene they plan in (``scene``) and :meth:`set_scene`. Set up with
+    :meth:`_plan_to` after ``self.sp``."""
+
+    sp: SamplingProblem
+    consts: SamplerConstants
+
+    def _plan_to(self, goal, config) -> None:
+        self.consts, self._lift = plan_constants(self.sp, goal, config)
+        self._target = frozen_goal(goal)
+
+    @property
+    def goal(self) -> np.ndarray:
+        """The goal this controller was built with (read-only; a physical state, or the cost
+        parameters of a problem whose goal is not a state)."""
+        return self._target
+
+    @property
+    def scene(self) -> np.ndarray:
+        """The current scene vector."""
+        return self.consts.scene
+
+    def set_scene(self, scene) -> None:
+        """Plan in ``scene`` from the next step on: circles (a sequence of
+        :class:`~workbench.problem.Circle` or (x, y, radius) triples, at most the model's
+        ``scene_capacity``) or a flat scene vector (see
+        :meth:`~workbench.problem.Model.scene_vector`). Costs microseconds."""
+        self.consts = constants_in_scene(self.sp, self.consts, self._lift, scene)

@@ -23,11 +23,9 @@ from workbench.sampling.kernels.safe import safe_library
 from workbench.sampling.methods.twin import safe_twin
 from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.planning import (
+    PlansToGoal,
     check_plan,
-    constants_in_scene,
-    frozen_goal,
     full_state,
-    plan_constants,
 )
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.sampler import Backend, check_batch
@@ -118,7 +116,7 @@ class SafeMPPIState:
     U: np.ndarray  # (T, nu) importance-sampling sequence
 
 
-class SafeMPPIPlanner:
+class SafeMPPIPlanner(PlansToGoal):
     """MPPI's planning loop on a :class:`SafeSampler` with fixed :class:`SafeOptions`: goal
     (a physical goal of a barrier-embedded problem is lifted in the current scene, like
     :class:`~workbench.sampling.mppi.MPPI`), constants, scene, ``iterations`` batches
@@ -132,23 +130,7 @@ class SafeMPPIPlanner:
             raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
         self.sp, self.cfg, self.options = sp, config, options
         self.sampler = SafeSampler(sp, config.backend)
-        self.consts, self._goal = plan_constants(sp, goal, config)
-        self._target = frozen_goal(goal)
-
-    @property
-    def goal(self) -> np.ndarray:
-        """The goal this controller was built with (read-only; a physical state, or the cost
-        parameters of a problem whose goal is not a state)."""
-        return self._target
-
-    @property
-    def scene(self) -> np.ndarray:
-        return self.consts.scene
-
-    def set_scene(self, scene) -> None:
-        """Plan in ``scene`` from the next step on (see
-        :meth:`~workbench.sampling.mppi.MPPI.set_scene`)."""
-        self.consts = constants_in_scene(self.sp, self.consts, self._goal, scene)
+        self._plan_to(goal, config)
 
     def initial_state(self, x0=None) -> SafeMPPIState:
         return SafeMPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)))
