@@ -252,23 +252,17 @@ def margin_violation(model: Model, h: np.ndarray, eps: float = 0.0) -> str | Non
         return None
     i = int(bad[np.argmin(np.nan_to_num(h[bad], nan=-np.inf))])
     v = h[i]
-    if i < (model.scene_capacity or len(model.obstacles)):
-        what = f"obstacle {i}"
-        if np.isnan(v):
-            return f"has an undefined margin h[{i}] = nan ({what})"
-        if v < 0:
-            return f"lies inside {what} (h[{i}] = {v:.4g} < 0)"
-        if v == 0:
-            return f"lies on the boundary of {what} (h[{i}] = 0)"
-        return f"lies within {eps:g} of the boundary of {what} (h[{i}] = {v:.4g} <= {eps:g})"
-    what = f"constraint h[{i}] > 0 of the model (a state limit or a constraint of its h(x))"
+    obstacle = i < (model.scene_capacity or len(model.obstacles))
+    what = (f"obstacle {i}" if obstacle else
+            f"constraint h[{i}] > 0 of the model (a state limit or a constraint of its h(x))")
     if np.isnan(v):
-        return f"has an undefined margin h[{i}] = nan: {what}"
+        return f"has an undefined margin h[{i}] = nan ({what})"
     if v < 0:
-        return f"violates {what}: h[{i}] = {v:.4g} < 0"
+        return (f"lies inside {what} (h[{i}] = {v:.4g} < 0)" if obstacle
+                else f"violates {what}: h[{i}] = {v:.4g} < 0")
     if v == 0:
-        return f"lies on the boundary of {what}: h[{i}] = 0"
-    return f"lies within {eps:g} of the boundary of {what}: h[{i}] = {v:.4g} <= {eps:g}"
+        return f"lies on the boundary of {what} (h[{i}] = 0)"
+    return f"lies within {eps:g} of the boundary of {what} (h[{i}] = {v:.4g} <= {eps:g})"
 
 
 def _column(field: str, value) -> ca.SX:
