@@ -18,22 +18,10 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from workbench.problem.barrier import BarrierSpec
 from workbench.problem.costs import Cost
 from workbench.problem.models import Model
 from workbench.problem.problem import Problem
 from workbench.validation import as_array, fail, real
-
-
-def barrier_spec(model: Model) -> BarrierSpec | None:
-    """The barrier spec of a barrier-embedded model (None: a plain model). ``Model.barrier`` is
-    declared ``object`` (workbench.problem.models cannot import the barrier module, which
-    imports it); :func:`~workbench.problem.barrier.embed_barrier` sets a BarrierSpec."""
-    spec = model.barrier
-    if spec is None or isinstance(spec, BarrierSpec):
-        return spec
-    raise TypeError(f"model {model.name}: barrier must be a BarrierSpec or None, not "
-                    f"{type(spec).__name__}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,7 +57,7 @@ class SamplingProblem:
     @property
     def eps_h(self) -> float:
         """Crash margin: the barrier's eps_h for embedded models, else 1e-6 (assumptions §4.6)."""
-        spec = barrier_spec(self.model)
+        spec = self.model.barrier
         return float(spec.options.eps_h) if spec is not None else 1e-6
 
     @property

@@ -15,7 +15,7 @@ import numpy as np
 
 from workbench.problem.models import Model
 from workbench.problem.obstacles import scene_vector
-from workbench.sampling.problem import SamplingProblem, barrier_spec
+from workbench.sampling.problem import SamplingProblem
 
 
 class NumpyNavigation:
@@ -24,7 +24,7 @@ class NumpyNavigation:
     def __init__(self, model: Model, zoh: bool, weights: dict[str, np.ndarray]):
         self.dt = model.dt
         self.zoh = zoh
-        self.spec = barrier_spec(model)
+        self.spec = model.barrier
         self.w = weights
         baked = scene_vector(model.obstacles, len(model.obstacles))
         self.set_scene(model.scene_value if model.scene_capacity else baked)

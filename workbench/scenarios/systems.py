@@ -64,6 +64,7 @@ from workbench.sampling.methods.gatekeeper import (
     braking_backup,
 )
 from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
+from workbench.scenarios.registry import Registry
 from workbench.scenarios.scenes import CircleScene
 from workbench.validation import as_array, fail, one_of, real, scale
 
@@ -269,7 +270,7 @@ QUAD_SCALE = 0.18  # [A] the map [0, 10]^2 times 0.18 lies inside the quadrotor'
 # against the unicycle's 2 m/s: in the arena's first tuning run no episode reached the goal.
 KINEMATIC_LEVEL_SCALE = 0.16
 
-SYSTEMS: dict[str, System] = {
+_BUILTIN_SYSTEMS: dict[str, System] = {
     "double_integrator": System(
         name="double_integrator", label="double integrator", model=_di_model,
         state_at=_planar_at, Q=(1.0, 1.0, 0.1, 0.1), S=(10.0, 10.0, 1.0, 1.0),
@@ -323,29 +324,25 @@ SYSTEMS: dict[str, System] = {
 }
 
 
+SYSTEMS: Registry[System] = Registry("system", System, lookup_field="system",
+                                     arg_field="system", name_field="System.name")
+SYSTEMS.update(_BUILTIN_SYSTEMS)
+
+
 def system(name: str) -> System:
     """The system ``name`` (a key of :data:`SYSTEMS`)."""
-    if name not in SYSTEMS:
-        raise fail("system", name, f"unknown system; allowed values are {tuple(SYSTEMS)}")
-    return SYSTEMS[name]
+    return SYSTEMS.named(name)
 
 
 def register_system(sysm: System) -> System:
     """Add ``sysm`` to :data:`SYSTEMS` under its name (which must be new); returns it. Every
     method, study and the command line's ``workbench list`` then offer it."""
-    if not isinstance(sysm, System):
-        raise fail("system", sysm, "must be a System")
-    if sysm.name in SYSTEMS:
-        raise fail("System.name", sysm.name, "is registered already")
-    SYSTEMS[sysm.name] = sysm
-    return sysm
+    return SYSTEMS.register(sysm)
 
 
 def unregister_system(name: str) -> System:
     """Remove the system ``name`` (e.g. a test's own); returns it."""
-    sysm = system(name)
-    del SYSTEMS[name]
-    return sysm
+    return SYSTEMS.unregister(name)
 
 
 __all__ = ["SYSTEMS", "TUNED_LAMBDA", "TUNED_Q_BETA", "TUNED_SIGMA", "System", "register_system",

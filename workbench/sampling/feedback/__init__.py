@@ -11,6 +11,15 @@
   Lagrangian iLQG on the plain model;
 * :mod:`~workbench.sampling.feedback.ecbf` — :class:`ECBFFeedback`: the sensitivity of an
   exponential-CBF safety filter.
+
+The AL and ECBF laws come from the paper's two other safety mechanisms. Next to K_safe (barrier
+states, :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback` on the barrier-embedded model),
+these laws put the augmented Lagrangian and the ECBF filter inside the SAIS sampler, so the
+three mechanisms can be compared with everything else equal. Both act on a plain (physical)
+model with safety margins and zero-pad their gains to the sampler's state size; both linearise
+about the nominal trajectory the sampler uses (the clipped open-loop rollout of u* from x*_0)
+and track it with the cost of the plain iLQG feedback (½|x-x*|²_Q + ½|u-u*|²_R, terminal
+½|x-x*|²_Q).
 """
 
 from workbench.sampling.feedback.al import ALFeedback, ALFeedbackOptions, ALGains

@@ -1,12 +1,5 @@
-"""Feedback laws for Robust MPPI from the two other safety mechanisms: gains K_k (T, nu, nx).
-
-Next to K_safe (barrier states, :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback` on the
-barrier-embedded model), these laws put the augmented Lagrangian and the ECBF filter inside the
-SAIS sampler, so the three mechanisms can be compared with everything else equal. Both act on a
-plain (physical) model with safety margins and zero-pad their gains to the sampler's state size;
-both linearise about the nominal trajectory the sampler uses (the clipped open-loop rollout of
-u* from x*_0) and track it with the cost of the plain iLQG feedback (½|x-x*|²_Q + ½|u-u*|²_R,
-terminal ½|x-x*|²_Q).
+"""The augmented-Lagrangian feedback law of Robust MPPI (what it shares with the ECBF law:
+:mod:`workbench.sampling.feedback`).
 
 * :class:`ALFeedback` — one derivative evaluation and one backward pass of the AL-iLQG inner
   problem (:func:`workbench.ilqg.al.al_problem`, the PHR augmented Lagrangian) with the current
@@ -41,6 +34,7 @@ from workbench.sampling.feedback.base import (
     check_plain_law,
     fallback_gains,
     pad_gains,
+    regularised_backward,
 )
 from workbench.validation import as_array, fail, real
 
@@ -184,21 +178,9 @@ class ALFeedback:
         m = self.model
         record: _ALRecord = {"nominal_unsafe": unsafe, "activity": activity,
                              "multipliers": lam_next, "multipliers_used": lam}
-        reason = None
         d = self.passes.derivatives(X, Uc, self.params(X, Uc, lam))
-        if not all(np.all(np.isfinite(a)) for a in d.values()):
-            reason = "nonfinite_derivatives"
-        else:
-            mu = self.w.mu
-            while mu <= self.w.mu_max:
-                bw = self.passes.backward(d, Uc, m.u_min, m.u_max, mu, 0, False)
-                if bw.status == 0:
-                    if not np.all(np.isfinite(bw.K)):
-                        reason = "nonfinite_gains"
-                        break
-                    return ALGains(K=pad_gains(bw.K, self.nx_full), fallback=None, mu=mu, **record)
-                mu = max(mu * 10.0, 1e-8)
-            else:
-                reason = "backward_failed"
+        K, mu, reason = regularised_backward(self.passes, d, Uc, m, self.w.mu, self.w.mu_max)
+        if K is not None:
+            return ALGains(K=pad_gains(K, self.nx_full), fallback=None, mu=mu, **record)
         K = fallback_gains(previous, stride, (self.T, m.nu, self.nx_full))
         return ALGains(K=K, fallback=reason, mu=np.nan, **record)

@@ -138,6 +138,23 @@ def pad_gains(K: np.ndarray, nx_full: int) -> np.ndarray:
     return out
 
 
+def regularised_backward(passes, d: Mapping[str, np.ndarray], U: np.ndarray, model: Model,
+                         mu: float, mu_max: float) -> tuple[np.ndarray | None, float, str | None]:
+    """One backward pass of ``passes`` on the derivatives ``d`` about the controls ``U``, the
+    regularisation raised tenfold (from at least 1e-8) until it succeeds, up to ``mu_max``:
+    ``(K, mu, None)``, or ``(None, nan, reason)`` with a reason of :data:`FALLBACK_REASONS`."""
+    if not all(np.all(np.isfinite(a)) for a in d.values()):
+        return None, np.nan, "nonfinite_derivatives"
+    while mu <= mu_max:
+        bw = passes.backward(d, U, model.u_min, model.u_max, mu, 0, False)
+        if bw.status == 0:
+            if not np.all(np.isfinite(bw.K)):
+                return None, np.nan, "nonfinite_gains"
+            return bw.K, mu, None
+        mu = max(mu * 10.0, 1e-8)
+    return None, np.nan, "backward_failed"
+
+
 def fallback_gains(previous: Gains | None, stride: int, shape: tuple[int, int, int]) -> np.ndarray:
     """The gains of a failed computation: the previous ones shifted, or (none) K = 0."""
     if previous is None or previous.K.shape != shape:

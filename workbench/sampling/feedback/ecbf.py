@@ -1,12 +1,5 @@
-"""Feedback laws for Robust MPPI from the two other safety mechanisms: gains K_k (T, nu, nx).
-
-Next to K_safe (barrier states, :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback` on the
-barrier-embedded model), these laws put the augmented Lagrangian and the ECBF filter inside the
-SAIS sampler, so the three mechanisms can be compared with everything else equal. Both act on a
-plain (physical) model with safety margins and zero-pad their gains to the sampler's state size;
-both linearise about the nominal trajectory the sampler uses (the clipped open-loop rollout of
-u* from x*_0) and track it with the cost of the plain iLQG feedback (½|x-x*|²_Q + ½|u-u*|²_R,
-terminal ½|x-x*|²_Q).
+"""The ECBF feedback law of Robust MPPI (what it shares with the AL law:
+:mod:`workbench.sampling.feedback`).
 
 * :class:`ECBFFeedback` — the gains of the ECBF-QP filter (:mod:`workbench.filters.ecbf`)
   wrapped around the tracking law u_ref = u*_k + K_k (x - x*_k), linearised at x*_k with the

@@ -15,7 +15,13 @@ from workbench.ilqg import make_passes
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import Model
 from workbench.problem.problem import Problem
-from workbench.sampling.feedback.base import FeedbackWeights, Gains, shifted
+from workbench.sampling.feedback.base import (
+    FeedbackWeights,
+    Gains,
+    pad_gains,
+    regularised_backward,
+    shifted,
+)
 from workbench.sampling.feedback.compiled import KSafeKernel, ksafe_library
 from workbench.validation import as_array, fail, flag
 
@@ -122,23 +128,10 @@ class ILQGFeedback:
         unsafe = bool(m.nh) and bool(
             np.min(self._margins(X[:, : m.n_physical], self._scene)[0]) <= 0.0)
         d = self.passes.derivatives(X, Uc, self._params(X, Uc))
-        reason = None
-        if not all(np.all(np.isfinite(a)) for a in d.values()):
-            reason = "nonfinite_derivatives"
-        else:
-            mu = self.w.mu
-            while mu <= self.w.mu_max:
-                bw = self.passes.backward(d, Uc, m.u_min, m.u_max, mu, 0, False)
-                K = bw.K
-                if bw.status == 0:
-                    if not np.all(np.isfinite(K)):
-                        reason = "nonfinite_gains"
-                        break
-                    return Gains(K=self._pad(K), fallback=None, nominal_unsafe=unsafe, mu=mu)
-                mu = max(mu * 10.0, 1e-8)
-            else:
-                reason = "backward_failed"
-        return self._fallback(reason, unsafe, previous, stride)
+        K, mu, reason = regularised_backward(self.passes, d, Uc, m, self.w.mu, self.w.mu_max)
+        if K is not None:
+            return Gains(K=self._pad(K), fallback=None, nominal_unsafe=unsafe, mu=mu)
+        return self._fallback(reason or "backward_failed", unsafe, previous, stride)
 
     def _fallback(self, reason: str, unsafe: bool, previous: Gains | None,
                   stride: int) -> Gains:
@@ -151,8 +144,4 @@ class ILQGFeedback:
                      mu=np.nan)
 
     def _pad(self, K: np.ndarray) -> np.ndarray:
-        if K.shape[2] == self.nx_full:
-            return K
-        out = np.zeros((K.shape[0], K.shape[1], self.nx_full))
-        out[:, :, : K.shape[2]] = K
-        return out
+        return pad_gains(K, self.nx_full)

@@ -201,22 +201,33 @@ def load_sampler_library(sp: SamplingProblem, vector_math: bool | None = None,
     return load(stem, source)
 
 
+def compiled_or_twin(libs: dict[str, L | None], warned: set[str], key: str,
+                     build: Callable[[], L | None], what: str, model: str) -> L | None:
+    """``libs[key]``, built once by ``build``. When the model uses an operation the emitter or
+    the C back end cannot compile (an EmitError, or a CompileError for an unlinkable
+    operation) it is None, with one RuntimeWarning per key naming ``what`` and ``model``: the
+    caller then runs its NumPy/CasADi twin. Any other compile error is raised."""
+    if key not in libs:
+        try:
+            libs[key] = build()
+        except (EmitError, CompileError) as exc:
+            if isinstance(exc, CompileError) and "no linked library provides" not in str(exc):
+                raise
+            if key not in warned:
+                warned.add(key)
+                warnings.warn(f"workbench: no compiled {what} for {model}: "
+                              f"{str(exc).splitlines()[0]}; using the NumPy/CasADi evaluation "
+                              "(correct, slower)", RuntimeWarning, stacklevel=3)
+            libs[key] = None
+    return libs[key]
+
+
 def sampler_library(sp: SamplingProblem, precision: str = "float64") -> SamplerLibrary | None:
     """Build (or load from the cache) the kernels of a sampling problem in ``precision``,
     verified; None without a compiler, or, with one warning, when the model uses an operation
     the emitter or the C back end cannot compile (the sampler then uses the NumPy/CasADi twin:
     correct, slower)."""
     key = sp.fingerprint() + ("_f32" if is_float32(precision) else "")
-    if key not in _LIBS:
-        try:
-            _LIBS[key] = load_sampler_library(sp, precision=precision)
-        except (EmitError, CompileError) as exc:
-            if isinstance(exc, CompileError) and "no linked library provides" not in str(exc):
-                raise
-            if key not in _FALLBACK_WARNED:
-                _FALLBACK_WARNED.add(key)
-                warnings.warn(f"workbench: no compiled sampler kernels for {sp.model.name}: "
-                              f"{str(exc).splitlines()[0]}; using the NumPy/CasADi evaluation "
-                              "(correct, slower)", RuntimeWarning, stacklevel=2)
-            _LIBS[key] = None
-    return _LIBS[key]
+    return compiled_or_twin(_LIBS, _FALLBACK_WARNED, key,
+                            lambda: load_sampler_library(sp, precision=precision),
+                            "sampler kernels", sp.model.name)

@@ -41,19 +41,22 @@ Run-time constants: the MPPI kernel's (sigma, lr, u_min, u_max, crash, p, scene)
 from __future__ import annotations
 
 import ctypes
-import warnings
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
-from workbench.codegen import CompileError
 from workbench.problem.barrier import min_margin
 from workbench.problem.dcbf import DiscreteCBF, discrete_cbf
 from workbench.sampling.kernels.compiled import CompiledKernel
-from workbench.sampling.kernels.emit import EmitError, KernelSpec
+from workbench.sampling.kernels.emit import KernelSpec
 from workbench.sampling.kernels.layout import Layout
-from workbench.sampling.kernels.library import kernel_source, load_verified, set_threads
+from workbench.sampling.kernels.library import (
+    compiled_or_twin,
+    kernel_source,
+    load_verified,
+    set_threads,
+)
 from workbench.sampling.kernels.vocabulary import clip, crashed_flag, kernel_symbols, model_parts
 from workbench.sampling.problem import SamplingProblem
 
@@ -182,24 +185,13 @@ def safe_library(sp: SamplingProblem) -> SafeLibrary | None:
     process (keyed by the problem's fingerprint); None without a compiler, or, with one
     warning, when the emitter or the C back end cannot compile the model (the NumPy twin,
     :mod:`workbench.sampling.methods.twin`, is then used)."""
-    key = sp.fingerprint()
-    if key not in _LIBS:
-        try:
-            spec = safe_spec(sp)
-            lib = load_verified(f"safe_{sp.model.name.replace('+', '_')}",
-                                kernel_source([spec]), lambda cdll: _build(cdll, spec, sp),
-                                lambda lib: (lib.safe,))
-        except (EmitError, CompileError) as exc:
-            if isinstance(exc, CompileError) and "no linked library provides" not in str(exc):
-                raise
-            if key not in _FALLBACK_WARNED:
-                _FALLBACK_WARNED.add(key)
-                warnings.warn(f"workbench: no compiled safe-MPPI kernel for {sp.model.name}: "
-                              f"{str(exc).splitlines()[0]}; using the NumPy/CasADi evaluation "
-                              "(correct, slower)", RuntimeWarning, stacklevel=2)
-            lib = None
-        _LIBS[key] = lib  # load_verified applied the set_threads count
-    return _LIBS[key]
+    def build() -> SafeLibrary | None:  # load_verified applies the set_threads count
+        spec = safe_spec(sp)
+        return load_verified(f"safe_{sp.model.name.replace('+', '_')}", kernel_source([spec]),
+                             lambda cdll: _build(cdll, spec, sp), lambda lib: (lib.safe,))
+
+    return compiled_or_twin(_LIBS, _FALLBACK_WARNED, sp.fingerprint(), build,
+                            "safe-MPPI kernel", sp.model.name)
 
 
 __all__ = ["INFEASIBLE_TOL", "SafeLibrary", "most_restrictive", "projection",

@@ -56,7 +56,7 @@ from workbench.sampling.kernels.flags import kernel_flags
 from workbench.sampling.kernels.specs import candidate_spec, mppi_spec, sais_spec
 from workbench.sampling.kernels.vector_math import prelude
 from workbench.sampling.kernels.vocabulary import clip
-from workbench.sampling.problem import SamplingProblem, barrier_spec
+from workbench.sampling.problem import SamplingProblem
 
 _OPTS = {"cse": True}
 # scene slots from which a library should use the loop kernels. Measured (one thread, N 1024,
@@ -140,7 +140,7 @@ def _slot_model(sp: SamplingProblem, precision: str = "float64") -> _SlotModel:
                                   "circle slots; margins other than one per circle slot "
                                   "(state limits, other shapes) are not supported")
     n = m.n_physical
-    spec = barrier_spec(m)
+    spec = m.barrier
     if spec is not None:
         o = spec.options
         if o.kind != "inverse":

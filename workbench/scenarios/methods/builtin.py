@@ -92,7 +92,7 @@ BUILTIN = (
     MethodSpec("gatekeeper", "Gatekeeper (braking backup)", "crash cost + backup shield",
                _gatekeeper, marker="X", options=GatekeeperConfig, options_key="gatekeeper",
                tunable=(Param("gatekeeper.horizon", 20, 120, log=False, integer=True),),
-               activity="backup_used", requires=("margins", "backup"), cost_rank=7),
+               activity="backup_used", cost_rank=7),
     MethodSpec("sais_al", "SAIS + AL-iLQG gains", "barrier state + AL feedback",
                robust_builder("al_ilqg"), marker="h", feedback="al_ilqg",
                options=ALFeedbackOptions, options_key="al", activity="al_active",

@@ -112,23 +112,20 @@ class MethodSettings:
         return dataclasses.replace(self, extra=tuple(extra.items()))
 
 
-def fingerprint(value: Any) -> Any:
-    """``dataclasses.asdict``-like data of ``value`` (a config, or any data holding
-    MethodSettings) with every MethodSettings' ``extra`` left out while it is unset: a study's
-    fingerprint, and so its task ids, are those of a workbench without run-time methods until
-    one has options."""
-    if isinstance(value, MethodSettings):
-        d = {f.name: fingerprint(getattr(value, f.name)) for f in dataclasses.fields(value)}
-        if value.extra is None:
-            del d["extra"]
-        return d
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: fingerprint(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, tuple | list):
-        return type(value)(fingerprint(v) for v in value)
-    if isinstance(value, dict):
-        return {k: fingerprint(v) for k, v in value.items()}
-    return value
+def _unset_extra_left_out(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    if [k for k, _ in pairs] == _FIELDS and dict(pairs)["extra"] is None:
+        pairs = [(k, v) for k, v in pairs if k != "extra"]
+    return dict(pairs)
+
+
+_FIELDS = [f.name for f in dataclasses.fields(MethodSettings)]
+
+
+def fingerprint(value: Any) -> dict[str, Any]:
+    """``dataclasses.asdict(value)`` with every MethodSettings' ``extra`` left out while it is
+    unset: a study's fingerprint, and so its task ids, are those of a workbench without
+    run-time methods until one has options."""
+    return dataclasses.asdict(value, dict_factory=_unset_extra_left_out)
 
 
 def check_fields() -> None:

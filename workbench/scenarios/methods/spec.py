@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from workbench.scenarios.registry import Registry
 from workbench.sim import Controller
 from workbench.study.tuning import Param
 from workbench.validation import fail
@@ -24,7 +25,6 @@ if TYPE_CHECKING:
 # (None: satisfied, else why not).
 REQUIREMENTS: dict[str, str] = {
     "margins": "constraint margins h(x) (a barrier state or a crash rule is built from them)",
-    "backup": "a backup law (System.backup) for the shield",
     "tracking": "tracking weights sized for the model (System.feedback_weights)",
 }
 
@@ -124,31 +124,23 @@ class MethodSpec:
 
 FEEDBACK_LAWS = ("bas_ilqg", "ilqg", "al_ilqg", "ecbf")
 
-_REGISTRY: dict[str, MethodSpec] = {}
+_REGISTRY: Registry[MethodSpec] = Registry("method", MethodSpec, lookup_field="controller",
+                                           arg_field="spec", name_field="spec.name")
 
 
 def register(spec: MethodSpec) -> MethodSpec:
     """Add ``spec`` to the registry (its name must be new); returns it."""
-    if not isinstance(spec, MethodSpec):
-        raise fail("spec", spec, "must be a MethodSpec")
-    if spec.name in _REGISTRY:
-        raise fail("spec.name", spec.name, f"is registered already (by {_REGISTRY[spec.name]})")
-    _REGISTRY[spec.name] = spec
-    return spec
+    return _REGISTRY.register(spec)
 
 
 def unregister(name: str) -> MethodSpec:
     """Remove the method ``name`` (e.g. a test's own); returns its spec."""
-    spec = method(name)
-    del _REGISTRY[name]
-    return spec
+    return _REGISTRY.unregister(name)
 
 
 def method(name: str) -> MethodSpec:
     """The registered method ``name``; an unknown name is a ValueError naming the known ones."""
-    if not isinstance(name, str) or name not in _REGISTRY:
-        raise fail("controller", name, f"unknown method; allowed values are {names()}")
-    return _REGISTRY[name]
+    return _REGISTRY.named(name)
 
 
 def methods() -> tuple[MethodSpec, ...]:
@@ -166,12 +158,10 @@ def robust_names() -> tuple[str, ...]:
     return tuple(s.name for s in _REGISTRY.values() if s.robust)
 
 
-def slowest_first(selected=None) -> tuple[str, ...]:
-    """``selected`` method names (default: all) ordered by cost rank (slowest first), ties in
-    registration order."""
-    order = list(_REGISTRY)
-    chosen = order if selected is None else [method(n).name for n in selected]
-    return tuple(sorted(chosen, key=lambda n: (_REGISTRY[n].cost_rank, order.index(n))))
+def slowest_first() -> tuple[str, ...]:
+    """The method names by cost rank (slowest first), ties in registration order (a stable
+    sort of the registration order)."""
+    return tuple(sorted(_REGISTRY, key=lambda n: _REGISTRY[n].cost_rank))
 
 
 def labels() -> dict[str, str]:
