@@ -47,7 +47,9 @@ class MethodSpec:
     :attr:`~workbench.sampling.step_stats.StepStats.activity` that says its mechanism acted
     (None: a method without a separate mechanism); ``requires``: keys of :data:`REQUIREMENTS`;
     ``cost_rank``: the order in which studies dispatch its tasks, slowest first (rank 0 first;
-    measured per step on the navigation map, N = 1024, T = 100, one thread).
+    measured per step on the navigation map, N = 1024, T = 100, one thread); ``wraps``: the
+    registered method it adds its mechanism to (the same sampler without the mechanism: the
+    controller it must not be less safe than), None for a baseline.
     """
 
     name: str
@@ -62,6 +64,7 @@ class MethodSpec:
     activity: str | None = None
     requires: tuple[str, ...] = ("margins",)
     cost_rank: int = 0
+    wraps: str | None = None
 
     def __post_init__(self) -> None:
         n = self.name
@@ -95,6 +98,9 @@ class MethodSpec:
                 raise fail(f"MethodSpec({n}).requires", r, f"must be one of {tuple(REQUIREMENTS)}")
         if not isinstance(self.cost_rank, int) or isinstance(self.cost_rank, bool):
             raise fail(f"MethodSpec({n}).cost_rank", self.cost_rank, "must be an integer")
+        if self.wraps is not None and (not isinstance(self.wraps, str) or self.wraps == n):
+            raise fail(f"MethodSpec({n}).wraps", self.wraps,
+                       "must be None or the name of another method")
 
     @property
     def robust(self) -> bool:
@@ -129,7 +135,11 @@ _REGISTRY: Registry[MethodSpec] = Registry("method", MethodSpec, lookup_field="c
 
 
 def register(spec: MethodSpec) -> MethodSpec:
-    """Add ``spec`` to the registry (its name must be new); returns it."""
+    """Add ``spec`` to the registry (its name must be new, and the method it ``wraps``
+    registered before it); returns it."""
+    if spec.wraps is not None and spec.wraps not in _REGISTRY:
+        raise fail(f"MethodSpec({spec.name}).wraps", spec.wraps,
+                   f"must name a registered method; registered: {tuple(_REGISTRY)}")
     return _REGISTRY.register(spec)
 
 
