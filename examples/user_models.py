@@ -7,8 +7,11 @@
   elbow and hand must keep clear of a disc in the workspace, with an elbow joint limit: no
   planar position at all, constraints written through forward kinematics.
 
-Each has a start and a goal (:data:`POINT_MASS_START` ...). ``python examples/user_models.py``
-prints their sizes and their margins at the start.
+Each has a start and a goal (:data:`POINT_MASS_START` ...); :func:`point_mass_system` and
+:func:`arm_system` turn them into systems every registered method builds on by name (a study
+config names them as ``system = "examples/user_models.py:arm_system"``).
+``python examples/user_models.py`` prints their sizes, their margins at the start and the
+settings derived for them.
 """
 
 from __future__ import annotations
@@ -90,8 +93,29 @@ def two_link_arm() -> wb.Model:
         state_names=("q1", "q2", "dq1", "dq2"), control_names=("tau1", "tau2"))
 
 
+
+
+# --- as systems: every registered method builds on them by name ----------------------------------
+
+def point_mass_system() -> wb.System:
+    """:func:`point_mass_3d` from its start to its goal, every setting derived from the model
+    (``System.origins`` says how)."""
+    return wb.system_from_model(point_mass_3d(), POINT_MASS_START, POINT_MASS_GOAL,
+                                entry="examples/user_models.py:point_mass_system")
+
+
+def arm_system() -> wb.System:
+    """:func:`two_link_arm` from its start to its goal, every setting derived from the model."""
+    return wb.system_from_model(two_link_arm(), ARM_START, ARM_GOAL,
+                                entry="examples/user_models.py:arm_system")
+
+
 if __name__ == "__main__":
-    for make, start in ((point_mass_3d, POINT_MASS_START), (two_link_arm, ARM_START)):
+    for make, start, system in ((point_mass_3d, POINT_MASS_START, point_mass_system),
+                                (two_link_arm, ARM_START, arm_system)):
         m = make()
         print(f"{m.name}: {m.nx} states, {m.nu} controls, {m.nh} constraints; "
               f"margins at the start {np.round(m.margins(start), 3)}")
+        s = system()
+        print(f"  horizon {s.horizon}, sigma {s.sigma}, lambda {s.lam:.3g}, disturbed "
+              f"{s.disturbed} (level x {s.level_scale:.3g}), goal radius {s.goal_radius:.3g}")

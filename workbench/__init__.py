@@ -66,6 +66,7 @@ _EXPORTS = {
                                     "method_names"),
     "workbench.problem.vehicles": ("kinematic_bicycle", "planar_quadrotor", "unicycle"),
     "workbench.scenarios.systems": ("SYSTEMS", "System", "register_system", "system"),
+    "workbench.scenarios.model_system": ("ModelScene", "system_from_model"),
     "workbench.scenarios.maps": ("MAP_FAMILIES", "GeneratedMap", "MapDifficulty", "MapFamily",
                                  "difficulty", "generate"),
     "workbench.scenarios.tuned": ("ControllerSettings", "Tuned", "tuned"),
@@ -155,6 +156,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
         method_names,
         register_method,
     )
+    from workbench.scenarios.model_system import ModelScene, system_from_model
     from workbench.scenarios.navigation import NavigationSetup, navigation_setup
     from workbench.scenarios.scenes import CircleScene, NavigationScene, TrackingScene
     from workbench.scenarios.systems import SYSTEMS, System, register_system, system

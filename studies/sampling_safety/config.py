@@ -12,12 +12,12 @@ from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import MethodSettings, names
-from workbench.scenarios.navigation import TUNED_LAMBDA, TUNED_Q_BETA, TUNED_SIGMA
+from workbench.scenarios.model_system import resolve_system
 from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, real
 
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
 
-__all__ = ["RESULT_VERSION", "StudyConfig", "variance_key"]
+__all__ = ["RESULT_VERSION", "Resolved", "StudyConfig", "variance_key"]
 
 
 @dataclass(frozen=True)
@@ -27,10 +27,17 @@ class StudyConfig:
     each; realisation j at a variance uses the same controller and plant streams for every
     controller (common random numbers), so results are paired by realisation.
 
-    ``sampler``, ``q_beta``, ``robust``, ``feedback`` and ``rule`` are the navigation study's
-    settings (every method shares the sampler: the same N, T, sigma and lambda); ``methods``
-    holds each method's own options. The robust controllers calibrate ``rule`` once per run
-    on an undisturbed episode seeded with ``calibration_seed``.
+    ``system``: a registered system (``workbench list``) or your own, as ``"module:function"``
+    or ``"path/file.py:function"`` returning a System
+    (:func:`~workbench.scenarios.model_system.system_from_model`). ``scene``: the map of a map
+    system (None: the default map, scaled to the system); a system built from a model runs on
+    its own start, goal and constraints, and a scene is refused. ``sampler``, ``q_beta``,
+    ``feedback`` and ``goal_radius``: None takes the system's own (sigma, lambda and horizon
+    with 1024 samples; a ``[sampler]`` table is a whole MPPIConfig: the keys it leaves out take
+    MPPIConfig's defaults). Every method shares the sampler; ``methods`` holds each method's
+    own options. A level of ``variances`` is in the double integrator's units, scaled by the
+    system's ``level_scale`` on its ``disturbed`` states. The robust controllers calibrate
+    ``rule`` once per run on an undisturbed episode seeded with ``calibration_seed``.
 
     Size limits (checked here): at most 10^7 tasks per run, 10^7 steps per episode."""
 
@@ -39,12 +46,13 @@ class StudyConfig:
     realisations: int = 30
     steps: int = 1000
     seed: int = 2024
-    goal_radius: float = 1.0
-    scene: MapSpec = field(default_factory=MapSpec)
-    sampler: MPPIConfig = MPPIConfig(sigma=TUNED_SIGMA, lam=TUNED_LAMBDA)
-    q_beta: float = TUNED_Q_BETA
+    goal_radius: float | None = None
+    system: str = "double_integrator"
+    scene: MapSpec | None = None
+    sampler: MPPIConfig | None = None
+    q_beta: float | None = None
     robust: RMPPIConfig = RMPPIConfig()
-    feedback: FeedbackWeights = FeedbackWeights()
+    feedback: FeedbackWeights | None = None
     rule: AlphaRule = AlphaRule(kappa=0.1)
     methods: MethodSettings = field(default_factory=MethodSettings)
     calibration_seed: int = 0
@@ -66,17 +74,56 @@ class StudyConfig:
         at_most("realisations", self.realisations,
                 len(self.controllers) * len(self.variances) * self.realisations, MAX_TASKS,
                 "controllers x variances x realisations (tasks of a run)")
-        object.__setattr__(self, "goal_radius",
-                           real("goal_radius", self.goal_radius, 0.0, strict=True))
-        if not isinstance(self.scene, MapSpec):
-            raise fail("scene", self.scene, "must be a MapSpec")
-        self.scene.check()
+        if self.goal_radius is not None:
+            object.__setattr__(self, "goal_radius",
+                               real("goal_radius", self.goal_radius, 0.0, strict=True))
+        sysm = resolve_system(self.system)
+        if self.scene is not None:
+            if not isinstance(self.scene, MapSpec):
+                raise fail("scene", self.scene, "must be a MapSpec or None")
+            if sysm.scene is not None:
+                raise fail("scene", self.scene, f"the system {sysm.name!r} runs on its own "
+                           "start, goal and constraints; leave scene out")
+            self.scene.check()
         for name, kind in (("sampler", MPPIConfig), ("robust", RMPPIConfig),
                            ("feedback", FeedbackWeights), ("rule", AlphaRule),
                            ("methods", MethodSettings)):
-            if not isinstance(getattr(self, name), kind):
-                raise fail(name, getattr(self, name), f"must be a {kind.__name__}")
-        object.__setattr__(self, "q_beta", real("q_beta", self.q_beta, 0.0))
+            v = getattr(self, name)
+            if not isinstance(v, kind) and not (v is None and name in ("sampler", "feedback")):
+                raise fail(name, v, f"must be a {kind.__name__}")
+        if self.q_beta is not None:
+            object.__setattr__(self, "q_beta", real("q_beta", self.q_beta, 0.0))
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def resolved(self) -> Resolved:
+        """The settings that run: every None replaced by the system's own value."""
+        sysm = resolve_system(self.system)
+        sampler = self.sampler or MPPIConfig(sigma=sysm.sigma, lam=sysm.lam,
+                                             horizon=sysm.horizon)
+        return Resolved(
+            system=sysm.name, entry=self.system,
+            scene=self.scene or (MapSpec() if sysm.scene is None else None),
+            sampler=sampler, q_beta=sysm.q_beta if self.q_beta is None else self.q_beta,
+            robust=self.robust,
+            feedback=sysm.feedback_weights if self.feedback is None else self.feedback,
+            rule=self.rule, methods=self.methods,
+            goal_radius=sysm.goal_radius if self.goal_radius is None else self.goal_radius)
+
+
+@dataclass(frozen=True)
+class Resolved:
+    """A config's controller settings with the system's defaults filled in (hashable: the
+    key of the per-process caches)."""
+
+    system: str
+    entry: str
+    scene: MapSpec | None
+    sampler: MPPIConfig
+    q_beta: float
+    robust: RMPPIConfig
+    feedback: FeedbackWeights
+    rule: AlphaRule
+    methods: MethodSettings
+    goal_radius: float

@@ -144,6 +144,33 @@ def answers(s: SamplingSafetySummary) -> list[str]:
     return out
 
 
+def where(cfg: dict) -> str:
+    """Where the episodes ran, in words."""
+    label = cfg.get("system_label", "double integrator")
+    if cfg.get("model_scene"):
+        return f"the {label} (your model: its own start, goal and constraints)"
+    if cfg.get("system_name", "double_integrator") == "double_integrator":
+        return "the navigation map"
+    return f"the navigation map with the {label}"
+
+
+def scaled(cfg: dict) -> str:
+    ls, dist = cfg.get("level_scale", 1.0), cfg.get("disturbed", ["vx", "vy"])
+    text = f" on {', '.join(dist)}"
+    return text + (f", times {ls:.3g} for this system's control authority" if ls != 1.0
+                   else "")
+
+
+def defaults_section(cfg: dict) -> list[str]:
+    """Where the system's settings came from (systems built from a model only)."""
+    if not cfg.get("model_scene"):
+        return []
+    return ["## Where the settings came from", "",
+            "Each setting of a system built from your model is either given by you or derived "
+            "from the model by the rule shown.", "",
+            *md_table(["setting", "source"], [[f, src] for f, src in cfg["origins"]]), ""]
+
+
 def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
     atomic_write_bytes(out / "frontier.png", frontier_figure(s))
     atomic_write_bytes(out / "samples.png", samples_figure(s))
@@ -151,10 +178,10 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
     word = {True: "holds", False: "does not hold", None: "undecided"}
     lines = [
         "# Sampling safety: the field's safe-sampling methods on one sampler", "",
-        f"Every controller runs on the navigation map with the same sampler (N = "
+        f"Every controller runs on {where(cfg)} with the same sampler (N = "
         f"{cfg['sampler']['n_samples']}, T = {cfg['sampler']['horizon']}, sigma = "
-        f"{cfg['sampler']['sigma']}, lambda = {cfg['sampler']['lam']}), {cfg['steps']} steps "
-        f"per episode, velocity-disturbance variances {cfg['variances']}, "
+        f"{cfg['sampler']['sigma']}, lambda = {cfg['sampler']['lam']:.4g}), {cfg['steps']} "
+        f"steps per episode, velocity-disturbance variances {cfg['variances']}{scaled(cfg)}, "
         f"{cfg['realisations']} realisations per cell. Realisation j uses the same disturbance "
         f"and controller random streams for every controller (common random numbers), so the "
         f"comparisons below are paired. {run_line}", "",
@@ -184,6 +211,7 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         "run.", "", *activity_table(s), "",
         "## Paired against BaS-MPPI", "", *paired_table(s, "bas_mppi"), "",
         "## Paired against SA-RMPPI", "", *paired_table(s, "sa_rmppi"), "",
+        *defaults_section(cfg),
         "## The methods", "",
         *md_table(["controller", "mechanism"], [[labels()[c], method(c).mechanism]
                                                 for c in cfg["controllers"]]), "",

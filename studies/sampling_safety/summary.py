@@ -14,13 +14,15 @@ t-interval on the collision-free fraction.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, is_dataclass
 
 import numpy as np
 import pandas as pd
 from scipy import stats
 
 from studies.navigation.paired import Paired
+from studies.sampling_safety.config import StudyConfig
+from workbench.scenarios.model_system import resolve_system
 from workbench.study import Rate, RunStore, Spread
 
 
@@ -142,5 +144,26 @@ def summarise(config, store: RunStore) -> SamplingSafetySummary:
                 d = (m["collision_free_fraction_1"] - m["collision_free_fraction_2"]).to_numpy()
                 fractions.append(PairedFraction(c, ref, float(v), int(d.size),
                                                 *mean_interval(d, -1.0, 1.0)))
-    return SamplingSafetySummary(config.as_dict(), float(config.scene.scene().dt), tuple(cells),
+    return SamplingSafetySummary(ran_settings(config), ran_dt(config), tuple(cells),
                                  tuple(paired), tuple(fractions))
+
+
+def ran_settings(config: StudyConfig) -> dict:
+    """The config as it ran: every value left to the system replaced by the system's, with
+    the system's label and where each of its defaults came from."""
+    r = config.resolved()
+    d = config.as_dict()
+    d.update({k: asdict(v) if is_dataclass(v) else v
+              for k, v in ((f, getattr(r, f)) for f in ("scene", "sampler", "q_beta",
+                                                         "feedback", "goal_radius"))})
+    sysm = resolve_system(r.entry)
+    d.update(system_name=sysm.name, system_label=sysm.label, model_scene=sysm.scene is not None,
+             origins=[list(o) for o in sysm.origins], disturbed=list(sysm.disturbed),
+             level_scale=sysm.level_scale)
+    return d
+
+
+def ran_dt(config: StudyConfig) -> float:
+    r = config.resolved()
+    return float(r.scene.scene().dt if r.scene is not None
+                 else resolve_system(r.entry).scene.dt)

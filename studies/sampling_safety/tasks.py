@@ -13,15 +13,12 @@ from functools import cache
 
 import numpy as np
 
-from studies.navigation.scene import MapSpec
-from studies.sampling_safety.config import RESULT_VERSION, StudyConfig, variance_key
+from studies.sampling_safety.config import RESULT_VERSION, Resolved, StudyConfig, variance_key
 from workbench.sampling.calibration import calibrate
-from workbench.sampling.feedback import FeedbackWeights
-from workbench.sampling.mppi import MPPIConfig
-from workbench.sampling.robust import RMPPIConfig
-from workbench.sampling.threshold import AlphaRule, Threshold
-from workbench.scenarios.methods import MethodSettings, build, feedback_law, method, slowest_first
+from workbench.sampling.threshold import Threshold
+from workbench.scenarios.methods import build, feedback_law, method, slowest_first
 from workbench.scenarios.methods.settings import fingerprint as settings_data
+from workbench.scenarios.model_system import resolve_system
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
@@ -42,26 +39,11 @@ class Realisation:
                 "realisation": self.realisation}
 
 
-@dataclass(frozen=True)
-class Settings:
-    """The config's controller settings as one hashable key for the per-process caches."""
-
-    scene: MapSpec
-    sampler: MPPIConfig
-    q_beta: float
-    robust: RMPPIConfig
-    feedback: FeedbackWeights
-    rule: AlphaRule
-    methods: MethodSettings
-
-    @classmethod
-    def of(cls, c: StudyConfig) -> Settings:
-        return cls(c.scene, c.sampler, c.q_beta, c.robust, c.feedback, c.rule, c.methods)
-
-
 @cache
-def setup(s: Settings) -> NavigationSetup:
-    return navigation_setup(s.scene.scene(), q_beta=s.q_beta, mppi=s.sampler)
+def setup(s: Resolved) -> NavigationSetup:
+    sysm = resolve_system(s.entry)
+    scene = None if s.scene is None else sysm.scaled(s.scene.scene())
+    return navigation_setup(scene, system=sysm, q_beta=s.q_beta, mppi=s.sampler)
 
 
 Thresholds = dict[str, Threshold]
@@ -70,24 +52,31 @@ Thresholds = dict[str, Threshold]
 def prepare(config: StudyConfig, out=None) -> Thresholds:
     """Each robust controller's threshold, calibrated once in the coordinating process on an
     undisturbed episode of that controller with its own feedback law."""
-    s = Settings.of(config)
+    s = config.resolved()
     nav = setup(s)
     return {name: calibrate(s.rule, nav.problem, nav.goal, nav.plant, nav.x0, nav.mppi,
                             feedback_law(nav, method(name).feedback or "", s.methods,
                                          s.feedback), s.robust,
-                            seed=config.calibration_seed)
+                            seed=config.calibration_seed, progress=nav.progress())
             for name in config.controllers if method(name).robust}
 
 
 _CONTROLLERS: dict = {}
 
 
-def controller(s: Settings, name: str, thresholds: Thresholds):
+def controller(s: Resolved, name: str, thresholds: Thresholds):
     key = (s, name)
     if key not in _CONTROLLERS:
         _CONTROLLERS[key] = build(setup(s), name, s.methods, threshold=thresholds.get(name),
                                   robust=s.robust, weights=s.feedback)
     return _CONTROLLERS[key]
+
+
+def disturbance(nav: NavigationSetup, variance: float) -> Disturbance:
+    """``variance`` (the double integrator's units) on the system's disturbed states, scaled
+    by its level_scale."""
+    sysm = nav.system
+    return Disturbance(variance * sysm.level_scale, states=sysm.disturbed)
 
 
 def step_rows(infos) -> dict[str, np.ndarray]:
@@ -107,17 +96,17 @@ def activity_rows(infos) -> dict[str, np.ndarray]:
 
 def run_task(task: Realisation, ctx: TaskContext, config: StudyConfig,
              prepared: Thresholds) -> TaskOutput:
-    s = Settings.of(config)
+    s = config.resolved()
     nav = setup(s)
     ctrl = controller(s, task.controller, prepared)
     lib = getattr(ctrl.sampler, "lib", None)
     if lib is not None:
         lib.set_threads(ctx.threads)
     ep = closed_loop(ctrl, nav.plant, nav.x0, config.steps, ctx.rng(0), ctx.rng(1),
-                     Disturbance(task.variance))
+                     disturbance(nav, task.variance))
     steps = step_rows(ep.infos)
-    dist = np.linalg.norm(ep.X[:, :2] - nav.goal[:2], axis=1)
-    inside = np.flatnonzero(dist <= config.goal_radius)
+    dist = nav.goal_distance(ep.X)
+    inside = np.flatnonzero(dist <= s.goal_radius)
     ms = 1e3 * ep.step_time_s
     cf = steps["n_collision_free"] / np.maximum(steps["n_samples"], 1)
     episode = {"crashed": ep.crashed, "steps": len(ep.U), "final_error": dist[-1],
@@ -150,10 +139,32 @@ def plan(config: StudyConfig) -> Plan:
 
 
 def fingerprint(config: StudyConfig) -> dict:
+    """What results depend on: the resolved settings and, for a system other than the double
+    integrator, the numbers of its definition."""
+    s = config.resolved()
     d = settings_data(config)
-    for k in ("controllers", "variances", "realisations", "seed"):
+    for k in ("controllers", "variances", "realisations", "seed", "system"):
         d.pop(k)
+    d.update({k: settings_data(getattr(s, k)) if hasattr(getattr(s, k), "__dataclass_fields__")
+              else getattr(s, k) for k in ("scene", "sampler", "q_beta", "feedback",
+                                           "goal_radius")})
+    if s.system != "double_integrator":
+        d["system"] = system_values(resolve_system(s.entry))
     return d
+
+
+def system_values(sysm) -> dict:
+    """The numbers of a system's definition that results depend on, with its model's
+    expressions (a change to them must not reuse stored episodes)."""
+    out = {k: getattr(sysm, k) for k in ("name", "Q", "S", "sigma", "lam", "q_beta",
+                                         "disturbed", "scale", "level_scale", "cost_form",
+                                         "horizon", "goal_radius", "state_scale")}
+    if sysm.scene is not None:
+        m = sysm.model(obstacles=sysm.scene.obstacles(), dt=sysm.scene.dt, u_limit=None,
+                       scene_capacity=None, runtime_obstacles=True)
+        out.update(start=list(sysm.scene.start), goal=list(sysm.scene.goal),
+                   model=[str(m.x_next), str(m.h), list(m.u_min), list(m.u_max), m.dt])
+    return out
 
 
 def declare(config: StudyConfig) -> Declaration:

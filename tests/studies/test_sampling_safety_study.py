@@ -14,7 +14,7 @@ from studies.navigation.scene import MapSpec
 from studies.sampling_safety import STUDY
 from studies.sampling_safety.findings import verdicts
 from studies.sampling_safety.summary import mean_interval
-from studies.sampling_safety.tasks import Settings, setup
+from studies.sampling_safety.tasks import setup
 from workbench.scenarios.methods import names
 from workbench.study import Rate, RunStore
 from workbench.study.runner import profile_config, resolve_config
@@ -58,7 +58,7 @@ def tiny_run(tmp_path_factory):
 def test_every_method_meets_the_same_disturbances(tiny_run):
     """w_k = x_{k+1} - F(x_k, u_k) from every stored path is one sequence per realisation."""
     cfg, out, _ = tiny_run
-    store, plant = RunStore(out), setup(Settings.of(cfg)).plant
+    store, plant = RunStore(out), setup(cfg.resolved()).plant
     f = ca.Function("f", [plant.x, plant.u], [plant.x_next])
     ep = store.table("episodes")
     seqs: dict[int, list[np.ndarray]] = {}

@@ -64,14 +64,14 @@ class NavigationSetup:
         return ILQGFeedback(model, self.mppi.horizon, self.problem.nx, self._weights(weights))
 
     def progress(self) -> ca.SX | None:
-        """The progress measure of the threshold rules: None (distance in the plant's position
-        coordinates (0, 1)) or, for other position coordinates, that distance as a CasADi
-        expression in the plant's state."""
-        pos = self.plant.position
-        if pos is None or tuple(pos) == (0, 1):
-            return None
-        x = self.plant.x
-        return ca.sqrt(sum((x[i] - float(self.goal[i])) ** 2 for i in pos))
+        """The progress measure of the threshold rules (:meth:`System.progress`): None (the
+        distance in the plant's position coordinates (0, 1)) or the system's distance to the
+        goal as a CasADi expression in the plant's state."""
+        return self.system.progress(self.plant, self.goal)
+
+    def goal_distance(self, X) -> np.ndarray:
+        """Distance of the states ``X`` to the goal (:meth:`System.goal_distance`)."""
+        return self.system.goal_distance(self.plant, X, self.goal)
 
     def threshold(self, rule: AlphaRule = AlphaRule(), feedback: str = "bas_ilqg",
                   robust: RMPPIConfig = RMPPIConfig(),
@@ -118,7 +118,8 @@ def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
     """Plant, barrier-embedded sampling problem and MPPI settings of the navigation study.
 
     ``scene``: the paper's map (default: :class:`NavigationScene`, scaled by the system's
-    ``scale``, :meth:`System.scaled`) or your own circles
+    ``scale``, :meth:`System.scaled`; a system built from your model: its own scene) or your
+    own circles
     (:class:`~workbench.scenarios.scenes.CircleScene`, used as given, in the system's units);
     any object with ``start``, ``goal``, ``dt``, ``u_limit`` and ``obstacles()`` works.
     ``system``: a name of :data:`~workbench.scenarios.systems.SYSTEMS` or a :class:`System`
@@ -129,11 +130,12 @@ def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
     every map with at most that many circles then shares one compiled set of kernels);
     ``runtime_obstacles=False`` bakes them in."""
     sysm = system if isinstance(system, System) else system_named(system)
-    scene = scene or sysm.scaled(NavigationScene())
+    if scene is None:
+        scene = sysm.scene if sysm.scene is not None else sysm.scaled(NavigationScene())
     plant = sysm.plant(scene, scene_capacity=scene_capacity, runtime_obstacles=runtime_obstacles)
     start, goal = np.asarray(scene.start, float), np.asarray(scene.goal, float)
     d = goal - start
-    heading = float(np.arctan2(d[1], d[0])) if np.any(d != 0) else 0.0
+    heading = float(np.arctan2(d[1], d[0])) if d.size >= 2 and np.any(d[:2] != 0) else 0.0
     states = {"start": sysm.state_at(start, heading), "goal": sysm.state_at(goal, heading)}
     eps = (barrier or BarrierOptions()).eps_h  # the barrier state counts h <= eps_h as a crash
     for name, x in states.items():  # also for scenes that bring their own obstacles
@@ -143,5 +145,5 @@ def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
                        f"{where}; start and goal must be in free space (h > {eps:g})")
     qb = sysm.q_beta if q_beta is None else q_beta
     problem = sysm.costs(embed_barrier(plant, barrier or BarrierOptions()), q_beta=qb)
-    cfg = mppi or MPPIConfig(sigma=sysm.sigma, lam=sysm.lam)
+    cfg = mppi or MPPIConfig(sigma=sysm.sigma, lam=sysm.lam, horizon=sysm.horizon)
     return NavigationSetup(scene, plant, problem, states["goal"], states["start"], cfg, sysm)

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import casadi as ca
 import numpy as np
@@ -66,7 +66,7 @@ from workbench.sampling.methods.gatekeeper import (
 from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
 from workbench.scenarios.registry import Registry
 from workbench.scenarios.scenes import CircleScene
-from workbench.validation import as_array, fail, one_of, real, scale
+from workbench.validation import MAX_BATCH, as_array, fail, integer, one_of, real, scale
 
 # [A] assumptions §8.2 starts from sigma = 2, lambda = 1, q_beta = 1 and asks to tune the
 # undisturbed
@@ -101,7 +101,14 @@ class System:
     default).
     ``feedback_weights``: tracking weights of the robust methods' feedback laws.
     ``cost_form``: "navigation" (the double integrator's navigation_costs, kept bit-identical)
-    or "goal" (goal_costs).
+    or "goal" (goal_costs). ``horizon``: the sampler's default horizon T. ``goal_radius``: how
+    close to the goal counts as reached, in :meth:`goal_distance`'s measure (the studies' default).
+
+    A system built from a user's model (:func:`~workbench.scenarios.model_system.system_from_model`)
+    also has ``scene``: its own start, goal and constraints (None: a map system, whose scenes
+    are maps of circles), ``state_scale``: per-state scales of the distance to the goal of a
+    model without a position, ``origins``: (field, where its value came from) pairs, and
+    ``entry``: the ``"module:function"`` that rebuilds it in another process.
     """
 
     name: str
@@ -119,6 +126,12 @@ class System:
     backup: BackupFactory = field(default=lambda plant, gain: braking_backup(plant, gain=gain))
     feedback_weights: FeedbackWeights = field(default_factory=FeedbackWeights)
     cost_form: Literal["navigation", "goal"] = "goal"
+    horizon: int = 100
+    goal_radius: float = 1.0
+    scene: Any = None
+    state_scale: tuple[float, ...] | None = None
+    origins: tuple[tuple[str, str], ...] = ()
+    entry: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -147,6 +160,24 @@ class System:
             raise fail("System.feedback_weights", self.feedback_weights,
                        "must be a FeedbackWeights")
         one_of("System.cost_form", self.cost_form, ("navigation", "goal"))
+        integer("System.horizon", self.horizon, 1, MAX_BATCH - 1)
+        real("System.goal_radius", self.goal_radius, 0.0, strict=True)
+        if self.scene is not None and not all(
+                hasattr(self.scene, a) for a in ("start", "goal", "dt", "obstacles")):
+            raise fail("System.scene", self.scene, "must be None or a scene with start, goal, "
+                       "dt and obstacles() (a ModelScene)")
+        if self.state_scale is not None:
+            w = as_array("System.state_scale", self.state_scale, (None,))
+            if np.any(w <= 0):
+                raise fail("System.state_scale", w, "must be numbers > 0")
+            object.__setattr__(self, "state_scale", tuple(float(v) for v in w))
+        if not isinstance(self.origins, tuple) or not all(
+                isinstance(o, tuple) and len(o) == 2 and all(isinstance(e, str) for e in o)
+                for o in self.origins):
+            raise fail("System.origins", self.origins, "must be a tuple of (field, source) "
+                       "string pairs")
+        if self.entry is not None and (not isinstance(self.entry, str) or ":" not in self.entry):
+            raise fail("System.entry", self.entry, "must be None or 'module:function'")
 
     def plant(self, scene, *, scene_capacity: int | None = None,
               runtime_obstacles: bool = True) -> Model:
@@ -154,6 +185,33 @@ class System:
         return self.model(obstacles=tuple(scene.obstacles()), dt=scene.dt,
                           u_limit=scene.u_limit, scene_capacity=scene_capacity,
                           runtime_obstacles=runtime_obstacles)
+
+    def goal_distance(self, plant: Model, X, goal) -> np.ndarray:
+        """Distance of the states ``X`` (rows, or one state) to ``goal``: Euclidean in the
+        plant's position coordinates; for a plant without a position, over every physical
+        state divided by :attr:`state_scale` (1 where unset)."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        g = np.asarray(goal, dtype=float).ravel()
+        if plant.position is not None:
+            idx = list(plant.position)
+            return np.linalg.norm(X[:, idx] - g[idx], axis=1)
+        n = plant.n_physical
+        s = np.ones(n) if self.state_scale is None else np.asarray(self.state_scale)
+        return np.linalg.norm((X[:, :n] - g[:n]) / s, axis=1)
+
+    def progress(self, plant: Model, goal) -> ca.SX | None:
+        """:meth:`goal_distance` as a CasADi expression in the plant's state (for the robust
+        methods' threshold rules); None for the plane's first two coordinates (the rules'
+        default measure)."""
+        pos = plant.position
+        if pos is not None and tuple(pos) == (0, 1):
+            return None
+        x, g = plant.x, np.asarray(goal, dtype=float).ravel()
+        if pos is not None:
+            return ca.sqrt(sum((x[i] - float(g[i])) ** 2 for i in pos))
+        s = np.ones(plant.n_physical) if self.state_scale is None else self.state_scale
+        return ca.sqrt(sum(((x[i] - float(g[i])) / float(s[i])) ** 2
+                           for i in range(plant.n_physical)))
 
     def costs(self, model: Model, q_beta: float | None = None) -> SamplingProblem:
         """The sampling problem on ``model`` (plain or barrier-embedded) with this system's
