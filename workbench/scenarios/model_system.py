@@ -109,11 +109,15 @@ def _rest_control(model: Model) -> np.ndarray:
 
 
 def state_scales(model: Model, start: np.ndarray, goal: np.ndarray, horizon: int,
-                 rollouts: int = 64, seed: int = 0) -> np.ndarray:
+                 sigma=None, rollouts: int = 64, seed: int = 0) -> np.ndarray:
     """Per-state scale s_i (see the module docstring): |goal_i - start_i| (the norm of the
     difference over the position coordinates, when the model has them) where that is > 0,
-    else the spread of seeded constant-control rollouts; floored at 1e-3 of the largest."""
+    else the spread of seeded constant-control rollouts (controls uniform in the box; an
+    unbounded side at 2 ``sigma``); floored at 1e-3 of the largest."""
     lo, hi = np.asarray(model.u_min, float), np.asarray(model.u_max, float)
+    if sigma is not None:
+        two = 2.0 * np.asarray(sigma, float)
+        lo, hi = np.where(np.isfinite(lo), lo, -two), np.where(np.isfinite(hi), hi, two)
     F = _step(model).map(rollouts)
     rng = np.random.default_rng(seed)
     U = rng.uniform(lo[:, None], hi[:, None], size=(model.nu, rollouts))
@@ -203,12 +207,20 @@ def system_from_model(model: Model, start, goal, *, name: str | None = None,
     T = (integer("horizon", horizon, 1) if horizon is not None
          else int(np.clip(round(HORIZON_S / model.dt), 20, 100)))
     note("horizon", horizon, f"round({HORIZON_S:g} s / dt) within [20, 100]")
+    if sigma is None:
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            raise fail("sigma", None, f"the model {model.name!r} has an unbounded control: "
+                       "pass sigma (one standard deviation per control)")
+        sig = 0.25 * (hi - lo)
+    else:
+        sig = as_array("sigma", sigma, (model.nu,))
+    note("sigma", sigma, "a quarter of each control's range")
     if state_scale is not None:
         s = as_array("state_scale", state_scale, (n,))
         if np.any(s <= 0):
             raise fail("state_scale", s, "must be numbers > 0")
     else:
-        s = state_scales(model, x0, xg, T)
+        s = state_scales(model, x0, xg, T, sigma=sig)
     note("state_scale", state_scale, "the goal's change of the state (one norm over the "
          "position coordinates), else its spread under random controls over the horizon")
     goal_states = np.abs(xg - x0) > 0
@@ -221,14 +233,6 @@ def system_from_model(model: Model, start, goal, *, name: str | None = None,
     note("S", S, "10 Q")
     qb = 0.01 * float(np.mean(Qv)) if q_beta is None else real("q_beta", q_beta, 0.0)
     note("q_beta", q_beta, "0.01 mean(Q)")
-    if sigma is None:
-        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-            raise fail("sigma", None, f"the model {model.name!r} has an unbounded control: "
-                       "pass sigma (one standard deviation per control)")
-        sig = 0.25 * (hi - lo)
-    else:
-        sig = as_array("sigma", sigma, (model.nu,))
-    note("sigma", sigma, "a quarter of each control's range")
     rows, rates = authority(model, x0)
     if disturbed is None:
         if not rows.size:

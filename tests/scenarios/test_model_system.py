@@ -1,0 +1,204 @@
+"""A system from any model (system_from_model): the derived defaults against their rules and
+closed forms, values given used as given, every registered method built by name on two models
+the workbench does not ship and acting on a disturbed episode, entries from a config, and the
+errors."""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from workbench.sampling.weights import importance_weights
+from workbench.scenarios.methods import method, names
+from workbench.scenarios.model_system import (
+    ESS_TARGET,
+    calibrate_lambda,
+    load_entry,
+    resolve_system,
+    system_from_model,
+)
+from workbench.scenarios.navigation import navigation_setup
+from workbench.scenarios.systems import SYSTEMS
+from workbench.sim import Disturbance, closed_loop
+
+ROOT = Path(__file__).parents[2]
+USER_MODELS = ROOT / "examples" / "user_models.py"
+
+
+def _user_models():
+    spec = importlib.util.spec_from_file_location("user_models_for_tests", USER_MODELS)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+um = _user_models()
+
+
+@pytest.fixture(scope="module")
+def point_mass():
+    return system_from_model(um.point_mass_3d(), um.POINT_MASS_START, um.POINT_MASS_GOAL)
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return system_from_model(um.two_link_arm(), um.ARM_START, um.ARM_GOAL)
+
+
+def test_derived_defaults_follow_their_rules_on_the_point_mass(point_mass):
+    s = point_mass
+    assert s.horizon == 40  # round(2 s / 0.05 s)
+    np.testing.assert_allclose(s.sigma, [2.0] * 3, rtol=1e-12)  # range 8 / 4
+    assert s.disturbed == ("vx", "vy", "vz")  # what the accelerations move in one step
+    np.testing.assert_allclose(s.level_scale, (4.0 / 5.0) ** 2, rtol=1e-12)
+    dp = np.linalg.norm(um.POINT_MASS_GOAL[:3] - um.POINT_MASS_START[:3])
+    np.testing.assert_allclose(s.state_scale[:3], [dp] * 3, rtol=1e-12)  # isotropic
+    np.testing.assert_allclose(s.Q[:3], [1 / dp**2] * 3, rtol=1e-12)
+    np.testing.assert_allclose(s.Q[3:], 0.1 / np.asarray(s.state_scale[3:]) ** 2, rtol=1e-12)
+    np.testing.assert_allclose(s.S, 10 * np.asarray(s.Q), rtol=1e-12)
+    np.testing.assert_allclose(s.goal_radius, 0.1 * dp, rtol=1e-12)
+    origins = dict(s.origins)
+    assert set(origins) >= {"horizon", "sigma", "lam", "Q", "S", "q_beta", "disturbed",
+                            "level_scale", "feedback_weights", "goal_radius", "backup"}
+    assert all(v != "given" for v in origins.values())
+
+
+def test_lambda_gives_the_target_effective_sample_size(point_mass):
+    nav = navigation_setup(system=point_mass)
+    lam = calibrate_lambda(nav.problem, nav.goal, nav.x0, nav.mppi)
+    np.testing.assert_allclose(lam, point_mass.lam, rtol=1e-12)
+    # the same first batch, weighted with lambda: its ESS share is the target
+    from workbench.sampling.mppi import MPPI
+    from workbench.sampling.planning import full_state
+    c = MPPI(nav.problem, nav.goal, nav.mppi)
+    xb = full_state(nav.problem, nav.x0, c.consts.scene)
+    batch = c.sampler.mppi(xb, c.initial_state().U, nav.mppi.n_samples, c.consts,
+                           int(np.random.default_rng(0).integers(0, 2**63)))
+    share = importance_weights(batch.S, lam).ess / nav.mppi.n_samples
+    assert abs(share - ESS_TARGET) < 0.1 * ESS_TARGET
+    assert importance_weights(batch.S, 0.5 * lam).ess < importance_weights(batch.S, lam).ess
+
+
+def test_the_arm_without_a_position_measures_goal_distance_in_scaled_states(arm):
+    assert arm.disturbed == ("dq1", "dq2")  # torques move the rates, the angles at O(dt^2)
+    nav = navigation_setup(system=arm)
+    X = np.array([um.ARM_START, um.ARM_GOAL])
+    d = nav.goal_distance(X)
+    np.testing.assert_allclose(d[0], np.linalg.norm((um.ARM_GOAL - um.ARM_START)
+                                                    / np.asarray(arm.state_scale)), rtol=1e-12)
+    assert d[1] == 0.0
+    assert nav.progress() is not None  # the threshold rules measure the same distance
+
+
+def test_values_given_are_used_and_recorded_as_given():
+    s = system_from_model(um.point_mass_3d(), um.POINT_MASS_START, um.POINT_MASS_GOAL,
+                          sigma=(1.0, 1.5, 2.0), lam=3.0, horizon=25, disturbed=("vz",),
+                          level_scale=2.0, goal_radius=0.3)
+    assert (s.sigma, s.lam, s.horizon, s.disturbed, s.level_scale, s.goal_radius) == (
+        (1.0, 1.5, 2.0), 3.0, 25, ("vz",), 2.0, 0.3)
+    o = dict(s.origins)
+    assert all(o[k] == "given" for k in ("sigma", "lam", "horizon", "disturbed",
+                                         "level_scale", "goal_radius"))
+    assert o["Q"] != "given"
+    nav = navigation_setup(system=s)
+    assert (nav.mppi.sigma, nav.mppi.lam, nav.mppi.horizon) == ((1.0, 1.5, 2.0), 3.0, 25)
+
+
+@pytest.mark.parametrize("model_name", ["point_mass", "arm"])
+def test_every_registered_method_builds_by_name_steps_and_its_mechanism_acts(
+        model_name, request):
+    """Each registered method on the model, in closed loop under a disturbance, pushed close to
+    its constraints (a start beside them): it runs, and its mechanism acts on some step."""
+    base = request.getfixturevalue(model_name)
+    start = (np.array([1.2, -0.1, 1.0, 0.8, 0.0, 0.0]) if model_name == "point_mass"
+             else np.array([0.45, 0.3, 1.0, 0.0]))
+    sysm = replace(base, scene=replace(base.scene, start=start))
+    nav = navigation_setup(system=sysm)
+    nav = replace(nav, mppi=replace(nav.mppi, n_samples=128))
+    acted = {}
+    for name in names():
+        spec = method(name)
+        ctrl = nav.controller(name)
+        ep = closed_loop(ctrl, nav.plant, nav.x0, 40, np.random.default_rng(3),
+                         np.random.default_rng(4),
+                         Disturbance(30.0 * sysm.level_scale, states=sysm.disturbed))
+        assert len(ep.U) > 0 and np.all(np.isfinite(np.asarray(ep.U))), name
+        assert ctrl.goal is not None
+        if spec.activity is not None:
+            acted[name] = max(i.stats.activity.get(spec.activity, 0.0) for i in ep.infos)
+    assert {k for k, v in acted.items() if not v > 0} == set(), acted
+
+
+def test_entries_load_from_a_file_or_a_module_and_register_once(tmp_path, monkeypatch):
+    entry = f"{USER_MODELS}:arm_system"
+    try:
+        s = load_entry(entry)
+        assert s.name == "two_link_arm" and SYSTEMS["two_link_arm"] is s
+        assert resolve_system(entry) is s  # loaded once
+        assert resolve_system("two_link_arm") is s
+        (tmp_path / "my_arm.py").write_text(
+            "import workbench as wb\n"
+            "def other():\n    return 3\n")
+        monkeypatch.syspath_prepend(str(tmp_path))
+        with pytest.raises(ValueError, match=r"other\(\) must return a System"):
+            load_entry("my_arm:other")
+        with pytest.raises(ValueError, match="has no function 'missing'"):
+            load_entry("my_arm:missing")
+        with pytest.raises(ValueError, match="cannot import 'no_such_module_xyz'"):
+            load_entry("no_such_module_xyz:f")
+        with pytest.raises(ValueError, match="does not exist"):
+            load_entry("nowhere/none.py:f")
+    finally:
+        SYSTEMS.pop("two_link_arm", None)
+
+
+def test_bad_models_and_values_are_refused_with_the_field_named():
+    from workbench.problem.barrier import BarrierOptions, embed_barrier
+    pm = um.point_mass_3d()
+    with pytest.raises(ValueError, match="start"):
+        system_from_model(pm, np.zeros(4), um.POINT_MASS_GOAL)
+    with pytest.raises(ValueError, match="barrier-embedded"):
+        system_from_model(embed_barrier(pm, BarrierOptions()), um.POINT_MASS_START,
+                          um.POINT_MASS_GOAL)
+    with pytest.raises(ValueError, match="disturbed"):
+        system_from_model(pm, um.POINT_MASS_START, um.POINT_MASS_GOAL, disturbed=("wz",))
+    no_h = replace(pm, h=pm.h[:0])
+    with pytest.raises(ValueError, match=r"model\.h"):
+        system_from_model(no_h, um.POINT_MASS_START, um.POINT_MASS_GOAL)
+    unbounded = replace(pm, u_min=np.full(3, -np.inf), u_max=np.full(3, np.inf))
+    with pytest.raises(ValueError, match=r"sigma.*unbounded control"):
+        system_from_model(unbounded, um.POINT_MASS_START, um.POINT_MASS_GOAL, lam=1.0)
+
+
+def test_a_model_system_refuses_maps():
+    from workbench.scenarios.scenes import CircleScene
+    s = system_from_model(um.point_mass_3d(), um.POINT_MASS_START, um.POINT_MASS_GOAL,
+                          lam=1.0)
+    with pytest.raises(ValueError, match="runs on its own constraints"):
+        navigation_setup(CircleScene(((3.0, 3.0, 1.0),), (0.5, 0.5), (9.0, 9.0)), system=s)
+
+
+def test_compare_methods_runs_the_comparison_on_a_system_of_ones_own(tmp_path):
+    """From Python with a System that has no entry (in this process), and refused with
+    workers; the report says where the settings came from."""
+    from workbench.sampling.mppi import MPPIConfig
+    from workbench.study.compare import compare_methods
+    s = replace(system_from_model(um.two_link_arm(), um.ARM_START, um.ARM_GOAL),
+                name="arm_for_compare")
+    small = dict(controllers=("bas_mppi", "mppi_crash"), variances=(3.0,), realisations=2,
+                 steps=10, sampler=MPPIConfig(n_samples=64, horizon=20, sigma=s.sigma,
+                                              lam=s.lam))
+    try:
+        with pytest.raises(ValueError, match="workers"):
+            compare_methods(s, tmp_path / "w", workers=2, **small)
+        compare_methods(s, tmp_path / "run", **small)
+        report = (tmp_path / "run" / "report.md").read_text()
+        assert "two link arm (your model: its own start, goal and constraints)" in report
+        assert "## Where the settings came from" in report
+        assert "| horizon | round(2 s / dt) within [20, 100] |" in report
+    finally:
+        SYSTEMS.pop("arm_for_compare", None)
