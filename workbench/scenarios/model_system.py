@@ -4,7 +4,7 @@ record the built-in systems use, so that every registered method builds on it by
 every study that takes a system runs on it.
 
 Every default it derives is recorded with where it came from (``System.origins``); a value
-passed by the caller is used as given and recorded as such. The rules (assumptions §8.6):
+passed by the caller is used as given and recorded as such. The rules (assumptions §8.3):
 
 - horizon T = round(2 s / dt), within [20, 100];
 - state scales s_i: |goal_i - start_i| where the goal changes state i (one scale, the norm of
@@ -47,7 +47,7 @@ from workbench.sampling.weights import importance_weights
 from workbench.scenarios.systems import SYSTEMS, System
 from workbench.validation import as_array, fail, integer, real
 
-ESS_TARGET = 0.01  # assumptions §8.6: about ten samples share the weight of the first step
+ESS_TARGET = 0.01  # assumptions §8.3: about ten samples share the weight of the first step
 DI_AUTHORITY = 5.0  # m/s^2: the double integrator's control authority (levels' units)
 HORIZON_S = 2.0  # s
 
