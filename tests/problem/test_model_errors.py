@@ -121,3 +121,29 @@ def test_expressions_given_as_lists_are_stacked_and_bad_ones_name_the_field():
     with pytest.raises(ValueError, match=r"^position = .* must be 2 or 3 distinct"):
         Model.from_expressions("bad", x, u, x + ca.vertcat(0, u), dt=0.1, u_min=[-1.0],
                                u_max=[1.0], position=(0,))
+    for units in (("m",), ("m", 1), "mm"):
+        with pytest.raises(ValueError, match=r"^state_units = .* must be 2 strings, one unit "
+                           r"per state"):
+            Model.from_expressions("bad", x, u, x + ca.vertcat(0, u), dt=0.1, u_min=[-1.0],
+                                   u_max=[1.0], state_units=units)
+
+
+def test_state_units_are_kept_through_embedding_and_default_to_none():
+    import casadi as ca
+
+    from workbench.problem.barrier import embed_barrier
+    from workbench.problem.models import Model, double_integrator
+    from workbench.problem.obstacles import Circle
+    from workbench.sampling.planning import physical_model
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    m = Model.from_expressions("plain", x, u, x + ca.vertcat(0, u), dt=0.1, u_min=[-1.0],
+                               u_max=[1.0], state_units=["rad", ""])
+    assert m.state_units == ("rad", "")
+    assert Model.from_expressions("plain", x, u, x + ca.vertcat(0, u), dt=0.1, u_min=[-1.0],
+                                  u_max=[1.0]).state_units is None
+    di = double_integrator(obstacles=(Circle((1.0, 1.0), 0.5),))
+    assert di.state_units == ("m", "m", "m/s", "m/s")
+    emb = embed_barrier(di)
+    assert emb.state_units == ("m", "m", "m/s", "m/s", "")
+    assert physical_model(emb).state_units == di.state_units

@@ -59,6 +59,8 @@ class Model:
     (ns = 0: no run-time scene), ``scene_value`` (ns,) its default value.
     ``n_physical`` counts the leading states that are physical (the rest are barrier states).
     ``lift`` maps a physical state to the full state (identity for plain models).
+    ``state_units``: one unit per state ("m", "rad/s"; "" for none), or None when unknown; the
+    plots label an axis "name [unit]".
     """
 
     name: str
@@ -79,6 +81,7 @@ class Model:
     scene: ca.SX = field(default_factory=lambda: ca.SX(0, 1), repr=False)
     scene_value: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     scene_capacity: int = 0  # circle slots of the scene (0: no circle slots)
+    state_units: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         _check_sizes(self.x, self.u, "Model.")
@@ -142,13 +145,16 @@ class Model:
         scene: ca.SX | None = None,
         scene_value=None,
         scene_capacity: int = 0,
+        state_units: tuple[str, ...] | None = None,
     ) -> Model:
         """Validate and wrap user CasADi expressions into a Model (the user-model entry point).
 
         ``h`` may depend on x and a ``scene`` symbol (run-time obstacle data, given as
         ``scene_value`` by default and changed per call by the controllers); build a circle
         scene with :func:`~workbench.problem.obstacles.scene_symbol` and
-        :func:`~workbench.problem.obstacles.slot_margins` (``scene_capacity`` = its slots)."""
+        :func:`~workbench.problem.obstacles.slot_margins` (``scene_capacity`` = its slots).
+        ``state_units``: one string per state ("" for a state without a unit), used to label
+        plots; None (default) labels them by name alone."""
         for fname, sym in (("x", x), ("u", u)):
             if not isinstance(sym, ca.SX) or not sym.is_valid_input() or sym.size2() != 1:
                 raise fail(fname, str(sym), "must be a column vector of CasADi SX symbols")
@@ -186,6 +192,12 @@ class Model:
             raise fail("state_names", sn, f"need {nx} names")
         if len(cn) != nu:
             raise fail("control_names", cn, f"need {nu} names")
+        if state_units is not None:
+            if (not isinstance(state_units, tuple | list) or len(state_units) != nx
+                    or not all(isinstance(s, str) for s in state_units)):
+                raise fail("state_units", state_units, f"must be {nx} strings, one unit per "
+                           "state (\"\" for a state without one), or None")
+            state_units = tuple(state_units)
         if position is not None:
             if (not isinstance(position, tuple | list) or len(position) not in (2, 3)
                     or len(set(position)) != len(position)):
@@ -198,7 +210,7 @@ class Model:
             name=name, x=x, u=u, x_next=x_next, h=h, dt=float(dt), u_min=lo, u_max=hi,
             state_names=tuple(sn), control_names=tuple(cn), position=position,
             obstacles=tuple(obstacles), n_physical=nx, lift_expr=x, scene=scene,
-            scene_value=sv, scene_capacity=int(scene_capacity),
+            scene_value=sv, scene_capacity=int(scene_capacity), state_units=state_units,
         )
 
     @functools.cached_property
@@ -316,7 +328,7 @@ def double_integrator(
     return Model.from_expressions(
         "double_integrator", x, u, x_next, dt=dt, u_min=lo, u_max=hi,
         state_names=("px", "py", "vx", "vy"), control_names=("ax", "ay"),
-        position=(0, 1),
+        position=(0, 1), state_units=("m", "m", "m/s", "m/s"),
         **circle_scene(p, obstacles, h_form, inflation, scene_capacity, runtime_obstacles),
     )
 
@@ -339,6 +351,7 @@ def single_integrator(
     return Model.from_expressions(
         "single_integrator", x, u, x + dt * u, dt=dt, u_min=lo, u_max=hi,
         state_names=("px", "py"), control_names=("vx", "vy"), position=(0, 1),
+        state_units=("m", "m"),
         **circle_scene(x, obstacles, h_form, inflation, scene_capacity, runtime_obstacles),
     )
 

@@ -82,6 +82,7 @@ def unicycle(*, dt: float = 0.02, obstacles: tuple[Circle, ...] = (),
     return Model.from_expressions(
         "unicycle", x, u, x_next, dt=dt, u_min=[vlo, -w], u_max=[vhi, w],
         state_names=("px", "py", "theta"), control_names=("v", "omega"), position=(0, 1),
+        state_units=("m", "m", "rad"),
         **_scene(x[:2], obstacles, h_form, inflation, scene_capacity, runtime_obstacles))
 
 
@@ -109,6 +110,7 @@ def kinematic_bicycle(*, dt: float = 0.02, wheelbase: float = 0.5, a_limit: floa
     return Model.from_expressions(
         "kinematic_bicycle", x, u, x_next, dt=dt, u_min=[-a, -d], u_max=[a, d],
         state_names=("px", "py", "theta", "v"), control_names=("a", "delta"), position=(0, 1),
+        state_units=("m", "m", "rad", "m/s"),
         **_scene(x[:2], obstacles, h_form, inflation, scene_capacity, runtime_obstacles))
 
 
@@ -156,7 +158,7 @@ def planar_quadrotor(*, dt: float = 0.02, obstacles: tuple[Circle, ...] = (),
     return Model.from_expressions(
         "planar_quadrotor", x, u, x + dt * xdot, dt=dt,
         u_min=[QUAD_THRUST_MIN - off] * 2, u_max=[QUAD_THRUST_MAX - off] * 2,
-        state_names=QUAD_STATE_NAMES,
+        state_names=QUAD_STATE_NAMES, state_units=("m", "m/s", "m", "m/s", "rad", "rad/s"),
         control_names=("dT1", "dT2") if hover_offset else ("T1", "T2"), position=(0, 2), **kw)
 
 
