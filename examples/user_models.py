@@ -42,7 +42,7 @@ def point_mass_3d() -> wb.Model:
     return wb.Model.from_expressions(
         "point_mass_3d", x, u, x_next, dt=dt, u_min=[-4.0] * 3, u_max=[4.0] * 3, h=h,
         state_names=("px", "py", "pz", "vx", "vy", "vz"), control_names=("ax", "ay", "az"),
-        position=(0, 1, 2))
+        position=(0, 1, 2), state_units=("m", "m", "m", "m/s", "m/s", "m/s"))
 
 
 # --- a torque-driven two-link arm ---------------------------------------------------------------
@@ -90,7 +90,8 @@ def two_link_arm() -> wb.Model:
     h.append(ELBOW_LIMIT**2 - q[1] ** 2)
     return wb.Model.from_expressions(
         "two_link_arm", x, u, x_next, dt=ARM_DT, u_min=[-3.0, -3.0], u_max=[3.0, 3.0], h=h,
-        state_names=("q1", "q2", "dq1", "dq2"), control_names=("tau1", "tau2"))
+        state_names=("q1", "q2", "dq1", "dq2"), control_names=("tau1", "tau2"),
+        state_units=("rad", "rad", "rad/s", "rad/s"))
 
 
 
