@@ -9,6 +9,7 @@ import io
 import subprocess
 import sys
 from dataclasses import replace
+from types import SimpleNamespace
 
 import matplotlib
 
@@ -415,6 +416,19 @@ def test_circles_are_discs_and_the_other_margins_a_level_set():
     on_box = (np.isclose(verts[:, 0], xlo, atol=0.03) | np.isclose(verts[:, 0], xhi, atol=0.03)
               | np.isclose(verts[:, 1], zlo, atol=0.03) | np.isclose(verts[:, 1], zhi, atol=0.03))
     assert on_box.all()
+    # a navigation set-up: its plant is the model, its start state the reference
+    setup = SimpleNamespace(plant=quad, scene=CircleScene((Circle((0.5, 1.0), 0.3),),
+                                                          start=(-1.0, 0.5), goal=(1.5, 1.5)),
+                            x0=x0)
+    ax = plot.scene(axes(), setup, bounds=(-2.5, 2.5, -0.5, 2.5))
+    assert len([p for p in ax.patches if p.get_gid() == "obstacle"]) == 1
+    assert artists(ax, "constraint") and len(gid(ax, "start")) == 1
+    assert gid(ax, "goal")[0].get_xydata()[0] == pytest.approx([1.5, 1.5])
+    del setup.x0  # a start position alone does not fix the velocities and the angle
+    with pytest.raises(ValueError, match=r"^reference = None is invalid: the margins of model "
+                       r"'planar_quadrotor' depend on \('x_dot', 'z_dot', 'theta', "
+                       r"'theta_dot'\), which are not drawn"):
+        plot.scene(axes(), setup, bounds=(-2.5, 2.5, -0.5, 2.5))
 
 
 def test_three_position_coordinates_draw_in_3d():

@@ -228,8 +228,9 @@ def _fit(ax, cols, fresh: bool, log_x: bool = False) -> None:
 def _frame(ax, proj: _Projection) -> None:
     """Axis labels of the projection; an equal aspect (3-D: an equal-ish box, no side below
     a quarter of the longest) when the states share a unit."""
-    ax.set_xlabel(proj.labels[0])
-    ax.set_ylabel(proj.labels[1])
+    pad = {"labelpad": 8} if proj.dims == 3 else {}  # clear of the 3-D tick labels
+    ax.set_xlabel(proj.labels[0], **pad)
+    ax.set_ylabel(proj.labels[1], **pad)
     if proj.dims == 3:
         ax.set_zlabel(proj.labels[2])
         if proj.equal:
@@ -283,7 +284,8 @@ def scene(ax=None, circles_or_scene=None, *, start=None, goal=None, bounds=None,
     docstring). ``start``, ``goal``: states, or the drawn coordinates. ``bounds``: (min, max)
     per drawn state, (x_min, x_max, y_min, y_max[, z_min, z_max]), that the view must include.
     ``reference``: the state fixing the states not drawn in the level set (default: ``start``
-    when it is a full state). ``constraints``: draw the level set of the model's margins."""
+    when it is a full state, else a set-up's start state ``x0``). ``constraints``: draw the
+    level set of the model's margins."""
     model = model if model is not None else _model_of(circles_or_scene)
     proj = _projection(ax, states, model)
     ax = _axes(ax, proj.dims)
@@ -355,6 +357,8 @@ def _draw_scene(ax, proj: _Projection, circles_or_scene, *, model: Model | None 
         if ref is None and start is not None and np.size(start) in (model.n_physical,
                                                                      model.nx):
             ref = start
+        if ref is None and isinstance(getattr(circles_or_scene, "x0", None), np.ndarray):
+            ref = circles_or_scene.x0  # a navigation set-up's start state
         skip = (model.scene_capacity or len(model.obstacles)) if discs else 0
         _level_set(ax, proj, model, ref, h_scene, skip=skip)
     for name, q, marker, col in marks:  # on top of the level set
@@ -660,8 +664,9 @@ def samples(ax=None, info_or_samples=None, scene=None, *, states=None,
         from matplotlib.cm import ScalarMappable
 
         sm = ScalarMappable(norm=norm, cmap=colors)
+        room = {"shrink": 0.7, "pad": 0.12} if proj.dims == 3 else {}  # clear of the z label
         ax.figure.colorbar(sm, ax=ax, label="weight / largest kept weight (crashed: red)",
-                           shrink=0.7 if proj.dims == 3 else 1.0)
+                           **room)
     return ax
 
 
