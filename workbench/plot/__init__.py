@@ -16,10 +16,10 @@ later helpers on the same axes use it unless given their own.
 planar position. Every other margin of its h(x) is drawn as the zero level set
 min_i h_i(x) = 0 in the projection (gid "constraint"; the unsafe side shaded lightly, gid
 "unsafe"; in 3-D a surface coloured by the active margin), computed on a grid over the view
-with the states not drawn fixed at a reference state: ``reference``, else the start (scene),
-the first state of the first path (paths), or the step's start (samples). When h depends on
-states not drawn, their reference values are written in a corner of the axes (gid
-"reference").
+with the states not drawn fixed at a reference state: ``reference``, else the start (scene:
+``start`` when it is a full state, or a set-up's ``x0``), the first state of the first path
+(paths) or the step's start (samples). When h depends on states not drawn, their reference
+values are written in a corner of the axes (gid "reference").
 
 Every helper takes an optional ``ax`` (a new figure's axes when None, through
 ``matplotlib.pyplot``) and returns the axes it drew on. Each widens the axes' limits to all the
