@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from workbench.sampling.methods.gatekeeper import braking_backup
 from workbench.sampling.weights import importance_weights
 from workbench.scenarios.methods import method, names
 from workbench.scenarios.model_system import (
@@ -114,9 +115,11 @@ def test_every_registered_method_builds_by_name_steps_and_its_mechanism_acts(
     """Each registered method on the model, in closed loop under a disturbance, pushed close to
     its constraints (a start beside them): it runs, and its mechanism acts on some step."""
     base = request.getfixturevalue(model_name)
-    start = (np.array([1.2, -0.1, 1.0, 0.8, 0.0, 0.0]) if model_name == "point_mass"
-             else np.array([0.45, 0.3, 1.0, 0.0]))
-    sysm = replace(base, scene=replace(base.scene, start=start))
+    start, rates = ((np.array([1.0, -0.1, 1.0, 2.5, 0.0, 0.0]), (3, 4, 5))
+                    if model_name == "point_mass" else (np.array([0.45, 0.3, 1.0, 0.0]), (2, 3)))
+    # the gatekeeper brakes each control's rate (both models have one rate per control)
+    sysm = replace(base, scene=replace(base.scene, start=start),
+                   backup=lambda plant, gain: braking_backup(plant, velocity=rates, gain=gain))
     nav = navigation_setup(system=sysm)
     nav = replace(nav, mppi=replace(nav.mppi, n_samples=128))
     acted = {}
@@ -202,3 +205,11 @@ def test_compare_methods_runs_the_comparison_on_a_system_of_ones_own(tmp_path):
         assert "| horizon | round(2 s / dt) within [20, 100] |" in report
     finally:
         SYSTEMS.pop("arm_for_compare", None)
+
+
+def test_the_gatekeeper_without_a_backup_for_the_model_is_refused(arm):
+    nav = navigation_setup(system=arm)
+    with pytest.raises(ValueError, match=r"backup = None is invalid: .*brings 'two_link_arm' "
+                                         r"to rest; pass system_from_model\(\.\.\., backup=f\)"):
+        nav.controller("gatekeeper")
+    assert dict(arm.origins)["backup"].startswith("none")

@@ -22,7 +22,8 @@ passed by the caller is used as given and recorded as such. The rules (assumptio
   5 m/s^2, in whose units levels are given);
 - feedback (tracking) weights Q_i = 5e4 / s_i^2, R_j = (5 / half-range_j)^2;
 - goal radius: a tenth of the start's distance to the goal;
-- the gatekeeper's backup: :func:`~workbench.sampling.methods.gatekeeper.model_braking_backup`.
+- the gatekeeper's backup: none is derived yet; building the gatekeeper on the system is
+  refused with an error that says what to pass.
 """
 
 from __future__ import annotations
@@ -97,6 +98,19 @@ class _AtState:
 
     def __call__(self, point, heading: float = 0.0) -> np.ndarray:
         return as_array("state", point, (self.nx,))
+
+
+@dataclass(frozen=True)
+class _NoBackup:
+    """The backup of a model system given none: building the gatekeeper is refused."""
+
+    model_name: str
+
+    def __call__(self, plant, gain):
+        raise fail("backup", None, f"the gatekeeper needs a backup law that brings "
+                   f"{self.model_name!r} to rest; pass system_from_model(..., backup=f) with "
+                   "f(plant, gain) -> BackupPolicy (e.g. braking_backup(plant, velocity=...) "
+                   "or backup_from_expression)")
 
 
 def _step(model: Model) -> ca.Function:
@@ -276,13 +290,8 @@ def system_from_model(model: Model, start, goal, *, name: str | None = None,
     gr = 0.1 * dist0 if goal_radius is None else real("goal_radius", goal_radius, 0.0,
                                                       strict=True)
     note("goal_radius", goal_radius, "a tenth of the start's distance to the goal")
-    if backup is None:
-        def backup_law(plant, gain):
-            from workbench.sampling.methods.gatekeeper import model_braking_backup
-            return model_braking_backup(plant)
-    else:
-        backup_law = backup
-    note("backup", backup, "model_braking_backup (brakes any model to rest)")
+    backup_law = _NoBackup(model.name) if backup is None else backup
+    note("backup", backup, "none: the gatekeeper refuses until one is given")
     scene = ModelScene(x0, xg, model.dt, tuple(model.obstacles))
     return System(name=sysm_name, label=label or sysm_name.replace("_", " "),
                   model=_Own(model), state_at=_AtState(n), Q=tuple(Qv), S=tuple(Sv),
