@@ -9,6 +9,7 @@ once and hand the threshold to every controller (and worker) that needs it.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import casadi as ca
@@ -45,6 +46,11 @@ def calibration_trace(problem: SamplingProblem, goal, plant: Model, x0, mppi: MP
                      np.random.default_rng(seed + 1))
     F = np.array([i.candidate_free_energy[-1] if i.candidate_free_energy.size else np.nan
                   for i in ep.infos])
+    if ep.crashed:
+        warnings.warn(f"the undisturbed calibration episode crashed after {len(ep.U)} steps: "
+                      "its free energies hold crash costs, so the selection threshold is so "
+                      "high that the robust selection will seldom act; start further from "
+                      "the constraints or check the sampler settings", stacklevel=3)
     return ep.X[: len(F)], F
 
 

@@ -14,8 +14,8 @@ passed by the caller is used as given and recorded as such. The rules (assumptio
 - goal costs Q_i = 1 / s_i^2 on the states the goal changes, 0.1 / s_i^2 on the others (rates,
   like the built-in systems' weights), terminal S = 10 Q, barrier-state weight
   q_beta = 0.01 mean(Q);
-- sampler sigma_j = a quarter of control j's range; lambda chosen so that the effective
-  sample size of the first step from the start is :data:`ESS_TARGET` of the samples;
+- sampler sigma_j = a quarter of control j's range; lambda = :data:`LAMBDA_SHARE` times the
+  cost spread of the best 1 % of the first batch from the start (:func:`calibrate_lambda`);
 - disturbed states: those the controls move directly (rows of dF/du at the start whose largest
   entry is at least a tenth of the largest), the level scaled by (authority / 5)^2, authority
   the mean rate at which full control moves a disturbed state (5: the double integrator's
@@ -44,11 +44,10 @@ from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.mppi import MPPI, MPPIConfig
 from workbench.sampling.planning import full_state
 from workbench.sampling.problem import goal_costs
-from workbench.sampling.weights import importance_weights
 from workbench.scenarios.systems import SYSTEMS, System
 from workbench.validation import as_array, fail, integer, real
 
-ESS_TARGET = 0.01  # assumptions §8.3: about ten samples share the weight of the first step
+LAMBDA_SHARE = 0.01  # assumptions §8.3: lambda per cost spread of the first batch's best 1 %
 DI_AUTHORITY = 5.0  # m/s^2: the double integrator's control authority (levels' units)
 HORIZON_S = 2.0  # s
 
@@ -164,28 +163,31 @@ def authority(model: Model, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows, np.linalg.norm(B * half, axis=1) / model.dt
 
 
-def calibrate_lambda(problem, goal: np.ndarray, x0: np.ndarray, config: MPPIConfig,
-                     target: float = ESS_TARGET, seed: int = 0) -> float:
-    """lambda at which the first batch from ``x0`` (zero plan, one seeded draw) has an
-    effective sample size of ``target`` times the samples: bisection on log10 lambda over
-    [-12, 12] on that batch's costs (ESS grows with lambda)."""
+def first_batch(problem, goal: np.ndarray, x0: np.ndarray, config: MPPIConfig,
+                seed: int = 0):
+    """The sampler's first batch from ``x0`` (zero plan, one seeded draw)."""
     ctrl = MPPI(problem, goal, config)
     xb = full_state(problem, x0, ctrl.consts.scene)
-    batch = ctrl.sampler.mppi(xb, ctrl.initial_state().U, config.n_samples, ctrl.consts,
-                              int(np.random.default_rng(seed).integers(0, 2**63)))
+    return ctrl.sampler.mppi(xb, ctrl.initial_state().U, config.n_samples, ctrl.consts,
+                             int(np.random.default_rng(seed).integers(0, 2**63)))
 
-    def share(log_lam: float) -> float:
-        return float(importance_weights(batch.S, 10.0**log_lam).ess) / config.n_samples
 
-    lo, hi = -12.0, 12.0
-    if share(lo) >= target:
-        return 10.0**lo
-    if share(hi) <= target:
-        return 10.0**hi
-    while hi - lo > 1e-3:
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if share(mid) < target else (lo, mid)
-    return float(10.0 ** (0.5 * (lo + hi)))
+def calibrate_lambda(problem, goal: np.ndarray, x0: np.ndarray, config: MPPIConfig,
+                     seed: int = 0) -> float:
+    """lambda = :data:`LAMBDA_SHARE` times the cost spread of the best 1 % of the first batch
+    from ``x0`` (its 1 % quantile minus its minimum, over the finite costs): the weights then
+    fall by e^-100 across that best percent, so the update follows a handful of the best
+    samples, as the hand-tuned built-in systems do."""
+    S = np.sort(np.asarray(first_batch(problem, goal, x0, config, seed).S, float))
+    S = S[np.isfinite(S)]
+    if S.size < 2:
+        raise fail("lam", None, "no finite sample cost in the first batch from the start; "
+                   "pass lam")
+    spread = float(np.quantile(S, 0.01) - S[0])
+    if not spread > 0:
+        raise fail("lam", None, "the best samples of the first batch all cost the same; "
+                   "pass lam")
+    return LAMBDA_SHARE * spread
 
 
 def system_from_model(model: Model, start, goal, *, name: str | None = None,
@@ -283,7 +285,7 @@ def system_from_model(model: Model, start, goal, *, name: str | None = None,
                                  MPPIConfig(sigma=tuple(sig), horizon=T))
     else:
         lam_v = real("lam", lam, 0.0, strict=True)
-    note("lam", lam, f"effective sample size {ESS_TARGET:g} of the samples at the start")
+    note("lam", lam, f"{LAMBDA_SHARE:g} x the cost spread of the best 1 % of the first batch")
     sysm_name = name or model.name
     dist0 = float(np.linalg.norm((xg - x0) / s)) if model.position is None else float(
         np.linalg.norm(xg[list(model.position)] - x0[list(model.position)]))
@@ -354,5 +356,5 @@ def resolve_system(name_or_entry: str) -> System:
     return SYSTEMS.named(name_or_entry)
 
 
-__all__ = ["ModelScene", "authority", "calibrate_lambda", "load_entry", "resolve_system",
-           "state_scales", "system_from_model"]
+__all__ = ["LAMBDA_SHARE", "ModelScene", "authority", "calibrate_lambda", "first_batch",
+           "load_entry", "resolve_system", "state_scales", "system_from_model"]

@@ -376,6 +376,7 @@ _BUILTIN_SYSTEMS: dict[str, System] = {
         state_at=_quadrotor_at, Q=(300.0, 3.0, 300.0, 3.0, 10.0, 1.0),
         S=(3000.0, 30.0, 3000.0, 30.0, 100.0, 10.0), sigma=(5e-4, 5e-4), lam=1.0, q_beta=1e-3,
         disturbed=("x_dot", "z_dot"), scale=QUAD_SCALE, level_scale=QUAD_SCALE**2,
+        goal_radius=QUAD_SCALE,
         backup=_quadrotor_backup,
         feedback_weights=FeedbackWeights(Q=(500.0, 100.0, 500.0, 100.0, 10.0, 1.0),
                                          R=(2000.0, 2000.0))),
