@@ -18,7 +18,7 @@ BLOCK = re.compile(r"(?:<!-- example: ([\w-]+) -->\s*)?```(\w+)\n(.*?)```", re.S
 
 # the README's marked blocks, each run by a test of this file
 CHAINS = {"unicycle": ("unicycle", "unicycle-sampling", "unicycle-robust")}
-ALONE = ("circle-scene", "navigation", "study-runner", "method-registry")
+ALONE = ("circle-scene", "navigation", "study-runner", "method-registry", "own-system")
 PACKAGE = ("toy-study", "toy-study-profile")  # a study package's files: written, then run
 KNOWN = {*CHAINS["unicycle"], *ALONE, *PACKAGE}
 
@@ -163,3 +163,12 @@ def test_method_registry_example_registers_a_method_that_builds_and_is_tuned():
     finally:
         if "hot_mppi" in registry.names():
             registry.unregister("hot_mppi")
+
+
+def test_own_system_example_builds_methods_by_name_on_the_arm(monkeypatch, capsys):
+    monkeypatch.chdir(README.parent)
+    scope = run_block("own-system", {"__name__": "__readme__"})
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("0.01 x the cost spread") and "-> lambda" in out[0]
+    assert [line.split()[0] for line in out[1:]] == ["bas_mppi", "sais_ecbf"]
+    assert scope["arm"].disturbed == ("dq1", "dq2")
