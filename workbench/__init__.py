@@ -72,7 +72,7 @@ _EXPORTS = {
     "workbench.scenarios.tuned": ("ControllerSettings", "Tuned", "tuned"),
     "workbench.study.tuning": ("Param", "TuningBudget", "tune"),
     "workbench.study.stats": ("pooled_paired",),
-    "workbench.study.compare": ("compare_methods",),
+    "workbench.scenarios.compare": ("compare_methods",),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 __all__ = [*sorted(_WHERE), "__version__"]
@@ -143,6 +143,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.sampling.robust import RMPPIConfig, RobustMPPI
     from workbench.sampling.samples import SampleTrajectories
     from workbench.sampling.threshold import AlphaRule, make_threshold
+    from workbench.scenarios.compare import compare_methods
     from workbench.scenarios.maps import (
         MAP_FAMILIES,
         GeneratedMap,
@@ -163,6 +164,5 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.scenarios.systems import SYSTEMS, System, register_system, system
     from workbench.scenarios.tuned import ControllerSettings, Tuned, tuned
     from workbench.sim import Disturbance, Episode, closed_loop, scene_sequence
-    from workbench.study.compare import compare_methods
     from workbench.study.stats import pooled_paired
     from workbench.study.tuning import Param, TuningBudget, tune

@@ -194,7 +194,7 @@ def test_compare_methods_runs_the_comparison_on_a_system_of_ones_own(tmp_path):
     """From Python with a System that has no entry (in this process), and refused with
     workers; the report says where the settings came from."""
     from workbench.sampling.mppi import MPPIConfig
-    from workbench.study.compare import compare_methods
+    from workbench.scenarios.compare import compare_methods
     s = replace(system_from_model(um.two_link_arm(), um.ARM_START, um.ARM_GOAL),
                 name="arm_for_compare")
     small = dict(controllers=("bas_mppi", "mppi_crash"), variances=(3.0,), realisations=2,
