@@ -410,9 +410,11 @@ def test_report_lines_headline_and_console():
     assert "No problem found" not in text and "Holm" in text and "0.05" in text
     assert headline(h).startswith("**Mechanism health: 2 problems found**")
     assert console_lines(h) == (
-        "mechanism health: Gatekeeper (braking backup) (variance 50): mechanism never acted",
-        "mechanism health: Gatekeeper (braking backup) (variance 50): less safe than MPPI "
+        "mechanism health: Gatekeeper (braking backup), variance 50: mechanism never acted",
+        "mechanism health: Gatekeeper (braking backup), variance 50: less safe than MPPI "
         "(crash cost)")
+    assert "- Safety against the wrapped method: 1 comparison, 1 with a discordant pair" in text
+    assert "never acted in 1, acted on every step in 0" in text
     clean = study_health(*tables({50.0: {"bas_mppi": runs(SAFE10)}}), cell=("variance",))
     assert "No problem found" in "\n".join(report_lines(clean))
     assert headline(clean).startswith("Mechanism health: no problem found")

@@ -19,7 +19,8 @@ steps (assumptions §12.3).
 A method is **less safe than the method it wraps** when, on the same disturbance realisations
 (common random numbers: same cell and realisation), the wrapped method is the safer one and a
 two-sided exact McNemar test on the discordant pairs rejects equal safety at :data:`LEVEL`
-after Holm's correction over the comparisons of one report (assumptions §12.3).
+after Holm's correction over the comparisons of one report that have a discordant pair
+(assumptions §12.3).
 
 :func:`episode_health` checks one closed-loop episode; the registered methods built by
 :func:`workbench.scenarios.methods.build` carry an :class:`EpisodeCheck`, so
@@ -127,7 +128,7 @@ class Finding:
     @property
     def text(self) -> str:
         """The finding in full: method, cell (when any), title, figures and advice."""
-        where = f" ({self.where})" if self.cell else ""
+        where = f", {self.where}" if self.cell else ""
         out = f"{self.label}{where}: {self.title}: {self.figures}."
         return out + (f" {self.advice}" if self.advice else "")
 
@@ -325,7 +326,8 @@ def study_health(episodes: pd.DataFrame, activity: pd.DataFrame, cell: Sequence[
             spec = method(name)
             dup = mine.duplicated(list(pair))
             if dup.any():
-                at = dict(zip(pair, mine.loc[dup, list(pair)].iloc[0], strict=True))
+                at = {c: _plain(v) for c, v in zip(pair, mine.loc[dup, list(pair)].iloc[0],
+                                                   strict=True)}
                 raise fail("pair", pair, f"does not identify one episode: {name} has several "
                            f"at {cell_text(where)}, {at}; add the columns that tell them apart")
             if spec.activity is not None:
@@ -433,33 +435,41 @@ def _less_safe(t: PairedSafety, level: float) -> Finding:
 def report_lines(h: StudyHealth) -> list[str]:
     """The "Mechanism health" section of a report (markdown lines, heading included): what is
     checked, a table of the problems with their figures (or a line saying there are none),
-    and the notes."""
+    what was checked, and the notes (checks not made, and why)."""
     cells = " x ".join(h.cell) or "the whole run"
-    pairs = " and ".join(h.pair)
+    kinds = [f.kind for f in h.problems]
+    flagged = sum(t.flagged for t in h.comparisons)
     lines = [
         "## Mechanism health", "",
-        f"Each cell ({cells}) is checked, per method: whether its safety mechanism never "
-        "acted (its activity 0 on every step of every episode) or acted on every step "
-        "(activity 1 throughout: a flag raised on every step, or a share at its largest), and, "
-        "for a method that adds its mechanism to another, whether it was less safe than that "
-        f"method on the same disturbances (paired by {pairs}): flagged when the other method "
-        "is the safer one and a two-sided exact McNemar test rejects equal safety at "
-        f"{h.level:g} after Holm's correction over the {h.n_tested} comparisons of this report "
-        "that have a discordant pair. Cells of fewer than "
-        f"{MIN_STEPS} steps are not judged.", ""]
+        f"Each method with a safety mechanism is checked in each cell ({cells}), over all its "
+        "episodes there: whether the mechanism never acted (activity 0 on every step) or acted "
+        "on every step (activity 1 on every step: a flag raised on every step, or a share at "
+        f"its largest). A cell of fewer than {MIN_STEPS} steps in all is not judged. Each "
+        "method that adds its mechanism to another is paired with that method on the same "
+        f"disturbances ({' and '.join(h.pair)}) and flagged as less safe when the other is the "
+        "safer one and a two-sided exact McNemar test rejects equal safety at level "
+        f"{h.level:g} after Holm's correction over the comparisons of this report that have a "
+        "discordant pair (one crashed, the other did not).", ""]
     if h.problems:
         rows = [[f.label, f.where, f.title, f.figures] for f in h.problems]
         lines += md_table(["method", "cell", "finding", "figures"], rows)
     else:
-        lines.append(
-            f"No problem found: in the {h.checked.get('activity', 0)} (method, cell) activity "
-            f"checks every mechanism acted on some steps and not on others, and none of the "
-            f"{h.checked.get('paired', 0)} methods paired with the method they wrap was "
-            "significantly less safe.")
+        lines.append("No problem found in this run.")
+    lines += [
+        "",
+        f"- Activity: {_count(h.checked.get('activity', 0), '(method, cell) check')}; never "
+        f"acted in {kinds.count('never')}, acted on every step in {kinds.count('always')}, "
+        f"not reported in {kinds.count('unreported')}.",
+        f"- Safety against the wrapped method: {_count(len(h.comparisons), 'comparison')}, "
+        f"{h.n_tested} with a discordant pair (the Holm family), {flagged} flagged."]
     if h.notes:
         lines += ["", "Not checked:", ""]
-        lines += [f"- {f.label} ({f.where}): {f.figures}." for f in h.notes]
+        lines += [f"- {f.label}, {f.where}: {f.figures}." for f in h.notes]
     return [*lines, ""]
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}{'s' * (n != 1)}"
 
 
 def headline(h: StudyHealth, most: int = 5) -> str:
@@ -468,9 +478,9 @@ def headline(h: StudyHealth, most: int = 5) -> str:
     found = h.problems
     if not found:
         return "Mechanism health: no problem found (see the section Mechanism health)."
-    shown = "; ".join(f"{f.label} ({f.where}): {f.title}" for f in found[:most])
+    shown = "; ".join(f"{f.label}, {f.where}: {f.title}" for f in found[:most])
     more = f"; and {len(found) - most} more" if len(found) > most else ""
-    return (f"**Mechanism health: {len(found)} problem{'s' * (len(found) != 1)} found**: "
+    return (f"**Mechanism health: {_count(len(found), 'problem')} found**: "
             f"{shown}{more} (figures in the section Mechanism health).")
 
 
@@ -478,4 +488,4 @@ def console_lines(h: StudyHealth) -> tuple[str, ...]:
     """One console line per problem, or one saying there is none."""
     if not h.problems:
         return ("mechanism health: no problem found",)
-    return tuple(f"mechanism health: {f.label} ({f.where}): {f.title}" for f in h.problems)
+    return tuple(f"mechanism health: {f.label}, {f.where}: {f.title}" for f in h.problems)
