@@ -64,6 +64,8 @@ _EXPORTS = {
     "workbench.scenarios.navigation": ("NavigationSetup", "navigation_setup"),
     "workbench.scenarios.methods": ("MethodSettings", "MethodSpec", "register_method",
                                     "method_names"),
+    "workbench.scenarios.mechanism_health": ("MechanismWarning", "episode_health",
+                                             "study_health"),
     "workbench.problem.vehicles": ("kinematic_bicycle", "planar_quadrotor", "unicycle"),
     "workbench.scenarios.systems": ("SYSTEMS", "System", "register_system", "system"),
     "workbench.scenarios.model_system": ("ModelScene", "system_from_model"),
@@ -151,6 +153,11 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
         MapFamily,
         difficulty,
         generate,
+    )
+    from workbench.scenarios.mechanism_health import (
+        MechanismWarning,
+        episode_health,
+        study_health,
     )
     from workbench.scenarios.methods import (
         MethodSettings,

@@ -329,7 +329,11 @@ class Controller(Protocol):
     checks): ``initial_state(x0)`` -> its state; ``step(state, x, rng)`` -> ``(state, u,
     info)`` with ``info`` a :class:`StepInfo`; ``set_scene(scene)``: the obstacles of the next
     steps (a scene vector or circles); ``record_samples(k, keep)``: keep ``k`` sample
-    trajectories per step in the info (0: none)."""
+    trajectories per step in the info (0: none).
+
+    Optional: ``check_episode(episode)``, called by :func:`closed_loop` with the finished
+    :class:`Episode` (the registered methods' warns when their safety mechanism never acted
+    or acted on every step, see :mod:`workbench.scenarios.mechanism_health`)."""
 
     def initial_state(self, x0: np.ndarray | None = None) -> Any: ...
 
@@ -383,7 +387,8 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
                 rng_controller: np.random.Generator, rng_plant: np.random.Generator,
                 disturbance: Disturbance = Disturbance(), keep_infos: bool = True,
                 scene: SceneInput = None,
-                stop_at_goal: float | None = None, goal=None) -> Episode:
+                stop_at_goal: float | None = None, goal=None,
+                check_episode: bool = True) -> Episode:
     """Run ``controller`` on the plant x+ = F(x, u) + w for ``steps`` steps; stop at a crash
     (min_i h_i <= 0 on the true plant, in the scene of that time). w acts on
     ``disturbance.indices(plant)`` (none when that is empty: a plant of one's own without a
@@ -400,6 +405,10 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     within it (Euclidean, on ``plant.position``) of the goal position (``reached_goal``,
     ``goal_step``). ``goal``: a physical state or a position; default ``controller.goal``.
     A state that crashes is a crash, never a goal, even when within the distance.
+
+    ``check_episode``: when the controller has a ``check_episode`` (see :class:`Controller`)
+    and the infos are kept, hand it the episode before returning it (False: skip, e.g. in a
+    study that checks all its episodes together).
     """
     integer("steps", steps, 1)
     x = np.asarray(x0, dtype=float)
@@ -467,11 +476,15 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
                 and np.linalg.norm(x[pos] - goal_p) <= stop_at_goal):
             reached, goal_step = True, k + 1
             break
-    return Episode(X=np.array(X), U=np.array(U), crashed=crashed, crash_step=crash_step,
-                   min_margin=min_h, step_time_s=np.array(times), infos=tuple(infos),
-                   scene_time_s=np.array(stimes),
-                   scenes=np.array(scenes) if moving else np.zeros((0, 0)),
-                   reached_goal=reached, goal_step=goal_step)
+    episode = Episode(X=np.array(X), U=np.array(U), crashed=crashed, crash_step=crash_step,
+                      min_margin=min_h, step_time_s=np.array(times), infos=tuple(infos),
+                      scene_time_s=np.array(stimes),
+                      scenes=np.array(scenes) if moving else np.zeros((0, 0)),
+                      reached_goal=reached, goal_step=goal_step)
+    check = getattr(controller, "check_episode", None)
+    if check_episode and keep_infos and callable(check):
+        check(episode)
+    return episode
 
 
 def _start_margin(plant: Model, x0, x: np.ndarray, scene: np.ndarray) -> float:

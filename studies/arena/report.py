@@ -13,6 +13,7 @@ import numpy as np
 
 from studies.arena.findings import verdict
 from studies.arena.summary import ALL, ArenaSummary, summarise
+from workbench.scenarios.mechanism_health import console_lines, headline, report_lines
 from workbench.scenarios.methods import labels, markers, method
 from workbench.scenarios.systems import system
 from workbench.study import md_table, png_bytes, to_jsonable
@@ -138,12 +139,14 @@ def cells_table(s: ArenaSummary) -> list[str]:
 
 def summary(finished) -> Summary:
     """summary.json: cells, pooled comparisons, leaderboards, maps with their difficulty, the
-    tuned parameters and budget, and the verdict on the paper's claim (i)."""
+    tuned parameters and budget, mechanism health, and the verdict on the paper's claim (i);
+    one console line per leaderboard entry and per mechanism-health problem."""
     s = summarise(finished.config, finished.store)
     lines = tuple(f"{b.system:18s} {b.tuning:5s} #{b.rank} {b.controller:14s} safety "
                   f"{100 * b.safety:5.1f} % [{100 * b.ci_low:.0f}, {100 * b.ci_high:.0f}]  "
                   f"success {100 * b.success:5.1f} %  {b.mean_step_ms:6.2f} ms/step"
                   for b in s.leaderboard)
+    lines += console_lines(s.health)
     return Summary({**to_jsonable(s), "verdict": to_jsonable(verdict(s))}, s, lines)
 
 
@@ -155,7 +158,7 @@ def report(finished, summ) -> Path:
     cfg = s.config
     v = verdict(s)
     lines = ["# The arena: controllers x systems x maps x disturbances", "",
-             finished.run_line, "",
+             finished.run_line, "", headline(s.health), "",
              "Every controller shares one sampler (the same samples, horizon and noise "
              "streams); in a realisation, every controller and tuning meets the same "
              "disturbances (common random numbers). An episode ends at a crash, at the goal or "
@@ -175,6 +178,7 @@ def report(finished, summ) -> Path:
               "## Paired comparisons pooled over maps", "",
               f"'{ALL}' pools every disturbance (strata: map x disturbance).", "",
               *pooled_table(s), "",
+              *report_lines(s.health),
               "## Safety against map difficulty", "", "![difficulty](difficulty.png)", "",
               *maps_table(s), "",
               "## Tuning", "",

@@ -9,7 +9,10 @@ Paired comparisons (controller A against B, same system, disturbance and tuning,
 numbers): per map, the realisations where only A or only B stayed safe; pooled over maps with
 :func:`~workbench.study.stats.pooled_paired` (exact McNemar test on the summed discordant
 pairs, the pooled difference in safety with its 95 % interval, a Cochran-Mantel-Haenszel test
-and a test that the effect is the same on every map).
+and a test that the effect is the same on every map). Mechanism health
+(:func:`~workbench.scenarios.mechanism_health.study_health`): per system, disturbance and
+tuning, whether each mechanism never acted or acted on every step, and whether a method was
+less safe than the one it wraps.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import pandas as pd
 
 from studies.arena.episodes import arena_map
 from studies.arena.tasks import family
+from workbench.scenarios.mechanism_health import StudyHealth, study_health
 from workbench.scenarios.tuned import shipped, space
 from workbench.study import Rate
 from workbench.study.stats import paired_counts, pooled_paired
@@ -123,6 +127,7 @@ class ArenaSummary:
     leaderboard: tuple[Board, ...]
     maps: tuple[MapInfo, ...]
     tuned: dict
+    health: StudyHealth  # mechanism checks per (system, disturbance, tuning), over the maps
 
     def pair(self, first: str, second: str, system: str, disturbance: str,
              tuning: str) -> Pooled | None:
@@ -247,4 +252,15 @@ def summarise(config, store) -> ArenaSummary:
                              act[act["task_id"].isin(tids)]))
     return ArenaSummary(config.as_dict(), tuple(cells), tuple(pooled_rows(config, ep)),
                         tuple(leaderboard(ep, timing)), tuple(map_infos(config)),
-                        tuned_section(config))
+                        tuned_section(config), health(ep, act))
+
+
+HEALTH_CELL = ("system", "disturbance", "tuning")  # one mechanism check over every test map
+HEALTH_PAIR = ("map", "realisation")  # common random numbers: same map and realisation
+
+
+def health(ep: pd.DataFrame, act: pd.DataFrame) -> StudyHealth:
+    """Mechanism health per (system, disturbance, tuning), every map pooled: each mechanism
+    over all its episodes there, each method paired with the one it wraps by map and
+    realisation."""
+    return study_health(ep, act, cell=HEALTH_CELL, pair=HEALTH_PAIR)

@@ -13,6 +13,7 @@ import numpy as np
 
 from studies.sampling_safety.findings import frontier, most_collision_free, verdicts
 from studies.sampling_safety.summary import SamplingSafetySummary, summarise
+from workbench.scenarios.mechanism_health import console_lines, headline, report_lines
 from workbench.scenarios.methods import labels, markers, method
 from workbench.study import md_table, png_bytes, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
@@ -102,9 +103,12 @@ def activity_table(s: SamplingSafetySummary) -> list[str]:
     rows = []
     for c in sorted(s.cells, key=lambda c: (list(labels()).index(c.controller), c.variance)):
         if c.activity:
+            found = s.health.of(c.controller, {"variance": c.variance})
             rows.append([labels()[c.controller], f"{c.variance:g}",
-                         ", ".join(f"{k} {100 * v:.1f} %" for k, v in c.activity.items())])
-    return md_table(["controller", "variance", "mechanism activity (mean over steps)"], rows)
+                         ", ".join(f"{k} {100 * v:.1f} %" for k, v in c.activity.items()),
+                         "; ".join(f.title for f in found) or "–"])
+    return md_table(["controller", "variance", "mechanism activity (mean over steps)",
+                     "mechanism health"], rows)
 
 
 def paired_table(s: SamplingSafetySummary, ref: str) -> list[str]:
@@ -185,6 +189,7 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         f"{cfg['realisations']} realisations per cell. Realisation j uses the same disturbance "
         f"and controller random streams for every controller (common random numbers), so the "
         f"comparisons below are paired. {run_line}", "",
+        headline(s.health), "",
         "## The paper's claim (1)", "",
         "The paper: barrier states are \"more sample efficient by metric of collision free "
         "trajectories\" and \"computationally feasible to perform per sample\", while CBF "
@@ -209,6 +214,7 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         "How often each method's safety mechanism acted, as a share of control steps (or of "
         "sample-steps for the per-sample projection). A mechanism at 0 % did nothing in this "
         "run.", "", *activity_table(s), "",
+        *report_lines(s.health),
         "## Paired against BaS-MPPI", "", *paired_table(s, "bas_mppi"), "",
         "## Paired against SA-RMPPI", "", *paired_table(s, "sa_rmppi"), "",
         *defaults_section(cfg),
@@ -218,7 +224,7 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         "Data: `episodes.parquet/.csv` (one row per realisation), `timing.parquet/.csv` "
         "(compute time, not reproducible), `activity.parquet/.csv` (mechanism activity per "
         "realisation), `tasks/*.npz` (paths and per-step sample statistics), `summary.json` "
-        "(`cells`, `paired`, `paired_fraction`, `claims`).", ""]
+        "(`cells`, `paired`, `paired_fraction`, `health`, `claims`).", ""]
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path
@@ -226,14 +232,15 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
 
 def summary(finished) -> Summary:
     """summary.json: the cells (safety, collision-free samples, ESS, time per step and
-    mechanism activity, with intervals), paired tests, the verdicts on the paper's claim (1),
-    and one console line per cell."""
+    mechanism activity, with intervals), paired tests, mechanism health, the verdicts on the
+    paper's claim (1); one console line per cell and per mechanism-health problem."""
     s = summarise(finished.config, finished.store)
     names = labels()
     lines = tuple(f"{names[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
                   f"[{100 * c.ci_low:.0f}, {100 * c.ci_high:.0f}]  collision-free samples "
                   f"{100 * c.collision_free_sample_fraction:5.1f} %  ESS {c.ess_mean:7.1f}  "
                   f"{c.mean_step_ms:6.2f} ms/step" for c in s.cells)
+    lines += console_lines(s.health)
     return Summary({**to_jsonable(s), "claims": to_jsonable(verdicts(s))}, s, lines)
 
 

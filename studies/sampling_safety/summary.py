@@ -8,7 +8,10 @@ samples, with feedback), averaged over the episode's steps, then over realisatio
 t-interval over realisations); ESS likewise; final error = distance to the goal at the end,
 over safe episodes; ms per step = mean compute time of a control step. Paired comparisons use
 the same realisations (common random numbers): McNemar's exact test on safety, a paired
-t-interval on the collision-free fraction.
+t-interval on the collision-free fraction. Mechanism health
+(:func:`~workbench.scenarios.mechanism_health.study_health`): per variance, whether each
+mechanism never acted or acted on every step, and whether a method was less safe than the one
+it wraps.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from scipy import stats
 
 from studies.navigation.paired import Paired
 from studies.sampling_safety.config import StudyConfig
+from workbench.scenarios.mechanism_health import StudyHealth, study_health
 from workbench.scenarios.model_system import resolve_system
 from workbench.study import Rate, RunStore, Spread
 
@@ -106,6 +110,7 @@ class SamplingSafetySummary:
     cells: tuple[Cell, ...]
     paired: tuple[Paired, ...]
     paired_fraction: tuple[PairedFraction, ...]
+    health: StudyHealth  # mechanism checks per variance, paired by realisation
 
     def cell(self, controller: str, variance: float) -> Cell | None:
         return next((c for c in self.cells
@@ -145,7 +150,8 @@ def summarise(config, store: RunStore) -> SamplingSafetySummary:
                 fractions.append(PairedFraction(c, ref, float(v), int(d.size),
                                                 *mean_interval(d, -1.0, 1.0)))
     return SamplingSafetySummary(ran_settings(config), ran_dt(config), tuple(cells),
-                                 tuple(paired), tuple(fractions))
+                                 tuple(paired), tuple(fractions),
+                                 study_health(ep, act, cell=("variance",)))
 
 
 def ran_settings(config: StudyConfig) -> dict:

@@ -103,7 +103,7 @@ def run_task(task: Realisation, ctx: TaskContext, config: StudyConfig,
     if lib is not None:
         lib.set_threads(ctx.threads)
     ep = closed_loop(ctrl, nav.plant, nav.x0, config.steps, ctx.rng(0), ctx.rng(1),
-                     disturbance(nav, task.variance))
+                     disturbance(nav, task.variance), check_episode=False)  # the report checks
     steps = step_rows(ep.infos)
     dist = nav.goal_distance(ep.X)
     inside = np.flatnonzero(dist <= s.goal_radius)

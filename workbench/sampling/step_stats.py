@@ -6,7 +6,7 @@ those weights, and ``activity`` — how often each safety mechanism of the metho
 step (a projection, a shield repair, a backup control, a nominal reset, ...), as numbers in
 [0, 1] (a fraction of samples or sample-steps, or 0/1 for a per-step event). A mechanism that
 never acts shows up as an activity of 0, which is how a method that runs but does nothing is
-caught.
+caught (:mod:`workbench.scenarios.mechanism_health`).
 
 The samples themselves are the info's ``samples``: None unless the controller records them
 (``ctrl.record_samples(k)``, :mod:`workbench.sampling.samples`).

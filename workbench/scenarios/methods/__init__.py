@@ -8,6 +8,7 @@ requirements). Add a method with :func:`register` (see :class:`MethodSpec`).
 
 from __future__ import annotations
 
+import contextlib
 from typing import TYPE_CHECKING
 
 from workbench.sampling.robust import RMPPIConfig
@@ -50,7 +51,24 @@ def build(nav: NavigationSetup, name: str, settings: MethodSettings | None = Non
     ``threshold`` calibrated with their own feedback law (``nav.threshold(rule, feedback=
     method(name).feedback)``); ``robust`` and ``weights`` are their selection and tracking
     settings (weights default to the system's). A method that needs what the set-up's system
-    lacks (:attr:`MethodSpec.requires`) is refused with the reason."""
+    lacks (:attr:`MethodSpec.requires`) is refused with the reason.
+
+    A controller of a method with a mechanism (:attr:`MethodSpec.activity`) and without a
+    ``check_episode`` of its own gets one: :func:`workbench.sim.closed_loop` then warns when
+    the mechanism never acted or acted on every step
+    (:mod:`workbench.scenarios.mechanism_health`)."""
+    ctrl = _build(nav, name, settings, threshold, robust, weights)
+    if method(name).activity is not None and getattr(ctrl, "check_episode", None) is None:
+        from workbench.scenarios.mechanism_health import EpisodeCheck
+
+        with contextlib.suppress(AttributeError, TypeError):  # a controller without __dict__
+            ctrl.check_episode = EpisodeCheck(name)
+    return ctrl
+
+
+def _build(nav: NavigationSetup, name: str, settings: MethodSettings | None,
+           threshold: Threshold | None, robust: RMPPIConfig | None,
+           weights: FeedbackWeights | None):
     spec = method(name)
     settings = MethodSettings() if settings is None else settings
     why = spec.missing(nav, weights)
