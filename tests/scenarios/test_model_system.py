@@ -112,6 +112,7 @@ def test_values_given_are_used_and_recorded_as_given():
     assert (nav.mppi.sigma, nav.mppi.lam, nav.mppi.horizon) == ((1.0, 1.5, 2.0), 3.0, 25)
 
 
+@pytest.mark.filterwarnings("error::UserWarning")  # a crashed calibration, a mechanism idle
 @pytest.mark.parametrize("model_name", ["point_mass", "arm"])
 def test_every_registered_method_builds_by_name_steps_and_its_mechanism_acts(
         model_name, request):
@@ -119,7 +120,7 @@ def test_every_registered_method_builds_by_name_steps_and_its_mechanism_acts(
     its constraints (a start beside them): it runs, and its mechanism acts on some step."""
     base = request.getfixturevalue(model_name)
     start, rates = ((np.array([0.6, -0.1, 1.0, 1.2, 0.0, 0.0]), (3, 4, 5))
-                    if model_name == "point_mass" else (np.array([0.45, 0.3, 1.0, 0.0]), (2, 3)))
+                    if model_name == "point_mass" else (np.array([0.3, 0.3, 0.5, 0.0]), (2, 3)))
     # the gatekeeper brakes each control's rate (both models have one rate per control)
     sysm = replace(base, scene=replace(base.scene, start=start),
                    backup=lambda plant, gain: braking_backup(plant, velocity=rates, gain=gain))
