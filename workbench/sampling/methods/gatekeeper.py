@@ -19,6 +19,9 @@ a step that applies the backup follows a rollout verified earlier, so the state 
 Disturbances, and a backup that has not stopped by the end of the horizon, void that argument
 (the shield then only checks a finite horizon of the nominal model).
 
+A backup derived from the model alone, which brakes any model whose moving states the controls
+reach within a few steps: :func:`model_braking_backup` (assumptions §8.5).
+
 ``Gatekeeper.record_samples(k)`` switches the inner controller's recording on
 (:mod:`workbench.sampling.samples`); ``GatekeeperInfo.samples`` is the inner step's.
 """
@@ -48,6 +51,11 @@ DEFAULT_HORIZON = 60
 # the check is one fold over the horizon whose scene input is repeated per step (horizon x
 # n_scene symbolic entries): 10 000 steps (200 s at dt = 0.02 s) bound that allocation
 MAX_HORIZON = 10_000
+# Levenberg damping of model_braking_backup's Gauss-Newton steps (in box units, where the
+# normal matrix has entries of order 1): keeps a control that moves nothing within the
+# lookahead at its start value
+GN_DAMPING = 1e-9
+
 
 
 @dataclass(frozen=True)
@@ -65,11 +73,27 @@ class GatekeeperConfig:
         real("GatekeeperConfig.margin", self.margin, 0.0)
 
 
+def _rate_units(field: str, value, n: int | None) -> tuple[float, ...]:
+    """``value`` as a tuple of rate units, each > 0 or inf, ``n`` of them (None: any number)."""
+    allowed = ("must be numbers > 0 (inf ignores a state)"
+               + ("" if n is None else f", one per physical state ({n})"))
+    if isinstance(value, str | bytes) or any(isinstance(v, bool | np.bool_) for v in
+                                             np.ravel(np.asarray(value, dtype=object))):
+        raise fail(field, value, allowed)
+    try:
+        s = as_array(field, value, (None,) if n is None else (n,), finite=False)
+    except ValueError as exc:
+        raise fail(field, value, allowed) from exc
+    if not s.size or np.any(np.isnan(s)) or np.any(s <= 0):
+        raise fail(field, value, allowed)
+    return tuple(float(v) for v in s)
+
+
 @dataclass(frozen=True, eq=False)
 class BackupPolicy:
     """A state-feedback backup law: ``function`` maps the physical state (n,) to a control
-    (nu,) already clipped to the model's box. Build one with :func:`braking_backup` or
-    :func:`backup_from_expression`."""
+    (nu,) already clipped to the model's box. Build one with :func:`model_braking_backup`,
+    :func:`braking_backup` or :func:`backup_from_expression`."""
 
     function: ca.Function
     name: str = "backup"
@@ -121,6 +145,64 @@ def braking_backup(model: Model, velocity: Sequence[int] = (2, 3),
     g = 1.0 / m.dt if gain is None else real("gain", gain, 0.0, strict=True)
     expr = ca.vertcat(*[-g * m.x[i] for i in idx])
     return backup_from_expression(m, expr, name="braking")
+
+
+def model_braking_backup(model: Model, *, lookahead: int = 2, iterations: int = 3,
+                         scale: Sequence[float] | None = None,
+                         name: str = "model_braking") -> BackupPolicy:
+    """A braking law derived from the model alone (assumptions §8.5): the control u, held
+    constant over ``lookahead`` >= 2 steps, that makes the state move least,
+    u(x) = argmin_u sum_{j<L} sum_i w_i (x_{j+1,i} - x_{j,i})^2 / dt^2, from ``iterations``
+    Gauss-Newton steps from u = clip(0) in the units of the box (each step clipped to the
+    box), as one CasADi expression; ``lookahead`` in [2, 50], ``iterations`` in [1, 20].
+
+    Weights: ``scale`` (one rate unit per physical state, inf ignores a state) gives
+    w_i = 1 / scale_i^2. By default w_i = 1 / a_i^2, a_i the authority of the controls over
+    state i's rate within the lookahead (the largest norm over j of d rate_{j,i} / du times the
+    box half-widths, at u = clip(0)): every state's motion is measured against how much the
+    controls can change it, so the law does not depend on the units of states or controls;
+    states the controls cannot reach within the lookahead (a_i = 0) are left out. With L = 2 the
+    Euler double integrator gets u = clip(-v / (3 dt)) (each step removes a third of the
+    speed); a one-step lookahead cannot brake it (its position's first change does not depend
+    on u). It brakes models whose moving states the controls reach within the lookahead
+    (positions and velocities of fully actuated mechanical models); it does not brake an
+    underactuated one (a quadrotor's horizontal motion needs a tilt first)."""
+    m = model if model.nx == model.n_physical else physical_model(model)
+    L = integer("lookahead", lookahead, 2, 50)
+    iters = integer("iterations", iterations, 1, 20)
+    n, nu, dt = m.nx, m.nu, m.dt
+    lo, hi = m.u_min, m.u_max
+    half = np.ones(nu)  # the units of the Gauss-Newton steps: the box's half-widths
+    bounded = np.isfinite(lo) & np.isfinite(hi)
+    half[bounded] = 0.5 * (hi[bounded] - lo[bounded])
+    u0 = np.clip(0.0, lo, hi)
+    x, u = m.x, ca.SX.sym("u", nu)
+    f = ca.Function("f", [m.x, m.u], [m.x_next])
+    xs, rates = x, []
+    for _ in range(L):
+        xn = f(xs, u)
+        rates.append((xn - xs) / dt)
+        xs = xn
+    R = ca.vertcat(*rates)  # (L n): the rates of the L steps, step by step
+    rates_jac = ca.Function("rates", [x, u], [R, ca.jacobian(R, u) @ ca.diag(half)])
+    if scale is None:
+        _, J0 = rates_jac(x, ca.DM(u0))
+        w = []
+        for i in range(n):
+            a = ca.mmax(ca.vertcat(*[ca.norm_2(J0[j * n + i, :]) for j in range(L)]))
+            w.append(ca.if_else(a > 0, 1.0 / (a * a), 0.0))
+        wv = ca.vertcat(*w)
+    else:
+        sc = np.asarray(_rate_units("scale", scale, n))
+        wv = ca.SX(ca.DM(np.where(np.isinf(sc), 0.0, 1.0 / sc**2)))
+    W = ca.repmat(wv, L, 1)
+    uk = ca.SX(ca.DM(u0))
+    for _ in range(iters):
+        r, J = rates_jac(x, uk)
+        JW = (J * ca.repmat(W, 1, nu)).T
+        dz = -ca.solve(JW @ J + GN_DAMPING * ca.SX.eye(nu), JW @ r)
+        uk = ca.fmin(ca.fmax(uk + ca.DM(half) * dz, lo), hi)
+    return backup_from_expression(m, uk, name=name)
 
 
 def backup_check_function(plant: Model, backup: BackupPolicy, horizon: int) -> ca.Function:
@@ -269,4 +351,4 @@ class Gatekeeper:
 
 __all__ = ["MAX_HORIZON", "BackupPolicy", "Gatekeeper", "GatekeeperConfig", "GatekeeperInfo",
            "GatekeeperState", "backup_check_function", "backup_from_expression",
-           "braking_backup"]
+           "braking_backup", "model_braking_backup"]
