@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workbench.sampling.methods.gatekeeper import braking_backup
+from workbench.sampling.methods.gatekeeper import model_braking_backup
 from workbench.sampling.weights import importance_weights
 from workbench.scenarios.methods import method, names
 from workbench.scenarios.model_system import (
@@ -119,11 +119,12 @@ def test_every_registered_method_builds_by_name_steps_and_its_mechanism_acts(
     """Each registered method on the model, in closed loop under a disturbance, pushed close to
     its constraints (a start beside them): it runs, and its mechanism acts on some step."""
     base = request.getfixturevalue(model_name)
-    start, rates = ((np.array([0.6, -0.1, 1.0, 1.2, 0.0, 0.0]), (3, 4, 5))
-                    if model_name == "point_mass" else (np.array([0.3, 0.3, 0.5, 0.0]), (2, 3)))
-    # the gatekeeper brakes each control's rate (both models have one rate per control)
+    start = (np.array([0.6, -0.1, 1.0, 1.2, 0.0, 0.0]) if model_name == "point_mass"
+             else np.array([0.3, 0.3, 0.5, 0.0]))
+    # the gatekeeper brakes with the law derived from the model (braking each control's rate
+    # with gain 1/dt does not stop the torque-driven arm: the gatekeeper refuses it)
     sysm = replace(base, scene=replace(base.scene, start=start),
-                   backup=lambda plant, gain: braking_backup(plant, velocity=rates, gain=gain))
+                   backup=lambda plant, gain: model_braking_backup(plant))
     nav = navigation_setup(system=sysm)
     nav = replace(nav, mppi=replace(nav.mppi, n_samples=128))
     acted = {}

@@ -23,7 +23,8 @@ passed by the caller is used as given and recorded as such. The rules (assumptio
 - feedback (tracking) weights Q_i = 5e4 / s_i^2, R_j = (5 / half-range_j)^2;
 - goal radius: a tenth of the start's distance to the goal;
 - the gatekeeper's backup: none is derived yet; building the gatekeeper on the system is
-  refused with an error that says what to pass.
+  refused with an error that says what to pass (e.g.
+  :func:`~workbench.sampling.methods.gatekeeper.model_braking_backup`).
 """
 
 from __future__ import annotations
@@ -108,8 +109,9 @@ class _NoBackup:
     def __call__(self, plant, gain):
         raise fail("backup", None, f"the gatekeeper needs a backup law that brings "
                    f"{self.model_name!r} to rest; pass system_from_model(..., backup=f) with "
-                   "f(plant, gain) -> BackupPolicy (e.g. braking_backup(plant, velocity=...) "
-                   "or backup_from_expression)")
+                   "f(plant, gain) -> BackupPolicy (e.g. model_braking_backup(plant), derived "
+                   "from the model; braking_backup(plant, velocity=...) or "
+                   "backup_from_expression)")
 
 
 def _step(model: Model) -> ca.Function:

@@ -295,13 +295,19 @@ def _bicycle_backup(plant: Model, gain: float | None) -> BackupPolicy:
 QUAD_BACKUP_KV = 4.0
 QUAD_BACKUP_TILT = 0.6  # rad
 QUAD_BACKUP_KP, QUAD_BACKUP_KD = 225.0, 30.0
+# [A] assumptions §8.4: the gatekeeper's rest check measures theta_dot's rate (an angular
+# acceleration, 225 rad/s^2 per rad of attitude error) in units of the attitude loop's 15 rad/s:
+# in rad/s^2 the loop's residual after the 60-step check (median 0.11 rad/s^2 on the default
+# map, with every speed below 1 cm/s) would refuse a hover that has stopped
+QUAD_REST_SCALE = (1.0, 1.0, 1.0, 1.0, 1.0, 15.0)
 
 
 def _quadrotor_backup(plant: Model, gain: float | None) -> BackupPolicy:
     """Planar quadrotor: brake to a hover. Desired acceleration a = -kv (x_dot, z_dot) (kv =
     ``gain``, default :data:`QUAD_BACKUP_KV`), tilt theta_d = atan2(a_x, g + a_z) within
     +-:data:`QUAD_BACKUP_TILT`, total thrust m (g + a_z) / cos(theta), and a PD attitude loop
-    for the thrust difference; the box clips the motor thrusts."""
+    for the thrust difference; the box clips the motor thrusts. Its rest check measures
+    theta_dot's rate in units of 15 (:data:`QUAD_REST_SCALE`)."""
     x = plant.x
     kv = QUAD_BACKUP_KV if gain is None else real("gain", gain, 0.0, strict=True)
     g, m = QUAD_GRAVITY, QUAD_MASS
@@ -312,7 +318,8 @@ def _quadrotor_backup(plant: Model, gain: float | None) -> BackupPolicy:
     diff = alpha * QUAD_IYY * np.sqrt(2.0) / QUAD_ARM  # T2 - T1
     off = QUAD_HOVER_THRUST if plant.control_names[0] == "dT1" else 0.0  # hover_offset inputs
     return backup_from_expression(
-        plant, ca.vertcat(0.5 * (total - diff) - off, 0.5 * (total + diff) - off), name="hover")
+        plant, ca.vertcat(0.5 * (total - diff) - off, 0.5 * (total + diff) - off), name="hover",
+        rest_scale=QUAD_REST_SCALE)
 
 
 QUAD_SCALE = 0.18  # [A] the map [0, 10]^2 times 0.18 lies inside the quadrotor's state limits

@@ -1,8 +1,9 @@
 """Gatekeeper (backup shield, Gurriet et al. 2020; Agrawal & Panagou, arXiv:2211.14361): the
-compiled backup check equals a plain-NumPy rollout per element on many random states, safe and
-unsafe ones; in closed loop the shield keeps controllers that would crash safe by applying the
-backup on some steps, and a shield that ignores its check crashes; bad options name the
-field."""
+compiled backup check (margins, last state, final rate) equals a plain-NumPy rollout per element
+on many random states, safe and unsafe ones; in closed loop the shield keeps controllers that
+would crash safe by applying the backup on some steps, and a shield that ignores its check
+crashes; bad options name the field. The rest check and the derived braking backup:
+test_gatekeeper_rest.py."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import pytest
 from workbench.problem.models import double_integrator, single_integrator
 from workbench.problem.obstacles import Circle
 from workbench.sampling.methods.gatekeeper import (
+    BackupCheck,
     BackupPolicy,
     Gatekeeper,
     GatekeeperConfig,
@@ -42,22 +44,28 @@ def nav():
     return navigation_setup()
 
 
-def numpy_check(x1, scene, dt, gain, horizon, u_lim=5.0):
+def numpy_check(x1, scene, dt, gain, horizon, u_lim=5.0, with_rate=False):
     """The backup check in plain NumPy for the Euler double integrator with squared circle
     margins: braking u = clip(-gain v) from x1 (M, 4) for ``horizon`` steps; the smallest margin
-    over x1 and the rollout states, and the last state."""
+    over x1 and the rollout states, the last state, and (``with_rate``) the final rate
+    max_i |x_H+1 - x_H| / dt."""
     C = np.asarray(scene, float).reshape(-1, 3)
 
     def hmin(X):
         d2 = (X[:, None, 0] - C[None, :, 0]) ** 2 + (X[:, None, 1] - C[None, :, 1]) ** 2
         return np.min(d2 - C[None, :, 2] ** 2, axis=1)
 
+    def step(X):
+        u = np.clip(-gain * X[:, 2:], -u_lim, u_lim)
+        return np.concatenate([X[:, :2] + dt * X[:, 2:], X[:, 2:] + dt * u], axis=1)
+
     X = np.array(x1, float)
     m = hmin(X)
     for _ in range(horizon):
-        u = np.clip(-gain * X[:, 2:], -u_lim, u_lim)
-        X = np.concatenate([X[:, :2] + dt * X[:, 2:], X[:, 2:] + dt * u], axis=1)
+        X = step(X)
         m = np.minimum(m, hmin(X))
+    if with_rate:
+        return m, X, np.max(np.abs(step(X) - X), axis=1) / dt
     return m, X
 
 
@@ -106,17 +114,21 @@ def test_compiled_check_equals_numpy_rollout_per_element(nav, gain, horizon, mov
         assert gk.inner.scenes == [circles]
     x1 = random_states(rng, 600)
     out = [gk.backup_check(x) for x in x1]
-    m = np.array([o[0] for o in out])
-    xT = np.array([o[1] for o in out])
+    m = np.array([o.min_margin for o in out])
+    xT = np.array([o.x_final for o in out])
+    rate = np.array([o.rest_rate for o in out])
     g = 1.0 / plant.dt if gain is None else gain
-    m_ref, xT_ref = numpy_check(x1, gk.scene, plant.dt, g, horizon)
+    m_ref, xT_ref, rate_ref = numpy_check(x1, gk.scene, plant.dt, g, horizon, with_rate=True)
     assert rel_err(m, m_ref) <= RTOL
     assert rel_err(xT, xT_ref) <= RTOL
+    assert rel_err(rate, rate_ref) <= RTOL
     safe_x1 = numpy_check(x1, gk.scene, plant.dt, g, 0)[0] > 0
     assert np.sum(m_ref > 0) > 100  # the backup is safe from many states ...
     assert np.sum(safe_x1 & (m_ref <= 0)) > 50  # ... and hits an obstacle from x1 safe ones
     if gain is None:  # deadbeat braking stops within 50 steps from any speed <= 5 m/s per axis
-        assert np.all(xT_ref[:, 2:] == 0.0)
+        assert np.all(xT_ref[:, 2:] == 0.0) and np.all(rate == 0.0)
+    else:  # the soft gain has not stopped in 25 steps: most of these rollouts end moving
+        assert np.sum(rate > gk.cfg.rest_tol) > 300
 
 
 def run_unsafe(plant, gk_or_inner, steps=150):
@@ -135,7 +147,8 @@ def unsafe_plant():
 def test_constant_control_into_an_obstacle_is_stopped(unsafe_plant):
     """Full acceleration towards the first obstacle: the bare controller crashes, the shielded
     one brakes (backup on some steps, not all) and stays out over 150 steps; every decision
-    equals the NumPy check's."""
+    equals the NumPy check's. Deadbeat braking from these speeds always ends at rest: the rest
+    check never refuses a proposal here."""
     bare = run_unsafe(unsafe_plant, Constant([5.0, 5.0]))
     assert bare.crashed
     gk = Gatekeeper(Constant([5.0, 5.0]), unsafe_plant, braking_backup(unsafe_plant))
@@ -147,19 +160,22 @@ def test_constant_control_into_an_obstacle_is_stopped(unsafe_plant):
     dt, g = unsafe_plant.dt, 1.0 / unsafe_plant.dt
     for x, u, info in zip(ep.X[:-1], ep.U, ep.infos, strict=True):
         x1 = np.r_[x[:2] + dt * x[2:], x[2:] + dt * np.array([5.0, 5.0])]
-        m, _ = numpy_check(x1[None], gk.scene, dt, g, gk.cfg.horizon)
+        m, _, rate = numpy_check(x1[None], gk.scene, dt, g, gk.cfg.horizon, with_rate=True)
+        assert rate[0] == 0.0 and info.backup_rest_rate == 0.0 and not info.not_at_rest
         assert info.backup_used == (not m[0] > 0)
         assert abs(info.backup_min_margin - m[0]) <= RTOL * max(abs(m[0]), 1.0)
         want = np.clip(-g * x[2:], -5.0, 5.0) if info.backup_used else np.array([5.0, 5.0])
         np.testing.assert_allclose(u, want, rtol=1e-12, atol=1e-12)
-        assert info.stats.activity == {"inner": 0.5, "backup_used": float(info.backup_used)}
+        assert info.stats.activity == {"inner": 0.5, "backup_used": float(info.backup_used),
+                                       "backup_not_at_rest": 0.0}
 
 
 @pytest.mark.parametrize("mutant", ["ignore_check", "never_backup"])
 def test_a_shield_that_does_not_act_crashes(unsafe_plant, monkeypatch, mutant):
     gk = Gatekeeper(Constant([5.0, 5.0]), unsafe_plant, braking_backup(unsafe_plant))
     if mutant == "ignore_check":
-        monkeypatch.setattr(gk, "backup_check", lambda x1: (np.inf, np.asarray(x1)))
+        monkeypatch.setattr(gk, "backup_check",
+                            lambda x1: BackupCheck(np.inf, np.asarray(x1), 0.0))
     else:
         monkeypatch.setattr(gk, "backup", lambda x: np.array([5.0, 5.0]))
     assert run_unsafe(unsafe_plant, gk).crashed
@@ -168,7 +184,8 @@ def test_a_shield_that_does_not_act_crashes(unsafe_plant, monkeypatch, mutant):
 def test_gatekeeper_keeps_disturbed_crash_cost_mppi_safe(nav):
     """Plain MPPI with a crash cost on the navigation map under Disturbance(10): with these
     seeds it crashes at step 123; behind the shield (deadbeat braking, 60 steps) it does not
-    crash in 150 steps and the backup acts on some of them (measured: 9 of 150)."""
+    crash in 150 steps and the backup acts on some of them (measured: 9 of 150). Every backup
+    rollout ends at rest: the rest check refuses nothing on the double integrator's map."""
     phys = nav.physical_problem()
 
     def episode(ctrl):
@@ -184,6 +201,8 @@ def test_gatekeeper_keeps_disturbed_crash_cost_mppi_safe(nav):
     used = np.array([i.stats.activity["backup_used"] for i in ep.infos])
     assert 0 < used.sum() < used.size
     assert all(i.stats.n_samples == nav.mppi.n_samples for i in ep.infos)
+    assert sum(i.stats.activity["backup_not_at_rest"] for i in ep.infos) == 0
+    assert max(i.backup_rest_rate for i in ep.infos) == 0.0
 
 
 def test_backup_from_expression_clips_and_is_used(unsafe_plant):

@@ -12,10 +12,13 @@ import pytest
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
-from workbench.sampling.methods.gatekeeper import braking_backup, model_braking_backup
+from workbench.sampling.methods.gatekeeper import (
+    DEFAULT_REST_TOL,
+    braking_backup,
+    model_braking_backup,
+)
 
 RTOL = 1e-10  # per element |a - b| <= RTOL max(|a|, |b|, 1)
-REST = 0.1  # a final rate (max_i |x_k+1 - x_k| / dt) at which the rollout counts as at rest
 
 
 def rel_err(a, b) -> float:
@@ -40,7 +43,7 @@ def rollout_rates(model: Model, backup, X0, steps: int) -> np.ndarray:
 def test_model_braking_backup_brings_each_model_to_rest(di, point_mass, arm):
     """From random moving states (the double integrator and the point mass up to 4 and 3 m/s
     per axis, the arm up to 1.5 rad/s per joint anywhere in its range) the derived backup's
-    rollout ends at rest within 60 steps (rate <= 0.1 per second) and
+    rollout ends at rest within 60 steps (rate <= the gatekeeper's default rest tolerance) and
     keeps slowing (<= 1e-3 after 100 steps). The arm from 3 rad/s needs up to 74 steps at its
     torque limits: nearly at rest after 100. The position-velocity braking law leaves the arm
     moving."""
@@ -54,8 +57,8 @@ def test_model_braking_backup_brings_each_model_to_rest(di, point_mass, arm):
     ]
     for model, X0 in cases:
         rates = rollout_rates(model, model_braking_backup(model), X0, 100)
-        assert np.min(rates[:, 0]) > 5 * REST, model.name  # every start moves
-        assert np.max(rates[:, 60]) <= REST, model.name
+        assert np.min(rates[:, 0]) > 5 * DEFAULT_REST_TOL, model.name  # every start moves
+        assert np.max(rates[:, 60]) <= DEFAULT_REST_TOL, model.name
         assert np.max(rates[:, 100]) <= 1e-3, model.name
     fast = np.column_stack([rng.uniform(-np.pi, np.pi, M), rng.uniform(-2.5, 2.5, M),
                             rng.uniform(-3.0, 3.0, (M, 2))])
