@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workbench.sampling.methods.gatekeeper import model_braking_backup
+from workbench.sampling.methods.gatekeeper import braking_backup
 from workbench.sampling.weights import importance_weights
 from workbench.scenarios.methods import method, names
 from workbench.scenarios.model_system import (
@@ -121,10 +121,7 @@ def test_every_registered_method_builds_by_name_steps_and_its_mechanism_acts(
     base = request.getfixturevalue(model_name)
     start = (np.array([0.6, -0.1, 1.0, 1.2, 0.0, 0.0]) if model_name == "point_mass"
              else np.array([0.3, 0.3, 0.5, 0.0]))
-    # the gatekeeper brakes with the law derived from the model (braking each control's rate
-    # with gain 1/dt does not stop the torque-driven arm: the gatekeeper refuses it)
-    sysm = replace(base, scene=replace(base.scene, start=start),
-                   backup=lambda plant, gain: model_braking_backup(plant))
+    sysm = replace(base, scene=replace(base.scene, start=start))  # the derived backup
     nav = navigation_setup(system=sysm)
     nav = replace(nav, mppi=replace(nav.mppi, n_samples=128))
     acted = {}
@@ -214,12 +211,24 @@ def test_compare_methods_runs_the_comparison_on_a_system_of_ones_own(tmp_path):
         SYSTEMS.pop("arm_for_compare", None)
 
 
-def test_the_gatekeeper_without_a_backup_for_the_model_is_refused(arm):
+def test_the_gatekeeper_brakes_with_the_derived_backup_or_refuses_one_that_does_not_stop(arm):
+    """The arm's default backup (the law derived from the model) stops it, so the gatekeeper
+    builds and runs; braking each rate with gain 1/dt (the planar robots' law) does not stop
+    the torque-driven arm, and the gatekeeper refuses it by name."""
+    assert dict(arm.origins)["backup"].startswith("model_braking_backup")
     nav = navigation_setup(system=arm)
-    with pytest.raises(ValueError, match=r"backup = None is invalid: .*brings 'two_link_arm' "
-                                         r"to rest; pass system_from_model\(\.\.\., backup=f\)"):
-        nav.controller("gatekeeper")
-    assert dict(arm.origins)["backup"].startswith("none")
+    ctrl = nav.controller("gatekeeper")
+    ep = closed_loop(ctrl, nav.plant, nav.x0, 30, np.random.default_rng(1),
+                     np.random.default_rng(2), check_episode=False)  # undisturbed: idle
+    assert len(ep.U) == 30
+    rates = replace(arm, backup=lambda plant, gain: braking_backup(plant, velocity=(2, 3),
+                                                                    gain=gain))
+    nav = navigation_setup(system=rates)
+    with pytest.raises(ValueError, match=r"backup = 'braking' is invalid: does not bring "
+                                         r"two_link_arm to rest"):
+        nav.controller("gatekeeper").initial_state(nav.x0)
+    with pytest.raises(ValueError, match="braking_gain"):
+        arm.backup(nav.plant, 2.0)
 
 
 def test_a_calibration_episode_that_crashes_is_reported(point_mass):

@@ -22,9 +22,8 @@ passed by the caller is used as given and recorded as such. The rules (assumptio
   5 m/s^2, in whose units levels are given);
 - feedback (tracking) weights Q_i = 5e4 / s_i^2, R_j = (5 / half-range_j)^2;
 - goal radius: a tenth of the start's distance to the goal;
-- the gatekeeper's backup: none is derived yet; building the gatekeeper on the system is
-  refused with an error that says what to pass (e.g.
-  :func:`~workbench.sampling.methods.gatekeeper.model_braking_backup`).
+- the gatekeeper's backup: :func:`~workbench.sampling.methods.gatekeeper.model_braking_backup`
+  (the gatekeeper refuses it by name if it does not bring the model to rest).
 """
 
 from __future__ import annotations
@@ -42,6 +41,7 @@ import numpy as np
 from workbench.problem.models import Model
 from workbench.problem.obstacles import Circle
 from workbench.sampling.feedback import FeedbackWeights
+from workbench.sampling.methods.gatekeeper import model_braking_backup
 from workbench.sampling.mppi import MPPI, MPPIConfig
 from workbench.sampling.planning import full_state
 from workbench.sampling.problem import goal_costs
@@ -100,18 +100,14 @@ class _AtState:
         return as_array("state", point, (self.nx,))
 
 
-@dataclass(frozen=True)
-class _NoBackup:
-    """The backup of a model system given none: building the gatekeeper is refused."""
-
-    model_name: str
-
-    def __call__(self, plant, gain):
-        raise fail("backup", None, f"the gatekeeper needs a backup law that brings "
-                   f"{self.model_name!r} to rest; pass system_from_model(..., backup=f) with "
-                   "f(plant, gain) -> BackupPolicy (e.g. model_braking_backup(plant), derived "
-                   "from the model; braking_backup(plant, velocity=...) or "
-                   "backup_from_expression)")
+def _derived_backup(plant, gain):
+    """The gatekeeper's backup of a model system given none: the braking law derived from the
+    model (the gatekeeper checks at its start that it stops the plant, and refuses it by name
+    otherwise; ``gain`` does not apply to it)."""
+    if gain is not None:
+        raise fail("braking_gain", gain, "the derived braking law has no gain; leave it unset "
+                   "or pass system_from_model(..., backup=f) with a law that takes one")
+    return model_braking_backup(plant)
 
 
 def _step(model: Model) -> ca.Function:
@@ -294,8 +290,9 @@ def system_from_model(model: Model, start, goal, *, name: str | None = None,
     gr = 0.1 * dist0 if goal_radius is None else real("goal_radius", goal_radius, 0.0,
                                                       strict=True)
     note("goal_radius", goal_radius, "a tenth of the start's distance to the goal")
-    backup_law = _NoBackup(model.name) if backup is None else backup
-    note("backup", backup, "none: the gatekeeper refuses until one is given")
+    backup_law = _derived_backup if backup is None else backup
+    note("backup", backup, "model_braking_backup: the control that makes the state move least "
+         "over a two-step lookahead (the gatekeeper checks that it stops the model)")
     scene = ModelScene(x0, xg, model.dt, tuple(model.obstacles))
     return System(name=sysm_name, label=label or sysm_name.replace("_", " "),
                   model=_Own(model), state_at=_AtState(n), Q=tuple(Qv), S=tuple(Sv),
