@@ -248,3 +248,25 @@ def test_a_calibration_episode_that_crashes_is_reported(point_mass):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         nav.threshold()
+
+
+def test_a_method_whose_requirement_the_model_lacks_is_refused_with_the_reason():
+    """A jerk-driven triple integrator: u reaches the position margin only after three steps,
+    beyond the ECBF rows' degree 2, so SAIS with ECBF gains is refused by name; the discrete
+    CBF of Shield-MPPI has order 3 and builds."""
+    import casadi as ca
+
+    import workbench as wb
+    x, u, dt = ca.SX.sym("x", 3), ca.SX.sym("u", 1), 0.05
+    m = wb.Model.from_expressions("jerk", x, u, x + dt * ca.vertcat(x[1], x[2], u[0]), dt=dt,
+                                  u_min=[-5.0], u_max=[5.0], h=[2.0 - x[0]],
+                                  state_names=("p", "v", "a"), control_names=("j",))
+    s = system_from_model(m, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    nav = navigation_setup(system=s)
+    with pytest.raises(ValueError, match=r"sais_ecbf needs every margin reached by the "
+                                         r"controls within two steps.*margins \[0\]"):
+        nav.controller("sais_ecbf")
+    assert nav.controller("shield_mppi") is not None
+    from workbench.filters.ecbf import unreached_margins
+    assert unreached_margins(m) == (0,)
+    assert unreached_margins(um.point_mass_3d()) == ()  # degree 2 everywhere

@@ -178,6 +178,18 @@ DEGREE_POINTS = 32  # random states of the relative-degree order test
 _ORDER_SPLIT = 1.5  # log2 sensitivity ratio: ~1 for relative degree 1, ~2 for degree 2
 
 
+def unreached_margins(model: Model) -> tuple[int, ...]:
+    """The margins the control does not reach within two steps (h after one and after two
+    steps of the held control both independent of u, symbolically): no ECBF row of degree 1
+    or 2 can constrain them."""
+    x, u = model.x, model.u
+    h1 = ca.substitute(model.h, x, model.x_next)
+    h2 = ca.substitute(model.h, x, ca.substitute(model.x_next, x, model.x_next))
+    s1, s2 = ca.jacobian(h1, u), ca.jacobian(h2, u)
+    return tuple(i for i in range(model.nh)
+                 if _identically_zero(s1[i, :]) and _identically_zero(s2[i, :]))
+
+
 def relative_degrees(model: Model) -> tuple[int, ...]:
     """Relative degree (1 or 2) of every margin, read from the discrete model itself.
 

@@ -100,7 +100,8 @@ BUILTIN = (
                requires=("margins", "tracking"), cost_rank=2, wraps="bas_mppi"),
     MethodSpec("sais_ecbf", "SAIS + ECBF-filtered gains", "barrier state + ECBF feedback",
                robust_builder("ecbf"), marker="p", feedback="ecbf", options=ECBFOptions,
-               options_key="ecbf", activity="ecbf_active", requires=("margins", "tracking"),
+               options_key="ecbf", activity="ecbf_active",
+               requires=("margins", "tracking", "relative_degree"),
                cost_rank=1, wraps="bas_mppi"),
 )
 

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from workbench.filters.ecbf import unreached_margins
 from workbench.scenarios.registry import Registry
 from workbench.sim import Controller
 from workbench.study.tuning import Param
@@ -26,6 +27,8 @@ if TYPE_CHECKING:
 REQUIREMENTS: dict[str, str] = {
     "margins": "constraint margins h(x) (a barrier state or a crash rule is built from them)",
     "tracking": "tracking weights sized for the model (System.feedback_weights)",
+    "relative_degree": "every margin reached by the controls within two steps (relative "
+                       "degree 1 or 2, the ECBF rows' orders)",
 }
 
 
@@ -125,6 +128,13 @@ class MethodSpec:
                 return (f"{self.name} needs {REQUIREMENTS['tracking']}: the weights are "
                         f"sized for {nx} states and {nu} controls, the plant "
                         f"{plant.name!r} has {plant.nx} and {plant.nu}")
+        if "relative_degree" in self.requires and plant.nh:
+            far = unreached_margins(plant)
+            if far:
+                return (f"{self.name} needs {REQUIREMENTS['relative_degree']}; the controls "
+                        f"of {plant.name!r} do not reach margins {list(far)} within two steps "
+                        "(use a method whose discrete CBF has higher order, e.g. "
+                        "cbf_projection or shield_mppi, or write h so that u reaches it)")
         return None
 
 
