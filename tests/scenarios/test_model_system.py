@@ -270,3 +270,25 @@ def test_a_method_whose_requirement_the_model_lacks_is_refused_with_the_reason()
     from workbench.filters.ecbf import unreached_margins
     assert unreached_margins(m) == (0,)
     assert unreached_margins(um.point_mass_3d()) == ()  # degree 2 everywhere
+
+
+def test_tracking_weights_are_sized_for_any_model():
+    import workbench as wb
+    arm = um.two_link_arm()
+    w = wb.TrackingWeights.for_model(arm, state_scale=(1.5, 1.0, 2.0, 2.0), q_beta=0.05)
+    np.testing.assert_allclose(w.Q, [1 / 1.5**2, 1.0, 0.25, 0.25], rtol=1e-12)
+    np.testing.assert_allclose(w.R, [1e-3 / 9.0] * 2, rtol=1e-12)  # half-width 3 N m
+    np.testing.assert_allclose(w.S, 100.0 * np.asarray(w.Q), rtol=1e-12)
+    assert w.q_beta == 0.05
+    plan, _ = wb.bas_ilqg(arm, x0=um.ARM_START, x_ref=np.linspace(um.ARM_START, um.ARM_GOAL, 41),
+                          target=um.ARM_GOAL, weights=w)
+    assert plan.X.shape == (41, 5)  # 4 states and the barrier state: the weights fit
+    with pytest.raises(ValueError, match="state_scale"):
+        wb.TrackingWeights.for_model(arm, state_scale=(1.0, 0.0, 1.0, 1.0))
+    di = wb.double_integrator()
+    d = wb.TrackingWeights.for_model(di, state_scale=(1, 1, 10**0.5, 10**0.5),
+                                     control_scale=(1, 1), terminal=100.0)
+    ref = wb.TrackingWeights()  # the double integrator's defaults: Q and S ten times these
+    np.testing.assert_allclose(10 * np.asarray(d.Q), ref.Q, rtol=1e-12)
+    np.testing.assert_allclose(10 * np.asarray(d.S), ref.S, rtol=1e-12)
+    np.testing.assert_allclose(d.R, ref.R, rtol=1e-12)

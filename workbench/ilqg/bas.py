@@ -36,6 +36,29 @@ class TrackingWeights:
         for name in ("q_beta", "s_beta"):
             real(f"TrackingWeights.{name}", getattr(self, name), 0.0)
 
+    @classmethod
+    def for_model(cls, model: Model, *, state_scale=None, control_scale=None,
+                  terminal: float = 100.0, **kw) -> TrackingWeights:
+        """Weights sized to ``model``'s physical states and controls: Q_i = 1 / s_i^2 with
+        ``state_scale`` s (default 1 per state), R_j = 1e-3 / c_j^2 with ``control_scale`` c
+        (default the half-width of control j's box, 1 where it is unbounded), S = ``terminal``
+        Q; other fields (q_beta, s_beta, beta_cost) through ``kw``. With s = (1, 1, sqrt 10,
+        sqrt 10) and c = 1, Q and S are a tenth of the double integrator's defaults."""
+        n = model.n_physical
+        s = np.ones(n) if state_scale is None else as_array("state_scale", state_scale, (n,))
+        if np.any(s <= 0):
+            raise fail("state_scale", s, "must be numbers > 0, one per physical state")
+        if control_scale is None:
+            half = 0.5 * (np.asarray(model.u_max, float) - np.asarray(model.u_min, float))
+            c = np.where(np.isfinite(half) & (half > 0), half, 1.0)
+        else:
+            c = as_array("control_scale", control_scale, (model.nu,))
+            if np.any(c <= 0):
+                raise fail("control_scale", c, "must be numbers > 0, one per control")
+        real("terminal", terminal, 0.0)
+        Q = 1.0 / s**2
+        return cls(Q=tuple(Q), R=tuple(1e-3 / c**2), S=tuple(terminal * Q), **kw)
+
 
 def tracking_problem(model: Model, weights: TrackingWeights = TrackingWeights(), *,
                      barrier: BarrierOptions | None = None) -> Problem:
