@@ -1,17 +1,25 @@
 """The examples run as a user runs them (``python examples/NAME.py``) and do what they say:
-their printed numbers are parsed and checked."""
+their printed numbers are parsed and checked, and the figures the README quotes from them are
+what they print, at the tolerance marked beside each (``<!-- figure: ... -->``, see
+``tests/shown_output.py``). Each example runs once per session."""
 
 from __future__ import annotations
 
+import functools
 import re
 import subprocess
 import sys
 from pathlib import Path
 
+import shown_output  # tests/shown_output.py
+
 ROOT = Path(__file__).parents[1]
+README = ROOT / "README.md"
 NUM = r"(-?[\d.]+)"
+EXAMPLES = ("own_model.py", "custom_scene.py", "own_model_robust.py", "moving_obstacle.py")
 
 
+@functools.cache
 def run_example(name: str) -> str:
     r = subprocess.run([sys.executable, str(ROOT / "examples" / name)], capture_output=True,
                        text=True, timeout=300, cwd=ROOT)
@@ -75,6 +83,48 @@ def test_moving_obstacle_without_recompiling():
     assert res["steps"]["bas_mppi"] == res["steps"]["sa_rmppi"] == 250
     assert res["steps"]["bas_mppi_blind"] < 250 and res["min_margin"]["bas_mppi_blind"] <= 0
     assert set(res["step_ms"]) == set(res["crashed"]) and 0 < res["nominal_differs"] < 1
+
+
+def readme_problems(path: Path = README) -> list[str]:
+    """Where the README at ``path`` quotes a figure other than its example prints."""
+    found = shown_output.figures(path, "README.md")
+    assert {f.example for f in found} <= set(EXAMPLES), "a figure of an example not run here"
+    return [p for f in found for p in f.check(run_example(f.example))]
+
+
+def test_readme_figures_are_what_the_examples_print():
+    """Every example the README describes has its quoted figures marked and checked (the
+    examples' runs above are reused)."""
+    found = shown_output.figures(README, "README.md")
+    assert {f.example for f in found} == set(EXAMPLES) - {"moving_obstacle.py"}, found
+    problems = readme_problems()
+    assert not problems, "\n".join(problems)
+
+
+def test_a_readme_figure_edited_beyond_its_tolerance_is_reported(tmp_path):
+    text = README.read_text()
+    old = "final error ≈ 0.09 m<!-- figure: own_model.py"
+    assert text.count(old) == 1
+    path = tmp_path / "README.md"
+    path.write_text(text.replace(old, old.replace("0.09", "0.25")))
+    [problem] = readme_problems(path)
+    line = text[:text.index(old)].count("\n") + 1
+    assert problem.startswith(f"README.md, line {line}: figure 0.25 is printed by own_model.py "
+                              "as ") and "beyond its tolerance (rtol=0, atol=0.1)" in problem
+    path.write_text(text.replace(old, old.replace("0.09", "0.15")))  # within 0.1
+    assert readme_problems(path) == []
+
+
+def test_figure_markers_are_read_as_written(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text('acts on ≈ 38%<!-- figure: x.py json:a.b scale=100 atol=10 --> of steps;\n'
+                    'syntax: `<!-- figure: x.py "y {}" exact -->` (quoted, not a marker)\n')
+    [figure] = shown_output.figures(page)
+    assert (figure.value, figure.pattern, figure.line) == ("38", "json:a.b", 1)
+    assert figure.check('noise\n{"a": {"b": 0.44}}') == []
+    [problem] = figure.check('{"a": {"b": 0.52}}')
+    assert problem == ("page.md, line 1: figure 38 is printed by x.py as 52, beyond its "
+                       "tolerance (rtol=0, atol=10)")
 
 
 def test_set_threads_reaches_every_library_loaded_before_and_after():
