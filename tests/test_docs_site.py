@@ -1,7 +1,8 @@
 """The documentation site builds with ``mkdocs build --strict`` and no warning, offline, with
 every page of its navigation; the assumptions page has its stable section anchors, readable
 maths and no internal document names; every link into it resolves; the Python blocks of the
-non-tutorial pages run (the tutorials are run by test_tutorials.py)."""
+non-tutorial pages run and print the outputs they show, at the tolerance marked beside each
+(the tutorials are run by test_tutorials.py; the markers are described in shown_output.py)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import types
 from pathlib import Path
 
 import pytest
+import shown_output  # tests/shown_output.py
 import yaml
 
 ROOT = Path(__file__).parents[1]
@@ -134,25 +136,25 @@ def test_public_api_page_lists_every_exported_name(site):
             assert f"<code>wb.{name}</code></a>" in page, name  # linked to its reference entry
 
 
-def python_blocks(md: Path) -> list[str]:
-    return re.findall(r"```python\n(.*?)```", md.read_text(), re.S)
-
-
 def test_python_blocks_of_the_other_pages_run(tmp_path, monkeypatch):
     """Each page's blocks run in order in one module, as a script of them would (a registered
-    module, so that what a block defines can be pickled for worker processes)."""
+    module, so that what a block defines can be pickled for worker processes); a block's
+    marked output is compared with what it printed."""
     monkeypatch.chdir(tmp_path)
-    ran = 0
+    ran, problems = 0, []
     for md in sorted(DOCS.rglob("*.md")):
         if md.parent.name == "tutorials":
             continue
         module = types.ModuleType(f"docs_page_{md.stem.replace('-', '_')}")
         monkeypatch.setitem(sys.modules, module.__name__, module)
         scope = module.__dict__
-        for i, code in enumerate(python_blocks(md)):
-            with contextlib.redirect_stdout(io.StringIO()):
-                exec(compile(code, f"{md.relative_to(DOCS)}:block{i}", "exec", dont_inherit=True),
-                     scope)
+        name = str(md.relative_to(DOCS))
+        for i, (code, shown) in enumerate(shown_output.page_blocks(md, name)):
+            buffer = io.StringIO()
+            with contextlib.redirect_stdout(buffer):
+                exec(compile(code, f"{name}:block{i}", "exec", dont_inherit=True), scope)
+            if shown:
+                problems += shown_output.compare(shown, buffer.getvalue())
             ran += 1
         if md.name == "studies.md" and md.parent.name == "concepts":
             # the toy study ran and resumed: computed all four tasks once, then loaded them
@@ -161,3 +163,4 @@ def test_python_blocks_of_the_other_pages_run(tmp_path, monkeypatch):
         if md.name == "getting-started.md":
             assert not scope["episode"].crashed and len(scope["episode"].U) == 150
     assert ran >= 5
+    assert not problems, "\n".join(problems)
