@@ -35,7 +35,7 @@ import shown_output  # tests/shown_output.py
 
 ROOT = Path(__file__).parents[1]
 TUTORIALS = ROOT / "docs" / "tutorials"
-PAGES = ("own-model.md", "own-map-study.md", "moving-obstacle.md")
+PAGES = ("own-model.md", "own-map-study.md", "moving-obstacle.md", "compare-on-your-model.md")
 NUM = r"(-?[\d.]+)"
 
 
@@ -229,6 +229,24 @@ def test_tutorial_moving_obstacle(moving):
     assert active and 0 < int(active[1]) < 100, out
     last = json.loads(out.strip().splitlines()[-1])
     assert last == {"bas_mppi": False, "sa_rmppi": False, "bas_mppi_blind": True}
+
+
+@pytest.fixture(scope="module")
+def compare_page(tmp_path_factory):
+    where = tmp_path_factory.mktemp("tutorial4")
+    return run_page("compare-on-your-model.md", where), where
+
+
+def test_tutorial_compare_on_your_model(compare_page):
+    results, where = compare_page
+    check_shown_output(results, "compare-on-your-model.md")
+    out = printed(results)
+    ran = re.findall(r"^(\w+): crashed (True|False), min h", out, re.M)
+    assert [r[0] for r in ran] == ["bas_mppi", "sa_rmppi", "cbf_projection", "gatekeeper"]
+    cells = re.findall(r"^(\w+): safe in (\d+) of 6, reached the goal in (\d+)$", out, re.M)
+    assert sorted(c[0] for c in cells) == ["bas_mppi", "gatekeeper", "mppi_crash", "sa_rmppi"]
+    assert (where / "runs" / "arm" / "report.md").is_file()
+    assert (where / "arm.png").stat().st_size > 10_000
 
 
 def edited(tmp_path: Path, page: str, old: str, new: str) -> Path:
