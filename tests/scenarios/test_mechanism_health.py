@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.stats import binom
 from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.multitest import multipletests
 
@@ -132,9 +133,10 @@ def test_less_safe_significant_with_its_figures():
                                            "less safe than MPPI (crash cost)")
     t = f.comparison
     assert t is not None and t.flagged and (t.a, t.b, t.c, t.d, t.n) == (15, 1, 12, 2, 30)
-    # independent: statsmodels' exact McNemar on the 2x2 table, Newcombe's interval
+    # independent: half statsmodels' two-sided exact McNemar on the 2x2 table (c > b: the
+    # symmetric binomial's two tails are equal), Newcombe's interval
     table = [[15, 1], [12, 2]]  # rows: method safe / crashed; columns: wrapped safe / crashed
-    assert t.p_value == pytest.approx(mcnemar(table, exact=True).pvalue, rel=1e-12)
+    assert t.p_value == pytest.approx(mcnemar(table, exact=True).pvalue / 2, rel=1e-12)
     assert (t.difference, t.low, t.high) == paired_difference_interval(15, 1, 12, 2)
     assert t.difference == pytest.approx((1 - 12) / 30)
     assert t.safety == pytest.approx(16 / 30) and t.safety_wrapped == pytest.approx(27 / 30)
@@ -150,7 +152,7 @@ def test_less_safe_not_significant_is_recorded_not_flagged():
                      cell=("variance",))
     assert h.problems == ()
     (t,) = h.comparisons
-    assert not t.flagged and t.c > t.b and t.p_holm == pytest.approx(0.375)
+    assert not t.flagged and t.c > t.b and t.p_holm == pytest.approx(0.1875)  # 6 / 32
 
 
 def test_safer_than_the_wrapped_method_is_not_flagged():
@@ -158,7 +160,7 @@ def test_safer_than_the_wrapped_method_is_not_flagged():
     h = study_health(*tables({50.0: {"shield_mppi": runs(first), "mppi_crash": runs(second)}}),
                      cell=("variance",))
     (t,) = h.comparisons
-    assert t.p_value < 1e-3 and not t.flagged and h.problems == ()
+    assert t.p_value == 1.0 and not t.flagged and h.problems == ()  # P(X >= 0)
 
 
 def test_wrapped_method_missing_is_said_and_not_compared():
@@ -193,7 +195,7 @@ def test_a_method_without_activity_is_only_compared():
 def test_multiple_cells_holm_over_every_comparison():
     rng = np.random.default_rng(3)
     cells = {}
-    for v, (b, c) in zip((10.0, 50.0, 100.0), ((0, 0), (2, 9), (1, 14)), strict=True):
+    for v, (b, c) in zip((10.0, 50.0, 100.0), ((0, 0), (3, 9), (1, 14)), strict=True):
         first, second = pairs(b=b, c=c, a=30 - b - c)
         cells[v] = {"tube_mppi": runs(first, float(rng.uniform(0.1, 0.9))),
                     "mppi_crash": runs(second),
@@ -206,7 +208,7 @@ def test_multiple_cells_holm_over_every_comparison():
     assert h.n_tested == len(tested) == 2  # sais_al vs bas_mppi: never discordant
     expect = multipletests([t.p_value for t in tested], method="holm")[1]
     assert [t.p_holm for t in tested] == pytest.approx(list(expect))
-    assert kinds(h, variance=50.0) == []  # p = 0.065, Holm 0.065: not flagged
+    assert kinds(h, variance=50.0) == []  # p = 299 / 4096 = 0.073, Holm 0.073: not flagged
     assert kinds(h, variance=100.0) == [("tube_mppi", "less_safe"), ("sais_al", "never")]
     assert [f.where for f in h.problems] == ["variance 100", "variance 100"]
     assert h.of("sais_al", {"variance": 100.0})[0].kind == "never"
@@ -229,7 +231,7 @@ def test_arena_cells_pair_on_map_and_realisation():
                      pair=("map", "realisation"))
     assert kinds(h) == [("gatekeeper", "never"), ("gatekeeper", "less_safe")]
     (t,) = h.comparisons  # one cell over both maps: 8 pairs, all 6 discordant ones MPPI's
-    assert (t.n, t.b, t.c) == (8, 0, 6) and t.p_value == pytest.approx(1 / 32) and t.flagged
+    assert (t.n, t.b, t.c) == (8, 0, 6) and t.p_value == pytest.approx(1 / 64) and t.flagged
     assert h.findings[0].where == "system unicycle, disturbance kick(1), tuning hand"
     with pytest.raises(ValueError, match=r"^pair"):  # realisation alone: two maps collide
         study_health(ep, ac, cell=("system", "disturbance", "tuning"))
@@ -256,13 +258,13 @@ def test_unregistered_controller_and_bad_tables_name_the_field():
 def fast_holm(monkeypatch):
     """For the tests that call the statistics thousands of times: statsmodels' Holm correction
     runs gc.collect() on every call (about 0.3 s in a process holding compiled kernels),
-    skipped here, and the exact McNemar p-value (a pure function of b and c) is memoised."""
+    skipped here, and the one-sided p-value (a pure function of b and c) is memoised."""
     import gc
 
     import workbench.scenarios.mechanism_health as health
 
     monkeypatch.setattr(gc, "collect", lambda generation=2: 0)
-    monkeypatch.setattr(health, "mcnemar_exact", functools.lru_cache(health.mcnemar_exact))
+    monkeypatch.setattr(health, "less_safe_p", functools.lru_cache(health.less_safe_p))
 
 
 @pytest.mark.usefixtures("fast_holm")
@@ -272,7 +274,8 @@ def test_holm_flags_match_an_independent_computation():
         tests = [tuple(int(x) for x in rng.integers(0, 12, 2)) for _ in range(rng.integers(1, 6))]
         got = holm_flags(tests)
         for (b, c), (p, _, _) in zip(tests, got, strict=True):
-            want = 1.0 if b + c == 0 else mcnemar([[0, b], [c, 0]], exact=True).pvalue
+            # P(X >= c), X ~ Binomial(b + c, 1/2), from the survival function
+            want = 1.0 if b + c == 0 else float(binom.sf(c - 1, b + c, 0.5))
             assert p == pytest.approx(want, rel=1e-9, abs=1e-15)
         live = [i for i, (b, c) in enumerate(tests) if b + c > 0]
         # Holm by hand: step down over the sorted p-values, running maximum, capped at 1
@@ -293,7 +296,7 @@ def test_holm_flags_match_an_independent_computation():
 def test_false_flags_under_equal_safety_stay_below_the_level():
     """Three comparisons per report, 30 paired realisations each, both methods safe with
     probability 0.8 and correlated through a shared disturbance: the share of reports with
-    any flag is at most the level (the two-sided test flags one direction: about half)."""
+    any flag is at most the level, and a single comparison's false flags at most the level."""
     rng = np.random.default_rng(2024)
     reps, flagged_reports, flagged_single = 3000, 0, 0
     for _ in range(reps):
@@ -308,7 +311,7 @@ def test_false_flags_under_equal_safety_stay_below_the_level():
         flagged_reports += any(f for _, _, f in flags)
         flagged_single += holm_flags(tests[:1])[0][2]
     assert flagged_reports / reps <= LEVEL
-    assert flagged_single / reps <= LEVEL / 2 + 3 * np.sqrt(0.025 * 0.975 / reps)
+    assert flagged_single / reps <= LEVEL + 3 * np.sqrt(LEVEL * (1 - LEVEL) / reps)
 
 
 @pytest.mark.usefixtures("fast_holm")

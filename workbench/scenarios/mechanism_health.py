@@ -17,10 +17,11 @@ or 1, exactly when every step's value is). Neither is judged on fewer than :data
 steps (assumptions §12.3).
 
 A method is **less safe than the method it wraps** when, on the same disturbance realisations
-(common random numbers: same cell and realisation), the wrapped method is the safer one and a
-two-sided exact McNemar test on the discordant pairs rejects equal safety at :data:`LEVEL`
-after Holm's correction over the comparisons of one report that have a discordant pair
-(assumptions §12.3).
+(common random numbers: same cell and realisation), the one-sided exact McNemar test on the
+discordant pairs (:func:`less_safe_p`: only the wrapped method safe in ``c`` of the ``b + c``
+discordant realisations, against ``c ~ Binomial(b + c, 1/2)``) rejects equal safety at
+:data:`LEVEL` after Holm's correction over the comparisons of one report that have a
+discordant pair (assumptions §12.3).
 
 :func:`episode_health` checks one closed-loop episode; the registered methods built by
 :func:`workbench.scenarios.methods.build` carry an :class:`EpisodeCheck`, so
@@ -41,7 +42,7 @@ import numpy as np
 
 from workbench.scenarios.methods.spec import MethodSpec, method, names
 from workbench.study.report import md_table
-from workbench.study.stats import mcnemar_exact, paired_counts, paired_difference_interval
+from workbench.study.stats import paired_counts, paired_difference_interval
 from workbench.validation import fail, integer, real
 
 if TYPE_CHECKING:
@@ -70,8 +71,9 @@ class PairedSafety:
     """``method`` against the method it wraps on the same realisations of one cell: counts
     a (both safe), b (only ``method`` safe), c (only ``wraps`` safe), d (neither); each one's
     safety; the difference ``method`` minus ``wraps`` with Newcombe's 95 % interval; the
-    two-sided exact McNemar p-value, its Holm-adjusted value (None when b + c = 0: such a pair
-    cannot be significant and is not counted in the correction) and whether it is flagged."""
+    one-sided exact McNemar p-value (:func:`less_safe_p`), its Holm-adjusted value (None when
+    b + c = 0: such a pair cannot be significant and is not counted in the correction) and
+    whether it is flagged."""
 
     method: str
     wraps: str
@@ -298,7 +300,7 @@ def study_health(episodes: pd.DataFrame, activity: pd.DataFrame, cell: Sequence[
     never acted, acted on every step, or not reported, over all its episodes of the cell (not
     judged under ``min_steps`` steps in all, when ``steps`` is given). Per method that wraps
     another: paired with it on the ``pair`` columns (common random numbers) and flagged when
-    the wrapped one is safer (two-sided exact McNemar, Holm over every comparison with a
+    the wrapped one is safer (one-sided exact McNemar, Holm over every comparison with a
     discordant pair, family-wise ``level``). A wrapped method that did not run in the cell,
     or no common realisation, is a ``not_checked`` note."""
     cell, pair = tuple(cell), tuple(pair)
@@ -384,16 +386,27 @@ def _paired(spec: MethodSpec, where: dict[str, object], mine: pd.DataFrame,
     n = a + b + c + d
     diff, low, high = paired_difference_interval(a, b, c, d)
     return PairedSafety(spec.name, wraps, dict(where), n, a, b, c, d, (a + b) / n, (a + c) / n,
-                        diff, low, high, mcnemar_exact(b, c))
+                        diff, low, high, less_safe_p(b, c))
+
+
+def less_safe_p(b: int, c: int) -> float:
+    """One-sided exact McNemar p-value that the wrapping method is less safe: P(X >= c) for
+    X ~ Binomial(b + c, 1/2), with b the realisations where only the wrapping method was
+    safe and c those where only the wrapped one was (1 without discordant pairs)."""
+    if b + c == 0:
+        return 1.0
+    from scipy.stats import binomtest
+
+    return float(binomtest(c, b + c, 0.5, alternative="greater").pvalue)
 
 
 def holm_flags(tests: Sequence[tuple[int, int]], level: float = LEVEL
                ) -> list[tuple[float, float | None, bool]]:
     """For each comparison's discordant counts (b: only the wrapping method safe, c: only the
-    wrapped one): the two-sided exact McNemar p-value, its Holm-adjusted value over the
-    comparisons with b + c > 0 (None for the others) and whether it is flagged (adjusted p <=
-    ``level`` and c > b: the wrapped method is the safer one)."""
-    p = [mcnemar_exact(b, c) for b, c in tests]
+    wrapped one): the one-sided p-value (:func:`less_safe_p`), its Holm-adjusted value over
+    the comparisons with b + c > 0 (None for the others) and whether it is flagged (adjusted
+    p <= ``level`` and c > b: the wrapped method is the safer one)."""
+    p = [less_safe_p(b, c) for b, c in tests]
     idx = [i for i, (b, c) in enumerate(tests) if b + c > 0]
     adj: list[float | None] = [None] * len(tests)
     if idx:
@@ -423,7 +436,8 @@ def _less_safe(t: PairedSafety, level: float) -> Finding:
     figures = (f"safe in {100 * t.safety:.0f} % of {t.n} paired realisations, {wl} in "
                f"{100 * t.safety_wrapped:.0f} %; only it safe in {t.b}, only {wl} in {t.c}; "
                f"difference {100 * t.difference:+.0f} points, 95 % interval "
-               f"[{100 * t.low:+.0f}, {100 * t.high:+.0f}]; exact McNemar p = {t.p_value:.2g}, "
+               f"[{100 * t.low:+.0f}, {100 * t.high:+.0f}]; one-sided exact McNemar p = "
+               f"{t.p_value:.2g}, "
                f"Holm-adjusted {t.p_holm:.2g} <= {level:g}")
     advice = (f"Its mechanism made {wl}, the method it adds it to, less safe on the same "
               "disturbances. " + _settings_hint(spec))
@@ -447,7 +461,7 @@ def report_lines(h: StudyHealth) -> list[str]:
         f"its largest). A cell of fewer than {MIN_STEPS} steps in all is not judged. Each "
         "method that adds its mechanism to another is paired with that method on the same "
         f"disturbances ({' and '.join(h.pair)}) and flagged as less safe when the other is the "
-        "safer one and a two-sided exact McNemar test rejects equal safety at level "
+        "safer one and a one-sided exact McNemar test rejects equal safety at level "
         f"{h.level:g} after Holm's correction over the comparisons of this report that have a "
         "discordant pair (one crashed, the other did not).", ""]
     if h.problems:
