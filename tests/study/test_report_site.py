@@ -71,7 +71,28 @@ def site(cli_reports, tmp_path_factory):
         with contextlib.redirect_stdout(io.StringIO()):
             assert main(["run", study, "--profile", "tiny", "--workers", "0", "-q",
                          "--out", str(root / d)]) == 0
+    # a comparison on a user's own system (the examples' two-link arm), in a folder of its own
+    arm = tmp_path_factory.mktemp("arm_config") / "arm.toml"
+    arm.write_text(f'system = "{REPO / "examples" / "user_models.py"}:arm_system"\n'
+                   'controllers = ["bas_mppi", "mppi_crash"]\nvariances = [2.0]\n'
+                   'realisations = 2\nsteps = 25\n[sampler]\nn_samples = 64\nhorizon = 20\n'
+                   'sigma = [1.5, 1.5]\nlam = 0.1\n')
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["run", "sampling-safety", "--config", str(arm), "--workers", "0", "-q",
+                     "--out", str(root / "my_arm")]) == 0
     return root
+
+
+def test_a_run_on_your_own_system_is_in_the_site(site):
+    """A run folder that is not a study's own is listed under "Other runs" with its study,
+    and its report is rendered; the report says where it ran and where its settings came
+    from."""
+    html = build_site(site, discover()).read_text()
+    assert '<section id="other-runs">' in html
+    assert '<a href="my_arm/report.html">my_arm</a>: sampling_safety' in html
+    page = (site / "my_arm" / "report.html").read_text()
+    assert "two link arm (your model: its own start, goal and constraints)" in page
+    assert "Where the settings came from" in page
 
 
 def test_site_html_without_a_browser(cli_reports, tmp_path):
@@ -208,9 +229,10 @@ def test_every_page_loads_cleanly_in_chromium(browser, site):
     assert problems == []
     reports = {p.parent.name for p in pages if p.name == "report.html"}
     assert reports == {"tracking_demo", "tracking_comparison", "navigation",
-                       "free_energy_bound", "sampling_safety"}
+                       "free_energy_bound", "sampling_safety", "my_arm"}
     assert site / "assumptions.html" in pages
-    assert n_images == len(list(site.glob("*/*.png"))) >= 15  # every figure on the index
+    studies_own = [p for p in site.glob("*/*.png") if p.parent.name != "my_arm"]
+    assert n_images == len(studies_own) >= 15  # every study's figure on the index
 
 
 def test_mathematics_is_rendered(browser, site):

@@ -332,6 +332,29 @@ def _study_section(entry, root: Path, docs: str | None) -> str:
     return "\n".join(parts)
 
 
+def _other_runs(root: Path, registry: Mapping[str, object], docs: str | None) -> str:
+    """The run folders under ``root`` that are not a study's own (e.g. a comparison on your
+    own system, ``workbench run sampling-safety --config arm.toml --out reports/arm``): a
+    link to each one's report, rendered here, with its study."""
+    own = {e.default_out.name for e in registry.values()} | {"bench"}  # type: ignore[attr-defined]
+    runs = [d for d in sorted(root.iterdir())
+            if d.is_dir() and d.name not in own and (d / "manifest.json").is_file()]
+    if not runs:
+        return ""
+    items = []
+    for d in runs:
+        study = (read_json(d / "manifest.json") or {}).get("study", "unknown study")
+        if (d / "report.md").is_file():
+            render_markdown(d / "report.md", "../index.html", f"../{docs}" if docs else None)
+            link = f"<a href=\"{_href(d.name, 'report.html')}\">{html.escape(d.name)}</a>"
+        else:
+            link = f"{html.escape(d.name)} (no report yet)"
+        items.append(f"<li>{link}: {html.escape(str(study))}</li>")
+    return ("<section id=\"other-runs\"><h2>Other runs</h2><p>Run folders beside the "
+            "studies' own (your own systems, other configs).</p><ul>" + "".join(items)
+            + "</ul></section>")
+
+
 def _profile(d: Path) -> str:
     """The profile run.json records ("none (config file)" for a run from a config file)."""
     record = read_json(d / "run.json")
@@ -398,6 +421,7 @@ def build_site(root: Path | str, registry: Mapping[str, object]) -> Path:
         about,
         f"<p>{toc}</p>",
         *(_study_section(e, root, docs) for e in registry.values()),
+        _other_runs(root, registry, docs),
         _bench_section(root),
     ]
     path = root / "index.html"
