@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from workbench.problem.barrier import BarrierOptions, embed_barrier
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import double_integrator
+from workbench.problem.obstacles import Circle
 from workbench.problem.problem import Problem
 from workbench.scenarios.scenes import TrackingScene
 
@@ -93,3 +97,35 @@ def swap_library(victim, donor) -> None:
     meta = json.loads(manifest.read_text())
     meta["sha256"] = hashlib.sha256(data).hexdigest()
     manifest.write_text(json.dumps(meta))
+
+
+# --- the two user models of examples/user_models.py (a 3-D point mass among spheres, a
+# torque-driven two-link arm; loaded from the file, since examples is not a package) and a
+# double integrator whose obstacles are given per run: the gatekeeper's tests
+USER_MODELS = Path(__file__).resolve().parents[1] / "examples" / "user_models.py"
+
+
+@pytest.fixture(scope="session")
+def um():
+    spec = importlib.util.spec_from_file_location("user_models", USER_MODELS)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="session")
+def arm(um):
+    return um.two_link_arm()
+
+
+@pytest.fixture(scope="session")
+def point_mass(um):
+    return um.point_mass_3d()
+
+
+@pytest.fixture(scope="session")
+def di():
+    # run-time obstacles: the scene of each run is given to closed_loop
+    return double_integrator(obstacles=(Circle((8.0, 8.0), 0.5),), u_limit=5.0,
+                             scene_capacity=4)
