@@ -3,13 +3,15 @@ the field)."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
+from typing import Literal
 
 from studies.navigation.config import checked_variances, variance_key
 from studies.navigation.scene import MapSpec
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.robust import RMPPIConfig
+from workbench.sampling.sampler import Backend, Precision
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.model_system import resolve_system
@@ -17,7 +19,30 @@ from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, r
 
 RESULT_VERSION = 1  # bump when the meaning of stored task results changes
 
-__all__ = ["RESULT_VERSION", "Resolved", "StudyConfig", "variance_key"]
+__all__ = ["RESULT_VERSION", "Resolved", "SamplerSettings", "StudyConfig", "variance_key"]
+
+
+@dataclass(frozen=True)
+class SamplerSettings:
+    """The sampler's settings over the system's own sampler (its sigma, lambda and horizon,
+    MPPIConfig's defaults for the rest): each key given replaces that value, each key left
+    out (None) keeps it."""
+
+    n_samples: int | None = None
+    horizon: int | None = None
+    lam: float | None = None
+    sigma: tuple[float, ...] | None = None
+    nu_mix: float | None = None
+    iterations: int | None = None
+    crash_cost: float | None = None
+    tail: Literal["hold", "zero"] | None = None
+    smoothing: tuple[int, int] | None = None
+    backend: Backend | None = None
+    precision: Precision | None = None
+
+    def over(self, base: MPPIConfig) -> MPPIConfig:
+        """``base`` with the keys given here (validated by MPPIConfig)."""
+        return replace(base, **{k: v for k, v in asdict(self).items() if v is not None})
 
 
 @dataclass(frozen=True)
@@ -33,10 +58,11 @@ class StudyConfig:
     system (None: the default map, scaled to the system); a system built from a model runs on
     its own start, goal and constraints, and a scene is refused. ``sampler``, ``q_beta``,
     ``feedback`` and ``goal_radius``: None takes the system's own (sigma, lambda and horizon
-    with 1024 samples; a ``[sampler]`` table is a whole MPPIConfig: the keys it leaves out take
-    MPPIConfig's defaults). Every method shares the sampler; ``methods`` holds each method's
-    own options. A level of ``variances`` is in the double integrator's units, scaled by the
-    system's ``level_scale`` on its ``disturbed`` states. The robust controllers calibrate
+    with 1024 samples); a ``[sampler]`` table (:class:`SamplerSettings`) changes the keys it
+    gives and keeps the system's for the others; an MPPIConfig (from Python) is used whole.
+    Every method shares the sampler; ``methods`` holds each method's own options. A level of
+    ``variances`` is in the double integrator's units, scaled by the system's
+    ``level_scale`` on its ``disturbed`` states. The robust controllers calibrate
     ``rule`` once per run on an undisturbed episode seeded with ``calibration_seed``.
 
     Size limits (checked here): at most 10^7 tasks per run, 10^7 steps per episode."""
@@ -49,7 +75,7 @@ class StudyConfig:
     goal_radius: float | None = None
     system: str = "double_integrator"
     scene: MapSpec | None = None
-    sampler: MPPIConfig | None = None
+    sampler: SamplerSettings | MPPIConfig | None = None
     q_beta: float | None = None
     robust: RMPPIConfig = RMPPIConfig()
     feedback: FeedbackWeights | None = None
@@ -85,12 +111,15 @@ class StudyConfig:
                 raise fail("scene", self.scene, f"the system {sysm.name!r} runs on its own "
                            "start, goal and constraints; leave scene out")
             self.scene.check()
-        for name, kind in (("sampler", MPPIConfig), ("robust", RMPPIConfig),
-                           ("feedback", FeedbackWeights), ("rule", AlphaRule),
-                           ("methods", MethodSettings)):
+        if not isinstance(self.sampler, SamplerSettings | MPPIConfig | None):
+            raise fail("sampler", self.sampler, "must be a table of sampler settings, an "
+                       "MPPIConfig or None")
+        for name, kind in (("robust", RMPPIConfig), ("feedback", FeedbackWeights),
+                           ("rule", AlphaRule), ("methods", MethodSettings)):
             v = getattr(self, name)
-            if not isinstance(v, kind) and not (v is None and name in ("sampler", "feedback")):
+            if not isinstance(v, kind) and not (v is None and name == "feedback"):
                 raise fail(name, v, f"must be a {kind.__name__}")
+        self.resolved()  # the sampler over the system's: checked here, by MPPIConfig
         if self.q_beta is not None:
             object.__setattr__(self, "q_beta", real("q_beta", self.q_beta, 0.0))
 
@@ -100,8 +129,9 @@ class StudyConfig:
     def resolved(self) -> Resolved:
         """The settings that run: every None replaced by the system's own value."""
         sysm = resolve_system(self.system)
-        sampler = self.sampler or MPPIConfig(sigma=sysm.sigma, lam=sysm.lam,
-                                             horizon=sysm.horizon)
+        base = MPPIConfig(sigma=sysm.sigma, lam=sysm.lam, horizon=sysm.horizon)
+        sampler = (base if self.sampler is None else self.sampler
+                   if isinstance(self.sampler, MPPIConfig) else self.sampler.over(base))
         return Resolved(
             system=sysm.name, entry=self.system,
             scene=self.scene or (MapSpec() if sysm.scene is None else None),

@@ -9,7 +9,6 @@ controller stream (``ctx.rng(0)``) in realisation j at a variance.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cache
 
 import numpy as np
 
@@ -39,11 +38,21 @@ class Realisation:
                 "realisation": self.realisation}
 
 
-@cache
+_SETUPS: dict = {}
+
+
 def setup(s: Resolved) -> NavigationSetup:
+    """The set-up of ``s`` on the system its name resolves to now (cached per process, per
+    settings and per system object: a system registered anew under the same name, e.g. by
+    compare_methods, gets its own)."""
     sysm = resolve_system(s.entry)
-    scene = None if s.scene is None else sysm.scaled(s.scene.scene())
-    return navigation_setup(scene, system=sysm, q_beta=s.q_beta, mppi=s.sampler)
+    key = (s, id(sysm))
+    hit = _SETUPS.get(key)
+    if hit is None or hit[0] is not sysm:
+        scene = None if s.scene is None else sysm.scaled(s.scene.scene())
+        hit = _SETUPS[key] = (sysm, navigation_setup(scene, system=sysm, q_beta=s.q_beta,
+                                                     mppi=s.sampler))
+    return hit[1]
 
 
 Thresholds = dict[str, Threshold]
@@ -65,7 +74,7 @@ _CONTROLLERS: dict = {}
 
 
 def controller(s: Resolved, name: str, thresholds: Thresholds):
-    key = (s, name)
+    key = (s, id(setup(s)), name)
     if key not in _CONTROLLERS:
         _CONTROLLERS[key] = build(setup(s), name, s.methods, threshold=thresholds.get(name),
                                   robust=s.robust, weights=s.feedback)

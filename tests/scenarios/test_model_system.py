@@ -302,3 +302,32 @@ def test_tracking_weights_are_sized_for_any_model():
     np.testing.assert_allclose(10 * np.asarray(d.Q), ref.Q, rtol=1e-12)
     np.testing.assert_allclose(10 * np.asarray(d.S), ref.S, rtol=1e-12)
     np.testing.assert_allclose(d.R, ref.R, rtol=1e-12)
+
+
+def test_a_partial_sampler_table_keeps_the_systems_other_settings():
+    """``--set sampler.n_samples=256`` on the unicycle changes N and keeps the unicycle's own
+    sigma, lambda and horizon (not MPPIConfig's defaults)."""
+    from workbench.study.runner import resolve_config
+    from workbench.study.spec import registry
+    cfg = resolve_config(registry()["sampling-safety"],
+                         sets=['system="unicycle"', "sampler.n_samples=256"])
+    r, uni = cfg.resolved(), SYSTEMS["unicycle"]
+    assert (r.sampler.n_samples, r.sampler.sigma, r.sampler.lam, r.sampler.horizon) == (
+        256, uni.sigma, uni.lam, uni.horizon)
+
+
+def test_compare_methods_runs_each_system_given_under_a_taken_name(tmp_path):
+    """Two systems of one name, one after the other, in this process: each run uses its own
+    (by its derived settings in the report), and the registry is as before afterwards."""
+    from workbench.sampling.mppi import MPPIConfig
+    from workbench.scenarios.compare import compare_methods
+    small = dict(controllers=("bas_mppi",), variances=(1.0,), realisations=1, steps=5,
+                 sampler=MPPIConfig(n_samples=32, horizon=10, sigma=(1.5, 1.5), lam=0.1))
+    before = SYSTEMS.get("two_link_arm")  # another test may have registered the examples' arm
+    for i, radius in enumerate((0.05, 0.07)):
+        s = system_from_model(um.two_link_arm(), um.ARM_START, um.ARM_GOAL, goal_radius=radius)
+        compare_methods(s, tmp_path / f"run{i}", **small)
+        import json
+        ran = json.loads((tmp_path / f"run{i}" / "summary.json").read_text())["config"]
+        assert ran["goal_radius"] == radius
+        assert SYSTEMS.get("two_link_arm") is before
