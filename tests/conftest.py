@@ -129,3 +129,10 @@ def di():
     # run-time obstacles: the scene of each run is given to closed_loop
     return double_integrator(obstacles=(Circle((8.0, 8.0), 0.5),), u_limit=5.0,
                              scene_capacity=4)
+
+
+def rel_err(a, b) -> float:
+    """Largest per-element error |a - b| / max(|a|, |b|, 1) of two arrays of one shape."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    assert a.shape == b.shape
+    return float(np.max(np.abs(a - b) / np.maximum(np.maximum(np.abs(a), np.abs(b)), 1.0)))

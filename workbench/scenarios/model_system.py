@@ -163,13 +163,16 @@ def authority(model: Model, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows, np.linalg.norm(B * half, axis=1) / model.dt
 
 
-def first_batch(problem, goal: np.ndarray, x0: np.ndarray, config: MPPIConfig,
-                seed: int = 0):
-    """The sampler's first batch from ``x0`` (zero plan, one seeded draw)."""
+def first_batches(problem, goal: np.ndarray, x0: np.ndarray, config: MPPIConfig,
+                  seeds) -> list:
+    """The sampler's first batch from ``x0`` (zero plan) for each seed of ``seeds``, drawn by
+    one controller."""
     ctrl = MPPI(problem, goal, config)
     xb = full_state(problem, x0, ctrl.consts.scene)
-    return ctrl.sampler.mppi(xb, ctrl.initial_state().U, config.n_samples, ctrl.consts,
-                             int(np.random.default_rng(seed).integers(0, 2**63)))
+    U = ctrl.initial_state().U
+    return [ctrl.sampler.mppi(xb, U, config.n_samples, ctrl.consts,
+                              int(np.random.default_rng(seed).integers(0, 2**63)))
+            for seed in seeds]
 
 
 def calibrate_lambda(problem, goal: np.ndarray, x0: np.ndarray, config: MPPIConfig,
@@ -181,8 +184,8 @@ def calibrate_lambda(problem, goal: np.ndarray, x0: np.ndarray, config: MPPIConf
     hand-tuned built-in systems do. One batch's best percent varies threefold between draws
     on the two-link arm of the examples; the median does not."""
     spreads = []
-    for seed in range(integer("draws", draws, 1)):
-        S = np.sort(np.asarray(first_batch(problem, goal, x0, config, seed).S, float))
+    for batch in first_batches(problem, goal, x0, config, range(integer("draws", draws, 1))):
+        S = np.sort(np.asarray(batch.S, float))
         S = S[np.isfinite(S)]
         if S.size >= 2:
             spreads.append(float(np.quantile(S, 0.01) - S[0]))
@@ -361,5 +364,5 @@ def resolve_system(name_or_entry: str) -> System:
     return SYSTEMS.named(name_or_entry)
 
 
-__all__ = ["LAMBDA_SHARE", "ModelScene", "authority", "calibrate_lambda", "first_batch",
+__all__ = ["LAMBDA_SHARE", "ModelScene", "authority", "calibrate_lambda", "first_batches",
            "load_entry", "resolve_system", "state_scales", "system_from_model"]

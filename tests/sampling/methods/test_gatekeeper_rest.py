@@ -18,6 +18,7 @@ import re
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import rel_err
 
 from workbench.problem.models import Model
 from workbench.problem.obstacles import Circle
@@ -38,12 +39,6 @@ from workbench.scenarios.systems import QUAD_REST_SCALE
 from workbench.sim import closed_loop
 
 RTOL = 1e-10  # per element |a - b| <= RTOL max(|a|, |b|, 1)
-
-
-def rel_err(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    assert a.shape == b.shape
-    return float(np.max(np.abs(a - b) / np.maximum(np.maximum(np.abs(a), np.abs(b)), 1.0)))
 
 
 class Constant:

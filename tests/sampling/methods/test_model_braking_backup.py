@@ -9,6 +9,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import rel_err
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
@@ -19,12 +20,6 @@ from workbench.sampling.methods.gatekeeper import (
 )
 
 RTOL = 1e-10  # per element |a - b| <= RTOL max(|a|, |b|, 1)
-
-
-def rel_err(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    assert a.shape == b.shape
-    return float(np.max(np.abs(a - b) / np.maximum(np.maximum(np.abs(a), np.abs(b)), 1.0)))
 
 
 def rollout_rates(model: Model, backup, X0, steps: int) -> np.ndarray:
