@@ -78,13 +78,15 @@ def bench_ilqg_iteration(repeats: int) -> dict:
 
 
 def optional_records(repeats: int) -> list[dict]:
-    """Records of the optional benchmark modules (precision, threads, the robust step) when
+    """Records of the optional benchmark modules (precision, threads, the robust step, the
+    sequential comparison's operating characteristics) when
     they exist; a module that fails leaves a record naming the error (and its traceback on
     stderr)."""
     out = []
     for module, fn in (("benchmarks.precision", "bench_precision"),
                        ("benchmarks.threads", "bench_threads"),
-                       ("benchmarks.robust_step", "records")):
+                       ("benchmarks.robust_step", "records"),
+                       ("benchmarks.sequential_operating", "records")):
         if importlib.util.find_spec(module) is None:
             print(f"{module}: not present, skipped")
             continue
