@@ -273,7 +273,8 @@ def paired_rci(b: int, c: int, n: int, z: float) -> tuple[float, float, float]:
 
 def score_rci(b: int, c: int, n: int, z: float) -> tuple[float, float, float]:
     """Score interval for the paired difference (Tango 1998): ((b - c) / n, low, high), the
-    differences d0 whose score statistic (:func:`_score`) lies in (-z, z). Counts as
+    differences d0 whose score statistic (b - c - n d0) / sqrt(n (2 p~_c + d0 (1 - d0))) lies in
+    (-z, z), p~_c the maximum-likelihood P(only B safe) under d = d0. Counts as
     :func:`paired_rci`; ``z`` > 0."""
     b, c, n = _counts(b, c, n)
     z = real("z", z, 0.0, strict=True)
@@ -370,8 +371,8 @@ class Look:
     eq_low: float  # RCI at 1 - 2 alpha/m (equivalence)
     eq_high: float
     bound: float  # c_k of the superiority / inferiority RCI
-    eq_bound: float  # c_k of the equivalence RCI
     decision: str  # superior, inferior, equivalent, continue or undecided (last look)
+    eq_bound: float  # c_k of the equivalence RCI
 
 
 def decide(design: SequentialDesign, look: int, b: int, c: int, n: int) -> Look:
@@ -389,7 +390,7 @@ def decide(design: SequentialDesign, look: int, b: int, c: int, n: int) -> Look:
     code = int(_codes(design.interval, b, c, n, z, zeq, design.margin, look == design.looks))
     return Look(look=look, n=n, b=b, c=c, difference=(b - c) / n, low=float(low),
                 high=float(high), eq_low=float(eq_low), eq_high=float(eq_high),
-                bound=float(z), eq_bound=float(zeq), decision=DECISIONS[code])
+                bound=float(z), decision=DECISIONS[code], eq_bound=float(zeq))
 
 
 def run_looks(design: SequentialDesign, b_per_look: Sequence[int], c_per_look: Sequence[int],
