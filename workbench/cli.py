@@ -169,6 +169,9 @@ def cmd_run(args) -> int:
         out = args.out or entry.default_out
         print(estimate(entry, cfg, manifest["n_tasks"], out, args.workers, args.scheduler),
               file=sys.stderr)
+        staged = staged_estimate(entry, cfg, args.workers, args.scheduler)
+        if staged:
+            print(staged, file=sys.stderr)
         return 0
     if args.scheduler:  # a malformed or unreachable scheduler fails before --out is created
         from workbench.study.scheduler import check_scheduler
@@ -253,6 +256,30 @@ def estimate(entry, cfg, n_tasks: int, out: Path, workers: int,
                 f"{profile}; rough: tasks of another config or a busier machine take longer)")
     return (f"{head}; estimated time unknown (no finished run of {entry.name} in {out} or "
             f"{entry.default_out} to time a task)")
+
+
+def staged_estimate(entry, cfg, workers: int, scheduler: str | None) -> str | None:
+    """For a study that runs in rounds (group-sequential): the tasks of its first round and
+    of every round, and, when the study's plan has a cost model (``plan.cost_s(task)``:
+    seconds of one core per task), the time of each on ``workers``; None for a study
+    without rounds."""
+    from workbench.study.runner import declare
+
+    study, plan = declare(entry, cfg)
+    if study.stages is None:
+        return None
+    first = study.stage(lambda task: None)
+    line = (f"runs in rounds: {len(first)} tasks in the first; {len(study.tasks)} if every "
+            "comparison needs every round")
+    cost = getattr(plan, "cost_s", None)
+    if cost is None:
+        return line
+    now = None if scheduler else max(workers, 1)
+    where = f" on {now} worker{'s' if now != 1 else ''}" if now else ""
+    lo, hi = (sum(cost(t) for t in ts) / (now or 3600) for ts in (first, study.tasks))
+    unit = _duration if now else (lambda h: f"{h:.1f} core-hours")
+    return (f"{line}; estimated {unit(lo)} to {unit(hi)}{where} (the study's cost model: "
+            "seconds per task measured on a 2-core machine; rough)")
 
 
 def _run_study(folder: Path, reg: dict):

@@ -89,3 +89,23 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     main(sys.argv[1:])
+
+
+def toy_stages(outputs, per_round: int = 4, rounds: int = 3):
+    """A staged toy: round r has ``per_round`` tasks of cell ``r{r}``; the next round runs
+    while the mean of every draw so far is above -1 (always, for N(0, 1) draws), but only up
+    to round ``rounds - 2``: the last round is never asked for."""
+    wanted = [ToyTask(f"r{r}", s) for r in range(1) for s in range(per_round)]
+    for r in range(1, rounds - 1):
+        outs = [outputs(t) for t in wanted]
+        if any(o is None for o in outs):
+            return wanted
+        if np.mean([o["draws"]["x"].mean() for o in outs]) > -1:
+            wanted += [ToyTask(f"r{r}", s) for s in range(per_round)]
+    return wanted
+
+
+def staged_toy(per_round: int = 4, rounds: int = 3) -> Study:
+    tasks = [ToyTask(f"r{r}", s) for r in range(rounds) for s in range(per_round)]
+    return Study("toy_staged", tuple(tasks), run_toy, seed=7, config={"rounds": rounds},
+                 stages=partial(toy_stages, per_round=per_round, rounds=rounds))

@@ -247,3 +247,29 @@ def test_tasks_phrase_names_resumed_tasks_only_when_there_are_some():
 
     assert tasks_phrase(2801, 2801) == "2801 of 2801 tasks computed"
     assert tasks_phrase(3, 10) == "3 of 10 tasks computed, 7 resumed from `tasks/`"
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_staged_study_runs_the_rounds_it_asks_for(tmp_path, workers):
+    """Rounds run one after the other as the stages ask; the task never asked for is not
+    run; the tables hold the run tasks only; a rerun computes nothing; the results do not
+    depend on the number of workers."""
+    study = study_toy.staged_toy()
+    res = run_study(study, tmp_path / "a", workers=workers, progress=False)
+    assert (res.n_tasks, res.computed, res.loaded) == (8, 8, 0)
+    draws = RunStore(tmp_path / "a").table("draws")
+    assert sorted(set(draws["cell"])) == ["r0", "r1"]
+    assert _n_done(tmp_path / "a") == 8  # round r2 (declared) never ran
+    again = run_study(study, tmp_path / "a", workers=workers, progress=False)
+    assert (again.n_tasks, again.computed, again.loaded) == (8, 0, 8)
+    ref = tmp_path / "ref"
+    run_study(study, ref, workers=0, progress=False)
+    assert _bytes(tmp_path / "a") == _bytes(ref)
+
+
+def test_stages_may_only_choose_declared_tasks(tmp_path):
+    study = study_toy.staged_toy()
+    bad = Study(study.name, study.tasks[:4], study.run_task, study.seed, study.config,
+                study.fingerprint, stages=study.stages)
+    with pytest.raises(ValueError, match=r"^stages"):
+        run_study(bad, tmp_path, workers=0, progress=False)

@@ -451,62 +451,72 @@ def _run_claimed(study: Study, store: RunStore, workers: int, client: Any, addre
         log.warning("%s: %s", study.name, str(mixed).split(". Reusing")[0]
                     + "; reused (allow_mixed)")
         backend["allow_mixed"] = True
+    id_of = dict(zip(study.tasks, ids, strict=True))
+    targets = list(study.tasks)
     with _stop_on_signals():
         try:
             store.write_manifest(study, backend, provenance.describe(study.run_task))
-            pending = [(t, study.context(t, threads))
-                       for t, i in zip(study.tasks, ids, strict=True) if i not in done]
-            bar = tqdm(total=len(ids), initial=len(done), desc=study.name, unit="task",
-                       file=sys.stderr, disable=not progress, smoothing=0.05,
-                       dynamic_ncols=True)
-            if not pending:
-                nothing: tuple[tuple[Any, TaskRecord], ...] = ()
-                records = (r for r in nothing)
-            elif client is not None:
-                from workbench.study.cluster import dask_records
-                records = dask_records(study, pending, client, _execute, timeout)
-            elif workers == 0:
-                records = _in_process(study, pending, timeout)
-            else:
-                records = _local(study, pending, min(workers, len(pending)), timeout)
-            for (task, _), rec in records:
-                if _STOP.is_set():
-                    raise StudyInterrupted
-                if rec.ok:
-                    store.save(task, rec)
-                    computed += 1
+            targets = study.stage(store.outputs_of(id_of))
+            bar = tqdm(total=len(targets), initial=len(done & {id_of[t] for t in targets}),
+                       desc=study.name, unit="task", file=sys.stderr, disable=not progress,
+                       smoothing=0.05, dynamic_ncols=True)
+            while True:  # one pass per stage (a study without stages has one)
+                pending = [(t, study.context(t, threads)) for t in targets
+                           if id_of[t] not in done]
+                if not pending:
+                    break
+                if client is not None:
+                    from workbench.study.cluster import dask_records
+                    records = dask_records(study, pending, client, _execute, timeout)
+                elif workers == 0:
+                    records = _in_process(study, pending, timeout)
                 else:
-                    errors.append(store.save_error(task, rec))
-                    bar.set_postfix(errors=len(errors))
-                bar.update()
-            records.close()
+                    records = _local(study, pending, min(workers, len(pending)), timeout)
+                for (task, _), rec in records:
+                    if _STOP.is_set():
+                        raise StudyInterrupted
+                    if rec.ok:
+                        store.save(task, rec)
+                        done.add(rec.task_id)
+                        computed += 1
+                    else:
+                        errors.append(store.save_error(task, rec))
+                        bar.set_postfix(errors=len(errors))
+                    bar.update()
+                records.close()
+                if errors or study.stages is None:
+                    break
+                more = study.stage(store.outputs_of(id_of))
+                bar.total += len(more) - len(targets)
+                bar.refresh()
+                targets = more
             bar.close()
             store.write_errors(errors)
             for e in errors:
                 log.error("%s: ERROR %s", study.name, e.headline())
             if not errors:
-                store.write_tables(store.build_tables(study))
+                store.write_tables(store.build_tables(study, targets))
         except KeyboardInterrupt:
             _STOP.set()
             if records is not None:
                 records.close()  # stops the workers at once
             if bar is not None:
                 bar.close()
-            n = len(store.finished(ids))
+            n = len(store.finished(id_of[t] for t in targets))
             log.warning("%s: interrupted; %d of %d tasks finished and stored in %s; rerun the "
-                        "same command to continue", study.name, n, len(ids), store.root)
+                        "same command to continue", study.name, n, len(targets), store.root)
             raise StudyInterrupted from None
         except StorageError as exc:
             if records is not None:
                 records.close()
             if bar is not None:
                 bar.close()
-            n = len(store.finished(ids))
+            n = len(store.finished(id_of[t] for t in targets))
             raise exc.with_advice(
                 f"{n} of {len(ids)} tasks are finished and stored; once there is room (or the "
                 "limit is raised), rerun the same command to continue") from exc
         finally:
             if records is not None:
                 records.close()
-    return RunResult(store.root, len(ids), computed, len(done), tuple(errors),
-                     time.perf_counter() - t0)
+    return RunResult(store.root, len(targets), computed, len(targets) - computed
+                     - len(errors), tuple(errors), time.perf_counter() - t0)

@@ -147,7 +147,8 @@ def declare(spec: StudySpec, config: Any, prepared: Any = None) -> tuple[Study, 
                                                             "prepared": prepared}
     run_task = partial(d.run_task, **bound)
     study = Study(spec.store_name, d.tasks, run_task, seed=config.seed,
-                  config=config_io.to_dict(config), fingerprint=d.fingerprint, version=d.version)
+                  config=config_io.to_dict(config), fingerprint=d.fingerprint, version=d.version,
+                  stages=d.stages)
     return study, d.plan
 
 
@@ -278,9 +279,10 @@ def rebuild_report(spec: StudySpec, out: Path | str) -> Path:
             raise ConfigError(f"{out / 'config.toml'}: {exc}; the run's config.toml was "
                               "edited or cut short: restore it, or rerun the study") from exc
         study, finished = _prepared(spec, config, out)
-        missing = len(study.tasks) - len(finished.store.finished(finished.ids.values()))
+        wanted = study.stage(finished.store.outputs_of(finished.ids))
+        missing = len(wanted) - len(finished.store.finished(finished.ids[t] for t in wanted))
         if missing:
-            raise ConfigError(f"{out}: {missing} of {len(study.tasks)} tasks are not finished; "
+            raise ConfigError(f"{out}: {missing} of {len(wanted)} tasks are not finished; "
                               f"`workbench run {spec.name} --config {out / 'config.toml'} "
                               f"--out {out}` completes them")
         summary = _summarise(spec, study, finished)

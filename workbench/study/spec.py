@@ -44,13 +44,15 @@ class Declaration:
     config and, when the study prepares something, the prepared value); fingerprint: every input
     the results depend on beyond the task descriptions (enters each task id); version: bump when
     the meaning of stored results changes; plan: the study's own grouping of its tasks (cells),
-    handed back to its summary."""
+    handed back to its summary; stages: for a study that decides between rounds which tasks
+    to run (see :meth:`workbench.study.tasks.Study.stage`), None to run every task."""
 
     tasks: tuple[Any, ...]
     run_task: Callable[..., Any]
     fingerprint: Mapping[str, Any] = field(default_factory=dict)
     version: int = 1
     plan: Any = None
+    stages: Callable[..., Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -61,7 +63,7 @@ class Finished:
     out: Path
     store: RunStore
     plan: Any
-    ids: Mapping[Any, str]  # task -> task id
+    ids: Mapping[Any, str]  # task -> task id (every declared task; a staged run ran a subset)
     prepared: Any = None
     run_line: str = ""  # wall time, tasks, back end and load: for the report
 

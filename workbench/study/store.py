@@ -37,7 +37,7 @@ import pyarrow.parquet as pq
 
 from workbench.study.folder import MANIFEST, RunFolderError, read_json
 from workbench.study.io import atomic_write_bytes, atomic_write_json, manifest, numpy_default
-from workbench.study.tasks import Study, TaskOutput, columns, describe
+from workbench.study.tasks import Outputs, Study, TaskOutput, columns, describe
 from workbench.validation import fail
 
 _RECORD, _TABLE, _ARRAY = "record", "table:", "array:"
@@ -211,11 +211,28 @@ class RunStore:
         else:
             path.unlink(missing_ok=True)
 
+    def outputs(self, task_id: str) -> dict[str, dict[str, np.ndarray]] | None:
+        """A finished task's tables (column -> values), None if it is not finished."""
+        entries = self._load(task_id)
+        if entries is None:
+            return None
+        return {t: {c: entries[f"{_TABLE}{t}:{c}"] for c in cols}
+                for t, cols in entries[_RECORD]["tables"].items()}
+
+    def outputs_of(self, ids: Mapping[Any, str]) -> Outputs:
+        """:meth:`outputs` by task, for tasks with these ids (a staged study reads them)."""
+        return lambda task: self.outputs(ids[task])
+
     # ------------------------------------------------------------------ tidy tables
-    def build_tables(self, study: Study) -> dict[str, pa.Table]:
-        """Concatenate every task's rows, in the study's task order, task columns first."""
+    def build_tables(self, study: Study, tasks: Iterable[Any] | None = None
+                     ) -> dict[str, pa.Table]:
+        """Concatenate the rows of ``tasks`` (default: every task of the study), in the
+        study's task order, task columns first."""
         parts: dict[str, list[pa.Table]] = {}
+        chosen = None if tasks is None else set(tasks)
         for task, tid in zip(study.tasks, study.task_ids(), strict=True):
+            if chosen is not None and task not in chosen:
+                continue
             entries = self._require(tid)
             for t, cols in entries[_RECORD]["tables"].items():
                 data = {c: entries[f"{_TABLE}{t}:{c}"] for c in cols}

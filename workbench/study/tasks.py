@@ -12,7 +12,7 @@ import dataclasses
 import hashlib
 import json
 import pickle
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from numbers import Integral
 from typing import Any, cast
@@ -20,6 +20,9 @@ from typing import Any, cast
 import numpy as np
 
 from workbench.validation import fail
+
+Outputs = Callable[[Any], Mapping[str, Mapping[str, np.ndarray]] | None]
+"""A finished task's tables by task (None while it is not finished): what ``stages`` reads."""
 
 SCALARS = (str, int, float, bool, np.integer, np.floating, np.bool_)
 
@@ -144,6 +147,7 @@ class Study:
     fingerprint: Mapping[str, Any] = field(default_factory=dict)
     version: int = 1
     worker_init: Callable[[], None] | None = None
+    stages: Callable[[Outputs], Iterable[Any]] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.replace("_", "").isalnum():
@@ -182,6 +186,22 @@ class Study:
 
     def task_ids(self) -> list[str]:
         return [self.task_id(t) for t in self.tasks]
+
+    def stage(self, outputs: Outputs) -> list[Any]:
+        """The tasks to have finished now, in dispatch order: every task without ``stages``;
+        with it, ``stages(outputs)``, where ``outputs(task)`` is a finished task's tables
+        (None while it is not finished). A staged study (e.g. a group-sequential one that
+        adds rounds only while a comparison is undecided) is run until ``stages`` asks for
+        no unfinished task; it must depend only on the outputs, so a rerun asks for the
+        same tasks. Tasks it names must be among ``tasks`` (the run's identity)."""
+        if self.stages is None:
+            return list(self.tasks)
+        wanted = set(self.stages(outputs))
+        unknown = wanted - set(self.tasks)
+        if unknown:
+            raise fail("stages", next(iter(unknown)), "names a task that the study does not "
+                       "declare; stages must choose among its tasks")
+        return [t for t in self.tasks if t in wanted]
 
     def context(self, task: Any, threads: int = 1) -> TaskContext:
         return TaskContext(self.task_id(task), self.seed, stream_key(task), threads)
