@@ -50,20 +50,23 @@ def close(actual, expected, rel: float) -> None:
 # crossing probabilities of these values by the Simpson-grid routines h1/hupdate of the PyPI
 # package gsdesign 0.1.5 give the cumulative spending to 1e-6 relative.
 PUBLISHED_PER_SIDE = [4.8769, 3.3569, 2.6803, 2.2898, 2.0310]
-# The same design with the two-sided spending function of this module,
-# alpha(t) = 2 - 2 Phi(z_{0.975} / sqrt(t)) on |Z|: by root-finding on Genz's probabilities
-# (scipy multivariate_normal.cdf), and confirmed with gsdesign's h1/hupdate (cumulative crossing
-# probabilities equal alpha(t_k) to 1e-5 relative).
+# The other convention, alpha(t) = 2 - 2 Phi(z_{0.975} / sqrt(t)) spent on |Z| (not the
+# module's): by root-finding on Genz's probabilities (scipy multivariate_normal.cdf), and
+# confirmed with gsdesign's h1/hupdate (cumulative crossing probabilities equal alpha(t_k) to
+# 1e-5 relative).
 TWO_SIDED = [4.382613, 3.099727, 2.553355, 2.253848, 2.063501]
 
 
 def test_bounds_match_published_values_of_both_spending_conventions():
     t = np.array(equal_fractions(5))
-    per_side = 2 * obrien_fleming_spending(t, 0.025)  # 0.025 per side, spent by each side
-    close(spending_bounds(t, per_side), PUBLISHED_PER_SIDE, 2e-3)
-    close(obrien_fleming_bounds(t, 0.05), TWO_SIDED, 2e-6)
-    # the first bound is analytic: P(|Z_1| >= c_1) = alpha(t_1) gives z_{0.975} / sqrt(t_1)
-    close(obrien_fleming_bounds(t, 0.05)[0], Z975 / math.sqrt(0.2), 1e-12)
+    close(obrien_fleming_bounds(t, 0.05), PUBLISHED_PER_SIDE, 2e-3)
+    close(obrien_fleming_bounds(t, 0.05), [4.876885, 3.357012, 2.680280, 2.289817, 2.031032],
+          2e-6)
+    on_abs = 2.0 * norm.sf(Z975 / np.sqrt(t))
+    close(spending_bounds(t, on_abs), TWO_SIDED, 2e-6)
+    # the first bound is analytic: P(|Z_1| >= c_1) = alpha(t_1)
+    spent = 4.0 * norm.sf(norm.isf(0.0125) / math.sqrt(0.2))
+    close(obrien_fleming_bounds(t, 0.05)[0], norm.isf(spent / 2.0), 1e-12)
 
 
 def test_one_look_is_the_fixed_sample_test():

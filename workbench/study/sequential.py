@@ -5,16 +5,18 @@ or discordant: ``b`` pairs where only A was safe, ``c`` where only B was. The di
 the safety rates is d = p_A - p_B = (b - c) / n over n pairs. Pairs are added in K rounds
 (looks) and a comparison stops at the first look that decides it.
 
-Boundaries. Lan-DeMets alpha spending with the O'Brien-Fleming-type function
-alpha(t) = 2 - 2 Phi(z_{1-alpha/2} / sqrt(t)) (two-sided) at information fractions t_k (k/K
-for equal looks, or any increasing fractions ending at 1). The critical value c_k solves
+Boundaries. Lan-DeMets alpha spending with the O'Brien-Fleming-type function, alpha / 2 per
+side and each side spent by 2 - 2 Phi(z_{1-alpha/4} / sqrt(t)) (the convention of the usual
+tables: K = 5 equal looks at 0.05 give 4.877, 3.357, 2.680, 2.290, 2.031), at information
+fractions t_k (k/K for equal looks, or any increasing fractions ending at 1). The critical
+value c_k solves
 P(|Z_1| < c_1, ..., |Z_{k-1}| < c_{k-1}, |Z_k| >= c_k) = alpha(t_k) - alpha(t_{k-1}) with
 Z_k = W(t_k) / sqrt(t_k), W a standard Brownian motion (the canonical joint distribution).
 The probabilities are computed by recursive numerical integration: the sub-density of the
 score W(t_k) on the continuation region is carried from look to look through the Gaussian
 increments (Simpson's rule on a grid of 24 points per standard deviation of the increment) and
-each c_k is a root found by Brent's method. c_1 = z_{1-alpha/2} / sqrt(t_1) exactly; with one
-look c_1 = z_{1-alpha/2}. Results are cached by (fractions, alpha).
+each c_k is a root found by Brent's method. c_1 = z_{1-alpha(t_1)/2} exactly; with one look
+c_1 = z_{1-alpha/2}. Results are cached by (fractions, alpha).
 
 Intervals. At look k the repeated confidence interval (RCI) at level 1 - alpha is the set of
 differences d0 whose statistic lies in (-c_k, c_k); it holds the true difference at every look
@@ -132,8 +134,9 @@ def _fractions(fractions: object) -> tuple[float, ...]:
 
 
 def obrien_fleming_spending(t: np.ndarray | float, alpha: float) -> np.ndarray:
-    """Two-sided alpha spent by information fraction t: 2 - 2 Phi(z_{1-alpha/2} / sqrt(t))."""
-    return 2.0 * norm.sf(norm.isf(alpha / 2.0) / np.sqrt(np.asarray(t, dtype=float)))
+    """Two-sided alpha spent by information fraction t: alpha / 2 per side, each side spent
+    by 2 - 2 Phi(z_{1-alpha/4} / sqrt(t)) (the convention of the usual tables)."""
+    return 4.0 * norm.sf(norm.isf(alpha / 4.0) / np.sqrt(np.asarray(t, dtype=float)))
 
 
 def _simpson(half: float, step: float) -> tuple[np.ndarray, np.ndarray]:
