@@ -148,7 +148,8 @@ def run_task(task: TuningTask, ctx: TaskContext, config: ArenaConfig,
                            "params": np.array([json.dumps(x.params) for x in t], dtype=str)},
                 "best": {"kept": np.array([sel.kept], dtype=str),
                          "params": np.array([json.dumps(sel.params)], dtype=str),
-                         "candidate": np.array([json.dumps(sel.candidate.params)], dtype=str),
+                         "hand": np.array([json.dumps(sel.start.params)], dtype=str),
+                         "tuned": np.array([json.dumps(sel.candidate.params)], dtype=str),
                          "trial": np.array([sel.candidate.number]),
                          "training_hand": np.array([sel.start.score]),
                          "training_tuned": np.array([sel.candidate.score]),
@@ -201,7 +202,7 @@ def tuned_entries(config: ArenaConfig, store) -> list[Tuned]:
     for _, r in store.table("best").iterrows():
         out.append(Tuned(
             r["system"], r["controller"], str(r["kept"]), json.loads(r["params"]),
-            json.loads(r["candidate"]), config.tuning, OBJECTIVE,
+            json.loads(r["hand"]), json.loads(r["tuned"]), config.tuning, OBJECTIVE,
             config.tuning_disturbance.label,
             Evaluation(_maps(config, config.tuning_seeds()), config.tuning.episodes,
                        float(r["training_hand"]), float(r["training_tuned"])),
@@ -218,7 +219,7 @@ def flag(t: Tuned) -> str:
     """Why the hand point was kept, or "" when the tuned point was."""
     if t.kept == "tuned":
         return ""
-    if t.candidate == t.params:
+    if t.tuned == t.hand:
         return "no trial beat the hand point on training: hand kept"
     hand, tuned = (-np.inf if v is None else v for v in (t.validation.hand, t.validation.tuned))
     worse = tuned < hand
@@ -245,8 +246,8 @@ def report(finished, summ) -> Path:
     from workbench.study.io import atomic_write_text
 
     rows = [[t.system, t.controller, f"{t.start_score:.3f}", f"{t.score:.3f}",
-             f"{t.validation.hand:.3f}", f"{t.validation.tuned:.3f}", t.kept,
-             _values(t.params), flag(t) or "–"] for t in summ.value]
+             f"{t.validation.hand:.3f}", f"{t.validation.tuned:.3f}", t.kept, _values(t.hand),
+             _values(t.tuned), flag(t) or "–"] for t in summ.value]
     c = finished.config
     b = c.tuning
     first = summ.value[0] if summ.value else None
@@ -260,8 +261,8 @@ def report(finished, summ) -> Path:
             *([f"Training maps: {_maps_text(first.training)}; validation maps: "
                f"{_maps_text(first.validation)}."] if first else []), "",
             *md_table(["system", "controller", "training, hand", "training, tuned",
-                       "validation, hand", "validation, tuned", "kept", "shipped values",
-                       "flag"], rows), "",
+                       "validation, hand", "validation, tuned", "kept", "hand point",
+                       "tuned point", "flag"], rows), "",
             "The training score of the tuned point is the best of many noisy estimates and "
             "overstates it; the validation scores are unbiased for the hand point and nearly so "
             "for the tuned one (the best of a few finalists).", ""]

@@ -31,7 +31,7 @@ BEST = {"sigma_scale": 0.5, "lam": 2.0, "kappa": 0.3}
 
 def entry(**kw) -> Tuned:
     d = dict(system="double_integrator", controller="sa_rmppi", kept="tuned", params=BEST,
-             candidate=BEST, budget=TuningBudget(trials=8, episodes=8, validation=8,
+             hand=HAND, tuned=BEST, budget=TuningBudget(trials=8, episodes=8, validation=8,
                                                  finalists=3),
              objective="success", disturbance="velocity_variance(50)",
              training=Evaluation((MapSeeds("spec", (0, 1, 2, 3)),), 8, 0.5, 0.9),
@@ -44,7 +44,8 @@ def test_the_format_round_trips(tmp_path):
     path = tmp_path / "tuned.json"
     a = entry()
     b = entry(system="unicycle", controller="bas_mppi", kept="hand",
-              params={"sigma_scale": 1.0, "lam": 0.3}, candidate={"sigma_scale": 2.0, "lam": 1.0},
+              params={"sigma_scale": 1.0, "lam": 0.3}, hand={"sigma_scale": 1.0, "lam": 0.3},
+              tuned={"sigma_scale": 2.0, "lam": 1.0},
               training=Evaluation((MapSeeds("spec", (0, 1)), MapSeeds("corridor", (0, 1))), 8,
                                   -0.1, float("-inf")),
               validation=Evaluation((MapSeeds("spec", (7,)),), 4, 0.2, 0.1))
@@ -70,7 +71,7 @@ def test_the_format_round_trips(tmp_path):
     assert [(r.system, r.kept, r.training_hand, r.validation_tuned, r.validation_episodes)
             for r in s] == [("double_integrator", "tuned", 0.5, 0.7, 8),
                             ("unicycle", "hand", -0.1, 0.1, 4)]
-    write([entry(params=HAND, candidate=HAND)], path)  # a rewritten file is read again
+    write([entry(kept="hand", params=HAND)], path)  # a rewritten file is read again
     assert tuned("double_integrator", "sa_rmppi", path).params == HAND
     assert tuned("unicycle", "bas_mppi", path) is None
 
@@ -110,7 +111,9 @@ def test_an_older_format_is_refused_naming_it(tmp_path):
                                      "hand-tuned point")),
     (lambda e: e.update(params={"lam": None}), ("params.lam", "finite number")),
     (lambda e: e.update(kept="best"), ("kept",)),
-    (lambda e: e.update(params=HAND), ("differ from the candidate",)),
+    (lambda e: e.update(params=HAND), ("kept is 'tuned' but params differ from 'tuned'",)),
+    (lambda e: e.update(kept="hand"), ("kept is 'hand' but params differ from 'hand'",)),
+    (lambda e: e.update(hand={}), ("hand",)),
     (lambda e: e.pop("validation"), ("missing ['validation']",)),
     (lambda e: e.update(note="hand edit"), ("unknown ['note']",)),
     (lambda e: e["budget"].update(trials=0), ("budget", "tuning.trials")),
@@ -163,9 +166,9 @@ def test_an_entry_tuned_on_the_test_maps_is_refused_for_use(tmp_path, kind, seed
 def test_params_outside_the_search_space_are_refused_for_use(tmp_path):
     path = tmp_path / "t.json"
     partial = {"sigma_scale": 0.5, "lam": 2.0}
-    write([entry(params=partial, candidate=partial),
-           entry(controller="rmppi", params={**BEST, "lam": 1e6},
-                 candidate={**BEST, "lam": 1e6})], path)
+    write([entry(params=partial, tuned=partial),
+           entry(controller="rmppi", params={**BEST, "lam": 1e6}, tuned={**BEST, "lam": 1e6})],
+          path)
     with pytest.raises(TunedFileError, match=r"set \['lam', 'sigma_scale'\]"):
         check_usable(tuned("double_integrator", "sa_rmppi", path), ["spec"], [1000])
     with pytest.raises(TunedFileError, match=r"lam = 1e\+06, outside"):

@@ -73,7 +73,7 @@ def test_the_objective():
 def entry(controller: str, train: tuple[int, ...], val: tuple[int, ...] | None) -> Tuned:
     hand = {"sigma_scale": 1.0, "lam": 10.0} | ({"kappa": 0.1} if controller != "bas_mppi"
                                                  else {})
-    return Tuned("double_integrator", controller, "tuned", hand, hand, TuningBudget(),
+    return Tuned("double_integrator", controller, "tuned", hand, hand, hand, TuningBudget(),
                  "x", "velocity_variance(50)",
                  Evaluation((MapSeeds("spec", train),), 8, 0.1, 0.2),
                  Evaluation(None, None, None, None) if val is None else
@@ -124,7 +124,8 @@ def test_a_tiny_tuning_run_ships_its_provenance(tmp_path):
         beats = r["validation_tuned"] > r["validation_hand"]
         assert r["kept"] == ("tuned" if beats else "hand")
         assert json.loads(r["params"]) == json.loads(
-            r["candidate"] if beats else start["params"])
+            r["tuned"] if beats else start["params"])
+        assert json.loads(r["hand"]) == json.loads(start["params"])
     target = tmp_path / "tuned.json"
     ship(out, target)
     entries = shipped(target)

@@ -135,17 +135,19 @@ class Evaluation:
 class Tuned:
     """The shipped values of one (system, controller) pair and their provenance.
 
-    ``params`` are the values an evaluation uses: the search's ``candidate`` (its best point on
-    the validation episodes) when ``kept`` is "tuned", the hand-tuned point when ``kept`` is
-    "hand" (no candidate beat it on validation). ``training`` and ``validation`` hold both
-    points' scores; "tuned" there is the candidate, kept or not. ``disturbance`` is the label of
+    ``hand`` is the hand-tuned point the search started from, ``tuned`` the search's result
+    (its best point on the validation episodes; the hand point itself when no trial beat it on
+    training). ``params`` are the values an evaluation uses: ``tuned`` when ``kept`` is
+    "tuned", ``hand`` when ``kept`` is "hand" (the tuned point did not beat it on validation).
+    ``training`` and ``validation`` hold both points' scores. ``disturbance`` is the label of
     the disturbance both were run under; ``source`` the file the entry was read from."""
 
     system: str
     controller: str
     kept: str
     params: dict[str, float]
-    candidate: dict[str, float]
+    hand: dict[str, float]
+    tuned: dict[str, float]
     budget: TuningBudget
     objective: str
     disturbance: str
@@ -155,7 +157,7 @@ class Tuned:
 
     @property
     def score(self) -> float:
-        """The candidate's training score (NaN when not finite)."""
+        """The tuned point's training score (NaN when not finite)."""
         return math.nan if self.training.tuned is None else self.training.tuned
 
     @property
@@ -169,7 +171,7 @@ class Tuned:
 
     def as_dict(self) -> dict:
         return {"system": self.system, "controller": self.controller, "kept": self.kept,
-                "params": dict(self.params), "candidate": dict(self.candidate),
+                "params": dict(self.params), "hand": dict(self.hand), "tuned": dict(self.tuned),
                 "objective": self.objective, "disturbance": self.disturbance,
                 "budget": dataclasses.asdict(self.budget),
                 "training": self.training.as_dict(), "validation": self.validation.as_dict()}
@@ -181,7 +183,7 @@ class Tuned:
         return _entry(d, Path(source or SHIPPED), None)
 
 
-ENTRY_KEYS = ("system", "controller", "kept", "params", "candidate", "objective",
+ENTRY_KEYS = ("system", "controller", "kept", "params", "hand", "tuned", "objective",
               "disturbance", "budget", "training", "validation")
 EVALUATION_KEYS = ("maps", "episodes", "hand", "tuned")
 
@@ -262,9 +264,10 @@ def _entry(d: object, path: Path, index: int | None) -> Tuned:
     if d["kept"] not in KEPT:
         raise _bad(path, f"{at}kept: ", f"expected one of {KEPT}, got {d['kept']!r}")
     params = _params(path, f"{at}params", d["params"])
-    candidate = _params(path, f"{at}candidate", d["candidate"])
-    if d["kept"] == "tuned" and params != candidate:
-        raise _bad(path, at, "kept is 'tuned' but params differ from the candidate")
+    hand = _params(path, f"{at}hand", d["hand"])
+    tuned_ = _params(path, f"{at}tuned", d["tuned"])
+    if params != (tuned_ if d["kept"] == "tuned" else hand):
+        raise _bad(path, at, f"kept is {d['kept']!r} but params differ from {d['kept']!r}")
     b = d["budget"]
     try:
         budget = TuningBudget(**b) if isinstance(b, dict) else None
@@ -274,7 +277,7 @@ def _entry(d: object, path: Path, index: int | None) -> Tuned:
         raise _bad(path, f"{at}budget: ", f"expected an object, got {b!r}")
     training = _evaluation(path, f"{at}training.", d["training"], False)
     validation = _evaluation(path, f"{at}validation.", d["validation"], True)
-    return Tuned(d["system"], d["controller"], d["kept"], params, candidate, budget,
+    return Tuned(d["system"], d["controller"], d["kept"], params, hand, tuned_, budget,
                  d["objective"], d["disturbance"], training, validation, path)
 
 
@@ -379,7 +382,7 @@ def check_usable(entry: Tuned, families: Iterable[str], seeds: Iterable[int]) ->
 class TunedScores:
     """One shipped entry's scores under its objective, for a report: training (per trial:
     ``training_episodes`` episodes) and validation (``validation_episodes``; None when not
-    validated) of the hand-tuned point and the tuned candidate; ``kept`` says which one the
+    validated) of the hand-tuned point and the tuned one; ``kept`` says which one the
     shipped ``params`` are (a test of the shipped values with ``kept`` "hand" tests the
     hand-tuned point)."""
 
