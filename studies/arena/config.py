@@ -101,6 +101,8 @@ class ArenaConfig:
     tuning: TuningBudget = field(default_factory=TuningBudget)
     tuning_maps: int = 4
     tuning_seed: int = 0
+    validation_maps: int = 4  # the tuning runs' held-out maps, seeds from validation_seed on;
+    validation_seed: int = 500  # no two of the test, tuning and validation ranges may overlap
     tuning_disturbance: DisturbanceSpec = field(default_factory=DisturbanceSpec)
 
     def __post_init__(self) -> None:
@@ -125,19 +127,22 @@ class ArenaConfig:
             raise fail("disturbances", labels, "must not repeat a disturbance")
         for name, lo in (("test_maps", 1), ("test_seed", 0), ("realisations", 1), ("steps", 1),
                          ("seed", 0), ("calibration_seed", 0), ("tuning_maps", 1),
-                         ("tuning_seed", 0)):
+                         ("tuning_seed", 0), ("validation_maps", 1), ("validation_seed", 0)):
             object.__setattr__(self, name, integer(name, getattr(self, name), lo))
-        for name in ("test_maps", "realisations", "tuning_maps", "steps"):
+        for name in ("test_maps", "realisations", "tuning_maps", "validation_maps", "steps"):
             at_most(name, getattr(self, name), getattr(self, name), MAX_STEPS, name)
         at_most("realisations", self.realisations, len(self.controllers) * len(self.systems)
                 * len(self.families) * self.test_maps * len(self.disturbances)
                 * len(self.tunings) * self.realisations, MAX_TASKS, "the number of episodes")
-        train = range(self.tuning_seed, self.tuning_seed + self.tuning_maps)
-        test = range(self.test_seed, self.test_seed + self.test_maps)
-        if set(train) & set(test):
-            raise fail("test_seed", self.test_seed,
-                       f"test maps {test.start}..{test.stop - 1} overlap the tuning maps "
-                       f"{train.start}..{train.stop - 1}; the seed ranges must be disjoint")
+        seeds = {"test": self.map_seeds(), "tuning": self.tuning_seeds(),
+                 "validation": self.validation_seeds()}
+        for name, a, b in (("test_seed", "test", "tuning"),
+                           ("validation_seed", "validation", "tuning"),
+                           ("validation_seed", "validation", "test")):
+            if set(seeds[a]) & set(seeds[b]):
+                raise fail(name, getattr(self, name),
+                           f"{a} maps {min(seeds[a])}..{max(seeds[a])} overlap the {b} maps "
+                           f"{min(seeds[b])}..{max(seeds[b])}; the seed ranges must be disjoint")
         if self.feedback is not None and not isinstance(self.feedback, FeedbackWeights):
             raise fail("feedback", self.feedback, "must be a FeedbackWeights or None")
         real("goal_radius", self.goal_radius, 0.0, strict=True)
@@ -155,6 +160,9 @@ class ArenaConfig:
 
     def tuning_seeds(self) -> tuple[int, ...]:
         return tuple(range(self.tuning_seed, self.tuning_seed + self.tuning_maps))
+
+    def validation_seeds(self) -> tuple[int, ...]:
+        return tuple(range(self.validation_seed, self.validation_seed + self.validation_maps))
 
     def as_dict(self) -> dict:
         return asdict(self)

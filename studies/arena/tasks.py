@@ -19,7 +19,7 @@ from workbench.scenarios.maps import MAP_FAMILIES, MapFamily
 from workbench.scenarios.methods import slowest_first
 from workbench.scenarios.methods.settings import fingerprint as settings_data
 from workbench.scenarios.systems import SYSTEMS, system
-from workbench.scenarios.tuned import ControllerSettings, tuned
+from workbench.scenarios.tuned import ControllerSettings, check_usable, tuned
 from workbench.study import TaskContext, TaskOutput
 from workbench.study.spec import Declaration
 from workbench.validation import fail
@@ -68,6 +68,7 @@ def settings(config: ArenaConfig, system_name: str, controller: str,
     if t is None:
         raise fail("tunings", "tuned", f"no tuned parameters are shipped for ({system_name}, "
                    f"{controller}); run `make tune-arena` or drop 'tuned' from tunings")
+    check_usable(t, [f.family for f in config.families], config.map_seeds())
     return base.with_values(controller, t.params)
 
 

@@ -1,13 +1,23 @@
 """The arena's fair tuning: one task per (system, controller), each the same budget of optuna
-trials on the same training episodes (maps from the tuning seed range, disjoint from the test
-maps), maximising one declared objective.
+trials on the same training episodes, maximising one declared objective, then a check on
+held-out validation episodes that decides what is shipped.
 
-Every controller meets the same training episodes: episode e of every trial, for every
-controller of a system, has the same map, plant disturbances and sampler stream (keyed by the
-system and e only). The first trial is the hand-tuned point.
+Three disjoint map ranges (checked by :class:`~studies.arena.config.ArenaConfig`): training
+maps (``tuning_maps`` from ``tuning_seed``), validation maps (``validation_maps`` from
+``validation_seed``) and the arena's test maps. Each trial runs ``tuning.episodes`` training
+episodes, episode e on training map e mod (number of training maps), so every trial sees
+every training map. After the search the hand-tuned point and the best ``tuning.finalists``
+trials that beat it on training are scored on ``tuning.validation`` validation episodes; the
+finalist best on validation is shipped if it beats the hand point there, else the hand point is
+shipped, marked ``"kept": "hand"``.
 
-``make tune-arena`` runs this study and writes its result as the shipped defaults
-(:mod:`workbench.scenarios.tuned`), read by the arena's ``tuned`` rows.
+Common random numbers: training episode e of every trial, for every controller of a system,
+has the same map, plant disturbances and sampler stream (keyed by the system and e only);
+validation episode v likewise (a stream of its own), so every candidate meets the same
+validation episodes.
+
+``make tune-arena`` runs this study and writes its result, with its provenance, as the shipped
+defaults (:mod:`workbench.scenarios.tuned`), read by the arena's ``tuned`` rows.
 """
 
 from __future__ import annotations
@@ -19,19 +29,40 @@ from pathlib import Path
 import numpy as np
 
 from studies.arena.config import RESULT_VERSION, ArenaConfig
-from studies.arena.episodes import Controls, run_episode
-from studies.arena.tasks import hand_settings, system_values, where
+from studies.arena.episodes import Controls, Where, capacity, run_episode
+from studies.arena.tasks import family, hand_settings, system_values
 from workbench.scenarios.methods import names
 from workbench.scenarios.systems import SYSTEMS, system
-from workbench.scenarios.tuned import SHIPPED, Tuned, shipped, space
+from workbench.scenarios.tuned import (
+    Evaluation,
+    MapSeeds,
+    Tuned,
+    TunedFileError,
+    shipped,
+    space,
+    write,
+)
 from workbench.study import TaskContext, TaskOutput, to_jsonable
-from workbench.study.io import atomic_write_json
 from workbench.study.spec import Declaration, Summary
 from workbench.study.tasks import seed_sequence
-from workbench.study.tuning import tune
+from workbench.study.tuning import select, tune
+from workbench.validation import fail
 
 OBJECTIVE = ("success rate (goal reached without a crash) minus 0.01 x the mean final distance "
              "to the goal in map units (metres divided by the system's map scale)")
+TRAINING_STREAM, VALIDATION_STREAM = 1_000_003, 1_000_033  # stream words of the episodes
+
+
+def objective_value(success, final_error_map_units) -> float:
+    """:data:`OBJECTIVE` of a set of episodes: the mean of ``success`` (1 for an episode that
+    reached the goal without a crash) minus 0.01 x the mean final distance to the goal in map
+    units. The tuning and the arena's test scores both use this."""
+    s = np.asarray(success, dtype=float)
+    e = np.asarray(final_error_map_units, dtype=float)
+    if s.ndim != 1 or s.size == 0 or s.shape != e.shape:
+        raise fail("success", s.shape, f"must be a non-empty 1-D array shaped like "
+                   f"final_error_map_units {e.shape}")
+    return float(np.mean(s) - 0.01 * np.mean(e))
 
 
 @dataclass(frozen=True)
@@ -48,41 +79,82 @@ def training(config: ArenaConfig) -> list[tuple[str, int]]:
     return [(f.family, s) for s in config.tuning_seeds() for f in config.families]
 
 
-def objective_of(config: ArenaConfig, task: TuningTask, threads: int = 1):
+def validation(config: ArenaConfig) -> list[tuple[str, int]]:
+    """The validation maps: (family, seed) for every family and every validation seed."""
+    return [(f.family, s) for s in config.validation_seeds() for f in config.families]
+
+
+def where(config: ArenaConfig, system_name: str, family_name: str, seed: int) -> Where:
+    """A system on a training or validation map; the kernels' circle slots cover the test,
+    training and validation maps of the family."""
+    fam = family(config, family_name)
+    seeds = config.map_seeds() + config.tuning_seeds() + config.validation_seeds()
+    return Where(system_name, fam, seed, capacity(fam, seeds))
+
+
+def episodes_score(config: ArenaConfig, task: TuningTask, maps: list[tuple[str, int]],
+                   episodes: int, stream: int, threads: int = 1):
+    """``params -> objective_value`` over ``episodes`` episodes of the task's system under the
+    tuning disturbance, episode e on ``maps[e mod len(maps)]`` with streams keyed by the
+    system, ``stream`` and e (never by the controller or the parameters)."""
     base = hand_settings(config, task.system)
     spec = system(task.system)
     dist = config.tuning_disturbance.disturbance(spec.level_scale, spec.disturbed)
-    maps = training(config)
     key = list(SYSTEMS).index(task.system)
 
-    def objective(params: dict[str, float], trial: int) -> float:
+    def score(params: dict[str, float]) -> float:
         c = Controls(task.controller, base.with_values(task.controller, params), config.robust,
                      config.feedback, config.calibration_seed)
         success, error = [], []
-        for e in range(config.tuning.episodes):
+        for e in range(episodes):
             fam, seed = maps[e % len(maps)]
-            ss = seed_sequence(config.seed, (key, 1_000_003, e))  # not the controller or trial
+            ss = seed_sequence(config.seed, (key, stream, e))
             rc, rp = (np.random.default_rng(s) for s in ss.spawn(2))
             out = run_episode(where(config, task.system, fam, seed), c, dist, config.steps,
                               config.goal_radius, rc, rp, threads)
             success.append(out.success)
             error.append(out.final_error / spec.scale)
-        return float(np.mean(success) - 0.01 * np.mean(error))
+        return objective_value(success, error)
 
-    return objective, base.values(task.controller)
+    return score
+
+
+def objective_of(config: ArenaConfig, task: TuningTask, threads: int = 1):
+    """The training objective ``(params, trial) -> score`` and the hand-tuned start."""
+    score = episodes_score(config, task, training(config), config.tuning.episodes,
+                           TRAINING_STREAM, threads)
+    return (lambda params, trial: score(params)), hand_settings(config, task.system).values(
+        task.controller)
+
+
+def validation_of(config: ArenaConfig, task: TuningTask, threads: int = 1):
+    """The validation score ``params -> score`` (the same episodes for every candidate)."""
+    return episodes_score(config, task, validation(config), config.tuning.validation,
+                          VALIDATION_STREAM, threads)
 
 
 def run_task(task: TuningTask, ctx: TaskContext, config: ArenaConfig,
              prepared=None) -> TaskOutput:
     objective, start = objective_of(config, task, ctx.threads)
     res = tune(space(task.controller), objective, config.tuning, start, description=OBJECTIVE)
+    sel = select(res, validation_of(config, task, ctx.threads), config.tuning.finalists)
+    validated = {t.number: v for t, v in sel.scored}
     t = res.trials
     return TaskOutput(
         tables={"trials": {"trial": np.array([x.number for x in t]),
                            "score": np.array([x.score for x in t]),
+                           "validation": np.array([validated.get(x.number, np.nan)
+                                                   for x in t]),
                            "params": np.array([json.dumps(x.params) for x in t], dtype=str)},
-                "best": {"score": np.array([res.score]), "start_score": np.array([
-                    res.start_score]), "params": np.array([json.dumps(res.best)], dtype=str)}})
+                "best": {"kept": np.array([sel.kept], dtype=str),
+                         "params": np.array([json.dumps(sel.params)], dtype=str),
+                         "hand": np.array([json.dumps(sel.start.params)], dtype=str),
+                         "tuned": np.array([json.dumps(sel.candidate.params)], dtype=str),
+                         "trial": np.array([sel.candidate.number]),
+                         "training_hand": np.array([sel.start.score]),
+                         "training_tuned": np.array([sel.candidate.score]),
+                         "validation_hand": np.array([sel.start_validation]),
+                         "validation_tuned": np.array([sel.candidate_validation])}})
 
 
 def plan(config: ArenaConfig) -> tuple[TuningTask, ...]:
@@ -95,34 +167,78 @@ def fingerprint(config: ArenaConfig) -> dict:
     for k in ("controllers", "systems", "test_maps", "test_seed", "disturbances",
               "realisations", "tunings"):
         d.pop(k)
+    seeds = config.map_seeds() + config.tuning_seeds() + config.validation_seeds()
+    d["capacity"] = {f.family: capacity(f, seeds) for f in config.families}  # test maps too
     return d
 
 
+def check(config: ArenaConfig) -> None:
+    """What a tuning run needs beyond a valid arena config: a validation step, and enough
+    episodes for every trial to see every training map and every candidate every validation
+    map."""
+    b = config.tuning
+    if b.validation < 1:
+        raise fail("tuning.validation", b.validation, "must be >= 1: the arena's tuning "
+                   "validates the hand point and the finalists on held-out maps")
+    for name, n, maps in (("tuning.episodes", b.episodes, training(config)),
+                          ("tuning.validation", b.validation, validation(config))):
+        if n < len(maps):
+            raise fail(name, n, f"must be at least the number of its maps ({len(maps)}: "
+                       f"seeds x families) so that every map is run")
+
+
 def declare(config: ArenaConfig) -> Declaration:
+    check(config)
     return Declaration(plan(config), run_task, fingerprint(config), RESULT_VERSION)
 
 
+def _maps(config: ArenaConfig, seeds: tuple[int, ...]) -> tuple[MapSeeds, ...]:
+    return tuple(MapSeeds(f.family, seeds) for f in config.families)
+
+
 def tuned_entries(config: ArenaConfig, store) -> list[Tuned]:
-    best = store.table("best")
-    maps = ", ".join(f"{f}-{s}" for f, s in training(config))
-    train = (f"{config.tuning.episodes} episodes per trial on maps {maps} under "
-             f"{config.tuning_disturbance.label}")
+    """The run's result per (system, controller) as shipped entries with their provenance."""
     out = []
-    for _, r in best.iterrows():
-        out.append(Tuned(r["system"], r["controller"], json.loads(r["params"]),
-                         float(r["score"]), float(r["start_score"]), config.tuning, OBJECTIVE,
-                         train))
-    return out
+    for _, r in store.table("best").iterrows():
+        out.append(Tuned(
+            r["system"], r["controller"], str(r["kept"]), json.loads(r["params"]),
+            json.loads(r["hand"]), json.loads(r["tuned"]), config.tuning, OBJECTIVE,
+            config.tuning_disturbance.label,
+            Evaluation(_maps(config, config.tuning_seeds()), config.tuning.episodes,
+                       float(r["training_hand"]), float(r["training_tuned"])),
+            Evaluation(_maps(config, config.validation_seeds()), config.tuning.validation,
+                       float(r["validation_hand"]), float(r["validation_tuned"]))))
+    return sorted(out, key=lambda t: (t.system, t.controller))
+
+
+def _values(params: dict[str, float]) -> str:
+    return ", ".join(f"{k} {v:.3g}" for k, v in params.items())
+
+
+def flag(t: Tuned) -> str:
+    """Why the hand point was kept, or "" when the tuned point was."""
+    if t.kept == "tuned":
+        return ""
+    if t.tuned == t.hand:
+        return "no trial beat the hand point on training: hand kept"
+    hand, tuned = (-np.inf if v is None else v for v in (t.validation.hand, t.validation.tuned))
+    worse = tuned < hand
+    return ("tuned worse than hand on validation: hand kept" if worse else
+            "tuned no better than hand on validation: hand kept")
 
 
 def summary(finished) -> Summary:
     entries = tuned_entries(finished.config, finished.store)
-    lines = tuple(f"{t.system:18s} {t.controller:14s} training score {t.start_score:.3f} "
-                  f"(hand) -> {t.score:.3f}: " + ", ".join(f"{k} {v:.3g}"
-                                                          for k, v in t.params.items())
+    lines = tuple(f"{t.system:18s} {t.controller:14s} training {t.start_score:.3f} (hand) -> "
+                  f"{t.score:.3f}, validation {t.validation.hand:.3f} -> "
+                  f"{t.validation.tuned:.3f}: kept {t.kept} ({_values(t.params)})"
                   for t in entries)
     return Summary({"tuned": [t.as_dict() for t in entries],
                     "budget": to_jsonable(finished.config.tuning)}, entries, lines)
+
+
+def _maps_text(ev: Evaluation) -> str:
+    return "; ".join(f"{m.family} seeds {min(m.seeds)}..{max(m.seeds)}" for m in ev.maps or ())
 
 
 def report(finished, summ) -> Path:
@@ -130,13 +246,26 @@ def report(finished, summ) -> Path:
     from workbench.study.io import atomic_write_text
 
     rows = [[t.system, t.controller, f"{t.start_score:.3f}", f"{t.score:.3f}",
-             ", ".join(f"{k} {v:.3g}" for k, v in t.params.items())] for t in summ.value]
-    b = finished.config.tuning
+             f"{t.validation.hand:.3f}", f"{t.validation.tuned:.3f}", t.kept, _values(t.hand),
+             _values(t.tuned), flag(t) or "–"] for t in summ.value]
+    c = finished.config
+    b = c.tuning
+    first = summ.value[0] if summ.value else None
     text = ["# Arena tuning", "", finished.run_line, "",
-            f"Budget per controller: {b.trials} trials x {b.episodes} episodes "
-            f"(TPE seeded with {b.seed}). Objective: {OBJECTIVE}.", "",
-            *md_table(["system", "controller", "hand-tuned score", "tuned score", "tuned"],
-                      rows), ""]
+            f"Budget per controller: {b.trials} trials x {b.episodes} training episodes (TPE "
+            f"seeded with {b.seed}), then the hand-tuned point and the best {b.finalists} "
+            f"trials that beat it on training, each on {b.validation} validation episodes "
+            f"(the same for every candidate). The best on validation is shipped if it beats "
+            f"the hand point there; otherwise the hand point is shipped (kept: hand).", "",
+            f"Objective: {OBJECTIVE}. Disturbance: {c.tuning_disturbance.label}.", "",
+            *([f"Training maps: {_maps_text(first.training)}; validation maps: "
+               f"{_maps_text(first.validation)}."] if first else []), "",
+            *md_table(["system", "controller", "training, hand", "training, tuned",
+                       "validation, hand", "validation, tuned", "kept", "hand point",
+                       "tuned point", "flag"], rows), "",
+            "The training score of the tuned point is the best of many noisy estimates and "
+            "overstates it; the validation scores are unbiased for the hand point and nearly so "
+            "for the tuned one (the best of a few finalists).", ""]
     path = Path(finished.out) / "report.md"
     atomic_write_text(path, "\n".join(text))
     return path
@@ -144,17 +273,21 @@ def report(finished, summ) -> Path:
 
 def ship(run_dir: Path | str, path: Path | None = None) -> Path:
     """Write a finished tuning run's results as the shipped defaults (entries for other
-    (system, controller) pairs are kept)."""
-    data = json.loads((Path(run_dir) / "summary.json").read_text(encoding="utf-8"))
-    entries = {k: v.as_dict() for k, v in shipped(path).items()}
-    for e in data["tuned"]:
-        entries[(e["system"], e["controller"])] = e
-    target = Path(path or SHIPPED)
-    atomic_write_json(target, {"tuned": [entries[k] for k in sorted(entries)]})
-    return target
+    (system, controller) pairs are kept, each with its own provenance)."""
+    source = Path(run_dir) / "summary.json"
+    data = json.loads(source.read_text(encoding="utf-8"))
+    new = [Tuned.from_dict(e, source) for e in data["tuned"]]
+    try:
+        entries = shipped(path)
+    except TunedFileError as exc:
+        raise TunedFileError(f"cannot add this run's entries to the existing file: {exc}; "
+                             f"move that file away to ship this run's entries alone") from exc
+    for t in new:
+        entries[(t.system, t.controller)] = t
+    return write(entries.values(), path)
 
 
 if __name__ == "__main__":
     import sys
 
-    print(ship(sys.argv[1] if len(sys.argv) > 1 else "reports/arena-tuning"))
+    print(ship(sys.argv[1] if len(sys.argv) > 1 else "reports/arena_tuning"))

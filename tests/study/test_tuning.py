@@ -1,5 +1,6 @@
 """Equal-budget tuning: the budget is spent exactly, the hand-tuned start is trial 0, the search
-is reproducible in its seed and improves on a known objective; tuned values enter a
+is reproducible in its seed and improves on a known objective; the validation step ships the
+tuned point only when it beats the start on held-out episodes; tuned values enter a
 controller's settings where they should; bad budgets and values name the field."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.tuned import ControllerSettings, shipped, space
-from workbench.study.tuning import Param, TuningBudget, tune
+from workbench.study.tuning import Param, TuningBudget, finalists, select, tune
 
 SPACE = (Param("a", 0.01, 100.0), Param("b", -5.0, 5.0, log=False),
          Param("n", 1, 50, log=False, integer=True))
@@ -54,8 +55,63 @@ def test_non_finite_scores_rank_last():
     assert res.score == -1.0 and res.trials[1].score == -math.inf
 
 
+START = {"a": 50.0, "b": -4.0, "n": 3}
+
+
+def training_search():
+    return tune(SPACE, objective, TuningBudget(trials=12, episodes=1, seed=3), START)
+
+
+def test_hand_is_kept_when_the_best_training_trials_are_worse_on_validation():
+    """The stand-in validation prefers the start: the search's best training trials (far
+    better on training) lose there, so the start is shipped, marked hand."""
+    res = training_search()
+    calls = []
+
+    def validate(p):
+        calls.append(p)
+        return -abs(math.log10(p["a"] / START["a"]))  # best at the start's a
+
+    sel = select(res, validate, 3)
+    assert sel.kept == "hand" and sel.params == res.trials[0].params
+    assert sel.candidate.number != 0 and sel.candidate.score > res.start_score
+    assert sel.candidate_validation < sel.start_validation
+    # the start and the three best trials that beat it on training, nothing else
+    top = sorted(res.trials[1:], key=lambda t: -t.score)[:3]
+    assert calls[0] == res.trials[0].params and calls[1:] == [t.params for t in top]
+    assert [t for t, _ in sel.scored] == [res.trials[0], *top]
+
+
+def test_the_tuned_point_best_on_validation_is_shipped_when_it_beats_the_hand_point():
+    res = training_search()
+    sel = select(res, lambda p: objective(p, 0), 3)  # validation agrees with training
+    best = max(res.trials, key=lambda t: t.score)
+    assert sel.kept == "tuned" and sel.params == best.params == sel.candidate.params
+    assert sel.candidate_validation > sel.start_validation
+    # validation disagrees on the order of the finalists: the second best on training ships
+    second = finalists(res, 3)[1]
+    sel = select(res, lambda p: 1.0 if p == second.params else -100.0 + objective(p, 0), 3)
+    assert sel.kept == "tuned" and sel.params == second.params
+
+
+def test_a_tie_on_validation_keeps_the_hand_point_and_nothing_better_on_training_is_not_scored():
+    res = training_search()
+    sel = select(res, lambda p: 0.5, 3)
+    assert sel.kept == "hand" and sel.params == res.trials[0].params
+    flat = tune(SPACE, lambda p, t: 1.0 if t == 0 else 0.0, TuningBudget(trials=4), START)
+    calls = []
+    sel = select(flat, lambda p: calls.append(p) or 9.0, 3)
+    assert finalists(flat, 3) == () and len(calls) == 1
+    assert sel.kept == "hand" and sel.candidate == flat.trials[0]
+    nan = select(res, lambda p: 0.0 if p == res.trials[0].params else math.nan, 3)
+    assert nan.kept == "hand" and nan.candidate_validation == -math.inf
+
+
 @pytest.mark.parametrize("make, field", [
     (lambda: TuningBudget(trials=0), r"tuning\.trials"),
+    (lambda: TuningBudget(validation=0), r"tuning\.finalists"),
+    (lambda: TuningBudget(validation=-1, finalists=0), r"tuning\.validation"),
+    (lambda: TuningBudget(validation=10**5, finalists=10**3), r"tuning\.validation"),
     (lambda: TuningBudget(episodes=0), r"tuning\.episodes"),
     (lambda: Param("a", 0.0, 1.0), r"Param\(a\)\.low"),
     (lambda: Param("a", 2.0, 1.0), r"Param\(a\)\.high"),
