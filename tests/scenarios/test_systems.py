@@ -131,7 +131,10 @@ def test_disturbed_states_and_level_scales_resolve_on_each_plant(navs):
         idx = Disturbance(1.0, states=s.disturbed).indices(navs[name].plant)
         assert tuple(navs[name].plant.state_names[i] for i in idx) == s.disturbed
     assert system("planar_quadrotor").level_scale == pytest.approx(0.18**2)
-    assert system("unicycle").level_scale == system("bicycle").level_scale == 0.16
+    # calibrated on the heading (assumptions §2.6, python -m studies.arena.difficulty)
+    assert system("unicycle").disturbed == system("bicycle").disturbed == ("theta",)
+    assert (system("unicycle").level_scale, system("bicycle").level_scale) == (0.45, 0.24)
+    assert system("double_integrator").disturbed == ("vx", "vy")
     assert system("double_integrator").level_scale == 1.0
 
 
