@@ -70,6 +70,67 @@ class DisturbanceSpec:
         return Disturbance(self.level * scale, self.model, states=self.states or states, **kw)
 
 
+METRICS = ("safety", "success")  # paired binary outcomes a comparison may decide on
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A declared comparison: ``first`` against ``second`` on ``metric`` ("safety": no crash;
+    "success": the goal reached without a crash), in every (system, disturbance, tuning) of
+    the run, or in those listed (``systems``, ``disturbances`` by label, ``tunings``). Each
+    combination is one comparison of the family over which the error rates are kept."""
+
+    first: str
+    second: str
+    metric: str = "safety"
+    systems: tuple[str, ...] = ()
+    disturbances: tuple[str, ...] = ()
+    tunings: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("first", "second"):
+            if getattr(self, name) not in names():
+                raise fail(f"comparisons.{name}", getattr(self, name),
+                           f"unknown controller; allowed values are {names()}")
+        if self.first == self.second:
+            raise fail("comparisons.second", self.second, "must differ from first")
+        if self.metric not in METRICS:
+            raise fail("comparisons.metric", self.metric, f"must be one of {METRICS}")
+        for name in ("systems", "disturbances", "tunings"):
+            v = getattr(self, name)
+            if isinstance(v, str):
+                v = (v,)
+            if not isinstance(v, tuple | list) or not all(isinstance(x, str) for x in v):
+                raise fail(f"comparisons.{name}", v, "must be a list of names")
+            object.__setattr__(self, name, tuple(v))
+
+
+@dataclass(frozen=True)
+class DecisionSettings:
+    """How the declared comparisons are decided (group-sequential, see
+    :mod:`studies.arena.decisions`): ``margin`` is the smallest difference that matters (and
+    the equivalence margin), ``alpha`` the family-wise error rate over every declared
+    comparison, ``power`` the power planned at ``margin`` given the assumed share of
+    discordant pairs ``discordance``; ``rounds`` is the number of looks: each round adds
+    ``test_maps`` new maps of every family with ``realisations`` each, for the comparisons
+    still undecided."""
+
+    margin: float = 0.10
+    alpha: float = 0.05
+    power: float = 0.80
+    discordance: float = 0.35
+    rounds: int = 1
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in (("margin", 0.0, 1.0), ("alpha", 0.0, 0.5), ("power", 0.5, 1.0),
+                             ("discordance", 0.0, 1.0)):
+            v = real(f"decision.{name}", getattr(self, name), lo, strict=True)
+            if v >= hi:
+                raise fail(f"decision.{name}", v, f"must lie in ({lo:g}, {hi:g})")
+            object.__setattr__(self, name, v)
+        object.__setattr__(self, "rounds", integer("decision.rounds", self.rounds, 1, 50))
+
+
 @dataclass(frozen=True)
 class ArenaConfig:
     """Cells: every controller x system x test map x disturbance, ``realisations`` episodes
@@ -104,6 +165,8 @@ class ArenaConfig:
     validation_maps: int = 4  # the tuning runs' held-out maps, seeds from validation_seed on;
     validation_seed: int = 500  # no two of the test, tuning and validation ranges may overlap
     tuning_disturbance: DisturbanceSpec = field(default_factory=DisturbanceSpec)
+    comparisons: tuple[Comparison, ...] = ()  # empty: claim (i), when both ran
+    decision: DecisionSettings = field(default_factory=DecisionSettings)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "controllers",
@@ -134,6 +197,9 @@ class ArenaConfig:
         at_most("realisations", self.realisations, len(self.controllers) * len(self.systems)
                 * len(self.families) * self.test_maps * len(self.disturbances)
                 * len(self.tunings) * self.realisations, MAX_TASKS, "the number of episodes")
+        if not isinstance(self.decision, DecisionSettings):
+            raise fail("decision", self.decision, "must be a DecisionSettings")
+        self._check_comparisons()
         seeds = {"test": self.map_seeds(), "tuning": self.tuning_seeds(),
                  "validation": self.validation_seeds()}
         for name, a, b in (("test_seed", "test", "tuning"),
@@ -155,8 +221,38 @@ class ArenaConfig:
             if not isinstance(getattr(self, name), kind):
                 raise fail(name, getattr(self, name), f"must be a {kind.__name__}")
 
+    def _check_comparisons(self) -> None:
+        v = self.comparisons
+        if isinstance(v, Comparison) or not isinstance(v, tuple | list):
+            raise fail("comparisons", v, "must be a list of Comparison")
+        object.__setattr__(self, "comparisons", tuple(v))
+        labels = [d.label for d in self.disturbances]
+        for i, c in enumerate(self.comparisons):
+            if not isinstance(c, Comparison):
+                raise fail(f"comparisons[{i}]", c, "must be a Comparison")
+            for name in ("first", "second"):
+                if getattr(c, name) not in self.controllers:
+                    raise fail(f"comparisons[{i}].{name}", getattr(c, name),
+                               f"is not among the run's controllers {self.controllers}")
+            for name, allowed in (("systems", self.systems), ("disturbances", labels),
+                                  ("tunings", self.tunings)):
+                for x in getattr(c, name):
+                    if x not in allowed:
+                        raise fail(f"comparisons[{i}].{name}", x,
+                                   f"is not in the run; allowed values are {tuple(allowed)}")
+
     def map_seeds(self) -> tuple[int, ...]:
-        return tuple(range(self.test_seed, self.test_seed + self.test_maps))
+        """The test maps' seeds of every round (round r: ``test_maps`` seeds from
+        ``test_seed + r * test_maps``)."""
+        return tuple(range(self.test_seed,
+                           self.test_seed + self.test_maps * self.decision.rounds))
+
+    def round_seeds(self, r: int) -> tuple[int, ...]:
+        start = self.test_seed + r * self.test_maps
+        return tuple(range(start, start + self.test_maps))
+
+    def round_of(self, seed: int) -> int:
+        return (seed - self.test_seed) // self.test_maps
 
     def tuning_seeds(self) -> tuple[int, ...]:
         return tuple(range(self.tuning_seed, self.tuning_seed + self.tuning_maps))

@@ -1,49 +1,39 @@
-"""The verdict on the paper's claim (i), generated from the arena's pooled comparisons.
+"""What the arena decides, in words: the paper's claim (i) on its own rows, every declared
+comparison's verdict, and the recommendation per system.
 
 Claim (i): under disturbance, SA-RMPPI (robust sampling with the barrier-state feedback K_safe)
-is safer than BaS-MPPI. For every (system, disturbance, tuning) the arena ran, the claim
-*holds* when SA-RMPPI's pooled safety lead over the maps is positive and significant after a
-Holm correction over all those settings (exact McNemar, 5 %), is *contradicted* when the lead
-is negative and significant, and is *not decided* otherwise. A setting whose effect differs
-between maps (homogeneity p < 0.05) is flagged: a pooled number then hides map-dependence.
-The ablations say why: SA-RMPPI against RMPPI (same sampler, plain tracking gains instead of
-K_safe) isolates the barrier-state feedback; RMPPI against BaS-MPPI isolates the robust
-sampler itself.
+is safer than BaS-MPPI. It is a declared comparison of the arena (the default one), decided
+group-sequentially (:mod:`studies.arena.decisions`): it *holds* when SA-RMPPI's repeated 95 %
+interval of the safety difference lies above 0, is *contradicted* when it lies below 0, is
+*equivalent* when the equivalence interval lies within the margin, and is *undecided* when the
+budget of rounds ran out first; the error rates are kept over every declared comparison. The
+ablations say why: SA-RMPPI against RMPPI (same sampler, plain tracking gains instead of K_safe)
+isolates the barrier-state feedback; RMPPI against BaS-MPPI isolates the robust sampler itself.
+They are descriptive (pooled over the maps of the first round), not declared.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from studies.arena.summary import ALL, ArenaSummary, Pooled
-
-CLAIM = ("sa_rmppi", "bas_mppi")
-LEVEL = 0.05
+from studies.arena.decisions import CLAIM
+from studies.arena.summary import ALL, ArenaSummary, Board, DecisionRow
+from studies.navigation.paper import TABLE_I
 
 
 @dataclass(frozen=True)
 class Setting:
-    system: str
-    disturbance: str
-    tuning: str
-    n_maps: int
-    n: int
-    b: int
-    c: int
-    difference: float
-    low: float
-    high: float
-    p_value: float
-    p_holm: float
-    homogeneity_p: float | None
-    outcome: str  # "holds", "contradicted" or "not decided"
-    success_first: float  # SA-RMPPI's share of episodes that reached the goal without a crash
-    success_second: float  # BaS-MPPI's
-    drift: float  # share of both controllers' safe episodes that never reached the goal
+    """Claim (i) in one (system, disturbance, tuning): the decision row, the paper's
+    difference at the same level on the double integrator (Table I, points; None elsewhere)
+    and whether it lies inside our repeated interval; success of both and the share of safe
+    episodes that never reached the goal (drift)."""
 
-    @property
-    def heterogeneous(self) -> bool:
-        return self.homogeneity_p is not None and self.homogeneity_p < LEVEL
+    row: DecisionRow
+    paper: float | None
+    paper_inside: bool | None
+    success_first: float
+    success_second: float
+    drift: float
 
 
 @dataclass(frozen=True)
@@ -63,28 +53,8 @@ class Ablation:
 class Verdict:
     settings: tuple[Setting, ...]
     ablations: tuple[Ablation, ...]
-    holds: int
-    contradicted: int
-    undecided: int
-    n_maps: int
+    counts: dict[str, int]
     text: tuple[str, ...]
-
-
-def holm(p: list[float]) -> list[float]:
-    """Holm-Bonferroni adjusted p-values (statsmodels)."""
-    if not p:
-        return []
-    from statsmodels.stats.multitest import multipletests
-
-    return [float(v) for v in multipletests(p, method="holm")[1]]
-
-
-def _outcome(p: Pooled, adj: float) -> str:
-    if adj < LEVEL and p.difference > 0:
-        return "holds"
-    if adj < LEVEL and p.difference < 0:
-        return "contradicted"
-    return "not decided"
 
 
 def _pts(x: float) -> str:
@@ -103,51 +73,116 @@ def _success(s: ArenaSummary, controller: str, system: str, disturbance: str,
     return (ok / n if n else float("nan")), safe, safe - ok
 
 
+def _paper(s: ArenaSummary, row: DecisionRow) -> float | None:
+    """Table I's SA-RMPPI minus BaS-MPPI at this disturbance's level (double integrator)."""
+    if row.system != "double_integrator":
+        return None
+    level = next((d["level"] for d in s.config["disturbances"]
+                  if _label(d) == row.disturbance), None)
+    t = TABLE_I.get(float(level)) if level is not None else None
+    return None if t is None else (t["sa_rmppi"][0] - t["bas_mppi"][0]) / 100
+
+
+def _label(d: dict) -> str:
+    from studies.arena.config import DisturbanceSpec
+
+    return DisturbanceSpec(**{k: tuple(v) if isinstance(v, list) else v
+                              for k, v in d.items()}).label
+
+
+def verdict_sentence(r: DecisionRow, names: tuple[str, str] | None = None) -> str:
+    """One sentence: the verdict, the difference with its repeated interval, pairs, looks,
+    discordant counts, the fixed-sample McNemar p and, when undecided, the detectable
+    difference."""
+    a, b = names or (r.first, r.second)
+    words = {"holds": f"{a} better", "contradicted": f"{a} worse",
+             "equivalent": "equivalent", "undecided": "undecided"}[r.verdict]
+    text = (f"{words}: {a} minus {b} {r.metric} {_pts(r.difference)} points "
+            f"[{_pts(r.low)}, {_pts(r.high)}] over {r.n} pairs after {r.looks} look"
+            f"{'s' if r.looks != 1 else ''} ({r.b} only {a}, {r.c} only {b}; McNemar p = "
+            f"{r.p_value:.2g})")
+    if r.verdict == "equivalent":
+        text += f"; equivalence interval [{_pts(r.eq_low)}, {_pts(r.eq_high)}]"
+    if r.verdict == "undecided" and r.detectable is not None:
+        text += (f"; with these pairs it could have detected a difference of "
+                 f"{100 * r.detectable:.0f} points")
+    if r.uninformative:
+        text += f". Uninformative setting: {r.uninformative}"
+    return text + "."
+
+
 def verdict(s: ArenaSummary) -> Verdict | None:
-    rows = [p for p in s.pooled if (p.first, p.second) == CLAIM and p.disturbance != ALL]
+    rows = [r for r in s.decisions if (r.first, r.second) == CLAIM and r.metric == "safety"]
     if not rows:
         return None
-    adj = holm([p.p_value for p in rows])
     settings = []
-    for p, a in zip(rows, adj, strict=True):
-        f = _success(s, CLAIM[0], p.system, p.disturbance, p.tuning)
-        g = _success(s, CLAIM[1], p.system, p.disturbance, p.tuning)
+    for r in rows:
+        f = _success(s, CLAIM[0], r.system, r.disturbance, r.tuning)
+        g = _success(s, CLAIM[1], r.system, r.disturbance, r.tuning)
         drift = (f[2] + g[2]) / (f[1] + g[1]) if f[1] + g[1] else 0.0
-        settings.append(Setting(p.system, p.disturbance, p.tuning, p.n_maps, p.n, p.b, p.c,
-                                p.difference, p.low, p.high, p.p_value, a, p.homogeneity_p,
-                                _outcome(p, a), f[0], g[0], drift))
-    settings = tuple(settings)
+        paper = _paper(s, r)
+        inside = None if paper is None else bool(r.low <= paper <= r.high)
+        settings.append(Setting(r, paper, inside, f[0], g[0], drift))
     pooled_over = ALL if any(p.disturbance == ALL for p in s.pooled) else rows[0].disturbance
     abl = tuple(Ablation(p.first, p.second, p.system, p.tuning, p.n, p.difference, p.low,
                          p.high, p.p_value)
                 for p in s.pooled if (p.first, p.second) in (("sa_rmppi", "rmppi"),
                                                                ("rmppi", "bas_mppi"))
                 and p.disturbance == pooled_over)
-    count = {o: sum(x.outcome == o for x in settings)
-             for o in ("holds", "contradicted", "not decided")}
-    n_maps = max(x.n_maps for x in settings)
-    text = [f"Claim (i), SA-RMPPI safer than BaS-MPPI under disturbance, over {n_maps} test "
-            f"maps per setting: holds in {count['holds']} of {len(settings)} settings "
-            f"(system x disturbance x tuning), contradicted in {count['contradicted']}, not "
-            f"decided in {count['not decided']} (exact McNemar on the discordant pairs summed "
-            f"over maps, Holm-corrected over the {len(settings)} settings, level {LEVEL:g})."]
+    counts = {o: sum(x.row.verdict == o for x in settings)
+              for o in ("holds", "contradicted", "equivalent", "undecided")}
+    d = s.design or {}
+    text = [f"Claim (i), SA-RMPPI safer than BaS-MPPI under disturbance: holds in "
+            f"{counts['holds']} of {len(settings)} settings (system x disturbance x tuning), "
+            f"contradicted in {counts['contradicted']}, equivalent within "
+            f"±{100 * d.get('margin', float('nan')):.0f} points in {counts['equivalent']}, "
+            f"undecided in {counts['undecided']} (group-sequential, error rates kept over "
+            f"{d.get('comparisons', len(settings))} declared comparisons at family-wise "
+            f"level {d.get('alpha', float('nan')):g})."]
     for x in settings:
-        flag = " The effect differs between maps (homogeneity p = " \
-               f"{x.homogeneity_p:.2g})." if x.heterogeneous else ""
-        text.append(f"{x.system}, {x.disturbance}, {x.tuning}: {x.outcome}; SA-RMPPI minus "
-                    f"BaS-MPPI safety {_pts(x.difference)} points [{_pts(x.low)}, "
-                    f"{_pts(x.high)}] over {x.n} paired episodes ({x.b} only SA-RMPPI safe, "
-                    f"{x.c} only BaS-MPPI safe; p = {x.p_value:.2g}, Holm {x.p_holm:.2g}). "
-                    f"Reached the goal without a crash: SA-RMPPI {100 * x.success_first:.0f} %, "
-                    f"BaS-MPPI {100 * x.success_second:.0f} %." + flag
+        r = x.row
+        paper = ("" if x.paper is None else
+                 f" The paper's {_pts(x.paper)} points (Table I, one map) lie "
+                 f"{'inside' if x.paper_inside else 'outside'} this interval.")
+        text.append(f"{r.system}, {r.disturbance}, {r.tuning}: "
+                    + verdict_sentence(r, ("SA-RMPPI", "BaS-MPPI"))
+                    + f" Reached the goal without a crash: SA-RMPPI "
+                    f"{100 * x.success_first:.0f} %, BaS-MPPI {100 * x.success_second:.0f} %."
+                    + paper
                     + (f" {100 * x.drift:.0f} % of the safe episodes never reached the goal: "
                        "here safety mostly means being pushed away from the obstacles, not "
                        "avoiding them." if x.drift > 0.5 else ""))
     for a in abl:
         what = ("the barrier-state feedback K_safe (against plain tracking gains)"
                 if a.second == "rmppi" else "the robust sampler with tracking gains")
-        text.append(f"Ablation, {a.system}, {a.tuning}: {what}: {a.first} minus {a.second} "
-                    f"{_pts(a.difference)} points [{_pts(a.low)}, {_pts(a.high)}], "
+        text.append(f"Ablation (descriptive), {a.system}, {a.tuning}: {what}: {a.first} minus "
+                    f"{a.second} {_pts(a.difference)} points [{_pts(a.low)}, {_pts(a.high)}], "
                     f"p = {a.p_value:.2g} over {a.n} paired episodes.")
-    return Verdict(settings, abl, count["holds"], count["contradicted"], count["not decided"],
-                   n_maps, tuple(text))
+    return Verdict(tuple(settings), abl, counts, tuple(text))
+
+
+def frontier(boards: list[Board]) -> list[Board]:
+    """The safety-versus-cost frontier of one leaderboard: controllers no other one beats on
+    both safety and ms per step (ties on both kept), cheapest first."""
+    out = [b for b in boards
+           if not any((o.safety >= b.safety and o.mean_step_ms < b.mean_step_ms)
+                      or (o.safety > b.safety and o.mean_step_ms <= b.mean_step_ms)
+                      for o in boards)]
+    return sorted(out, key=lambda b: b.mean_step_ms)
+
+
+def recommended(s: ArenaSummary, system: str, tuning: str) -> list[Board]:
+    """The recommended mechanism(s) on a system: the safest controller (the leaderboard's
+    first) and every one whose safety lies inside its 95 % interval and that no declared
+    comparison with it found worse; cheapest first."""
+    boards = [b for b in s.leaderboard if (b.system, b.tuning) == (system, tuning)]
+    if not boards:
+        return []
+    top = boards[0]
+    worse = {r.first for r in s.decisions if r.system == system and r.tuning == tuning
+             and r.second == top.controller and r.verdict == "contradicted"}
+    worse |= {r.second for r in s.decisions if r.system == system and r.tuning == tuning
+              and r.first == top.controller and r.verdict == "holds"}
+    keep = [b for b in boards if b is top or (b.controller not in worse
+                                              and b.safety >= top.ci_low)]
+    return sorted(keep, key=lambda b: b.mean_step_ms)

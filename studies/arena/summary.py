@@ -27,7 +27,8 @@ from studies.arena.tasks import family
 from workbench.scenarios.mechanism_health import StudyHealth, study_health
 from workbench.scenarios.tuned import shipped, space
 from workbench.study import Rate
-from workbench.study.stats import paired_counts, pooled_paired
+from workbench.study.sequential import detectable, plan_pairs
+from workbench.study.stats import mcnemar_exact, paired_counts, pooled_paired
 
 ALL = "all"  # the disturbance label of comparisons pooled over every disturbance
 
@@ -93,7 +94,9 @@ class Pooled:
 
 @dataclass(frozen=True)
 class Board:
-    """A controller's line on a system's leaderboard: every map and disturbance pooled."""
+    """A controller's line on a system's leaderboard: every map and disturbance pooled.
+    Rates with Wilson 95 % intervals; final error and ms per step as means over episodes with
+    95 % t-intervals."""
 
     system: str
     tuning: str
@@ -105,6 +108,45 @@ class Board:
     success: float
     mean_step_ms: float
     rank: int
+    success_low: float = float("nan")
+    success_high: float = float("nan")
+    final_error: float = float("nan")
+    final_error_low: float = float("nan")
+    final_error_high: float = float("nan")
+    ms_low: float = float("nan")
+    ms_high: float = float("nan")
+
+
+@dataclass(frozen=True)
+class DecisionRow:
+    """A declared comparison in one (system, disturbance, tuning), decided group-sequentially
+    (:mod:`studies.arena.decisions`): its last look (pairs, discordant counts, difference
+    first - second with the repeated 95 % interval and the equivalence interval), the verdict
+    ("holds": first better, "contradicted": first worse, "equivalent" within the margin, or
+    "undecided" with the difference it could have detected) and the exact McNemar p-value of
+    the pairs (fixed-sample, descriptive: the verdict reads the repeated intervals)."""
+
+    first: str
+    second: str
+    metric: str
+    system: str
+    disturbance: str
+    tuning: str
+    looks: int
+    n: int
+    b: int
+    c: int
+    difference: float
+    low: float
+    high: float
+    eq_low: float
+    eq_high: float
+    bound: float
+    verdict: str
+    detectable: float | None
+    discordance: float
+    p_value: float
+    uninformative: str | None  # why the setting cannot discriminate, or None
 
 
 @dataclass(frozen=True)
@@ -128,6 +170,9 @@ class ArenaSummary:
     maps: tuple[MapInfo, ...]
     tuned: dict
     health: StudyHealth  # mechanism checks per (system, disturbance, tuning), over the maps
+    decisions: tuple[DecisionRow, ...] = ()
+    design: dict | None = None  # the group-sequential design shared by the decisions
+    uninformative: dict[str, str] | None = None  # "system / disturbance / tuning" -> why
 
     def pair(self, first: str, second: str, system: str, disturbance: str,
              tuning: str) -> Pooled | None:
@@ -192,6 +237,21 @@ def pooled_rows(config, ep: pd.DataFrame) -> list[Pooled]:
     return out
 
 
+def mean_interval(x: np.ndarray) -> tuple[float, float, float]:
+    """Mean of ``x`` with its 95 % t-interval (NaN limits for fewer than 2 values)."""
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return (float("nan"),) * 3
+    m = float(x.mean())
+    if x.size < 2:
+        return m, float("nan"), float("nan")
+    from scipy.stats import t
+
+    half = float(t.ppf(0.975, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size))
+    return m, m - half, m + half
+
+
 def leaderboard(ep: pd.DataFrame, timing: pd.DataFrame) -> list[Board]:
     out = []
     t = timing.set_index("task_id")["mean_step_ms"]
@@ -200,11 +260,47 @@ def leaderboard(ep: pd.DataFrame, timing: pd.DataFrame) -> list[Board]:
         for c, gc in g.groupby("controller", sort=False):
             crashed = gc["crashed"].to_numpy(bool)
             safe = Rate.of(~crashed)
-            ok = float(np.mean(gc["reached"].to_numpy(bool) & ~crashed))
-            lines.append((c, safe, ok, float(t.reindex(gc["task_id"]).mean())))
-        lines.sort(key=lambda x: (-x[1].value, -x[2], x[3]))
-        out += [Board(system, tuning, c, s.n, s.value, s.low, s.high, ok, ms, i + 1)
-                for i, (c, s, ok, ms) in enumerate(lines)]
+            ok = Rate.of(gc["reached"].to_numpy(bool) & ~crashed)
+            ms = mean_interval(t.reindex(gc["task_id"]).to_numpy(float))
+            err = mean_interval(gc["final_error"].to_numpy(float))
+            lines.append((c, safe, ok, ms, err))
+        lines.sort(key=lambda x: (-x[1].value, -x[2].value, x[3][0]))
+        out += [Board(system, tuning, c, s.n, s.value, s.low, s.high, ok.value, ms[0], i + 1,
+                      ok.low, ok.high, err[0], err[1], err[2], ms[1], ms[2])
+                for i, (c, s, ok, ms, err) in enumerate(lines)]
+    return out
+
+
+def decision_rows(config, ep: pd.DataFrame, flags: dict[str, str]) -> list[DecisionRow]:
+    from studies.arena.decisions import decide, members
+
+    out = []
+    for m in members(config):
+        d = decide(config, ep, m)
+        if d is None:
+            continue
+        last = d.looks[-1]
+        out.append(DecisionRow(
+            m.first, m.second, m.metric, m.system, m.disturbance, m.tuning, len(d.looks),
+            last.n, last.b, last.c, last.difference, last.low, last.high, last.eq_low,
+            last.eq_high, last.bound, d.verdict, d.detectable, d.discordance,
+            mcnemar_exact(last.b, last.c),
+            flags.get(f"{m.system} / {m.disturbance} / {m.tuning}")))
+    return out
+
+
+def uninformative_settings(ep: pd.DataFrame) -> dict[str, str]:
+    """Settings (system, disturbance, tuning) whose rows cannot tell controllers apart, with
+    the reason (:func:`~studies.arena.difficulty.uninformative`)."""
+    from studies.arena.difficulty import uninformative
+
+    out = {}
+    for (s, d, t), g in ep.groupby(["system", "disturbance", "tuning"], sort=False):
+        rates = {c: float(np.mean(~gc["crashed"].to_numpy(bool)))
+                 for c, gc in g.groupby("controller", sort=False)}
+        why = uninformative(rates, int(g.groupby("controller").size().min()))
+        if why:
+            out[f"{s} / {d} / {t}"] = why
     return out
 
 
@@ -221,23 +317,44 @@ def map_infos(config) -> list[MapInfo]:
     return out
 
 
-def tuned_section(config) -> dict:
+def tuned_section(config, ep: pd.DataFrame | None = None) -> dict:
     """The parameters each controller got on each system, and the budget used: the hand-tuned
-    values always; the shipped tuned ones when this run used them."""
+    values always; with the shipped tuned ones (when this run used them) their training and
+    validation scores for hand and tuned, and the test score of both on this run's episodes
+    (same objective: :func:`~studies.arena.tuning.objective_value`)."""
     from studies.arena.tasks import hand_settings
+    from studies.arena.tuning import objective_value
+    from workbench.scenarios.systems import system
 
     ship = shipped()
     out = {}
     for s in config.systems:
         base = hand_settings(config, s)
         for c in config.controllers:
-            entry = {"hand": base.values(c), "searched": [p.name for p in space(c)]}
+            entry: dict = {"hand": base.values(c), "searched": [p.name for p in space(c)]}
             t = ship.get((s, c))
             if "tuned" in config.tunings and t is not None:
-                entry.update({"tuned": t.params, "budget": {**t.budget.__dict__,
-                              "total_episodes": t.budget.total_episodes},
-                              "objective": t.objective, "training": t.training,
-                              "training_score": t.score, "hand_training_score": t.start_score})
+                entry.update({"tuned": t.params, "kept": t.kept,
+                              "budget": {**t.budget.__dict__,
+                                         "total_episodes": t.budget.total_episodes},
+                              "objective": t.objective, "disturbance": t.disturbance,
+                              "training": {"hand": t.training.hand, "tuned": t.training.tuned,
+                                           "episodes": t.training.episodes},
+                              "validation": {"hand": t.validation.hand,
+                                             "tuned": t.validation.tuned,
+                                             "episodes": t.validation.episodes}})
+                if ep is not None:
+                    test = {}
+                    for tuning in ("hand", "tuned"):
+                        g = ep[(ep["system"] == s) & (ep["controller"] == c)
+                               & (ep["tuning"] == tuning)]
+                        if len(g):
+                            ok = g["reached"].to_numpy(bool) & ~g["crashed"].to_numpy(bool)
+                            test[tuning] = objective_value(
+                                ok, g["final_error"].to_numpy(float) / system(s).scale)
+                    entry["test"] = {**test, "episodes": len(ep[
+                        (ep["system"] == s) & (ep["controller"] == c)
+                        & (ep["tuning"] == "tuned")])}
             out[f"{s}/{c}"] = entry
     return out
 
@@ -250,9 +367,25 @@ def summarise(config, store) -> ArenaSummary:
         tids = set(rows["task_id"])
         cells.append(Cell.of(key, rows, timing[timing["task_id"].isin(tids)],
                              act[act["task_id"].isin(tids)]))
+    from studies.arena.decisions import design, members
+
+    flags = uninformative_settings(ep)
+    dz = design(config) if members(config) else None
+    plan = None if dz is None else {
+        "looks": dz.looks, "pairs_per_look": dz.pairs_per_look, "max_pairs": dz.max_pairs,
+        "margin": dz.margin, "alpha": dz.alpha, "comparisons": dz.comparisons,
+        "interval": dz.interval,
+        "power": dz.power, "bounds": [float(b) for b in dz.bounds()],
+        "equivalence_bounds": [float(b) for b in dz.equivalence_bounds()],
+        "assumed_discordance": config.decision.discordance,
+        "detectable_at_max": detectable(dz.max_pairs, config.decision.discordance, dz.alpha,
+                                        dz.power, dz.looks, dz.comparisons),
+        "planned_pairs": plan_pairs(dz.margin, config.decision.discordance, dz.alpha,
+                                    dz.power, dz.looks, dz.comparisons)}
     return ArenaSummary(config.as_dict(), tuple(cells), tuple(pooled_rows(config, ep)),
                         tuple(leaderboard(ep, timing)), tuple(map_infos(config)),
-                        tuned_section(config), health(ep, act))
+                        tuned_section(config, ep), health(ep, act),
+                        tuple(decision_rows(config, ep, flags)), plan, flags)
 
 
 HEALTH_CELL = ("system", "disturbance", "tuning")  # one mechanism check over every test map

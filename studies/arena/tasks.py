@@ -84,7 +84,8 @@ def family(config: ArenaConfig, name: str) -> MapFamily:
 def where(config: ArenaConfig, system_name: str, family_name: str, seed: int) -> Where:
     fam = family(config, family_name)
     return Where(system_name, fam, seed, capacity(fam, config.map_seeds()
-                                                  + config.tuning_seeds()))
+                                                  + config.tuning_seeds()
+                                                  + config.validation_seeds()))
 
 
 def disturbance_spec(config: ArenaConfig, label: str) -> DisturbanceSpec:
@@ -110,19 +111,48 @@ def run_task(task: ArenaEpisode, ctx: TaskContext, config: ArenaConfig,
 
 @dataclass(frozen=True)
 class Plan:
+    """Every task a run may need (the run's identity), and by round: round 0's whole grid
+    under the key "", round r >= 1's episodes of each declared comparison by its label."""
+
     tasks: tuple[ArenaEpisode, ...]
+    rounds: tuple[dict[str, tuple[ArenaEpisode, ...]], ...]
+
+    def cost_s(self, task: ArenaEpisode) -> float:
+        """Rough seconds of one core for an episode (for ``--dry-run``'s estimate)."""
+        return EPISODE_SECONDS.get(task.system, max(EPISODE_SECONDS.values()))
+
+
+# Seconds of one core per episode at the default sizes (N = 1024, T = 100, at most 1000
+# steps), set-up and calibration included: the quick profile's 216 double-integrator and
+# unicycle episodes took 439 s on 2 workers of a 2-core machine (4.1 s each; most end early,
+# at the goal or at a crash). The other systems are assumed to cost the same.
+EPISODE_SECONDS = {"double_integrator": 4.1, "unicycle": 4.1, "bicycle": 4.1,
+                   "planar_quadrotor": 4.1}
+
+
+def _sorted(tasks) -> list[ArenaEpisode]:
+    # slow controllers first; within one, a (system, map) stays together (cached set-ups)
+    order = slowest_first()
+    return sorted(tasks, key=lambda t: (order.index(t.controller), t.system, t.family,
+                                        t.map_seed, t.tuning, t.disturbance, t.realisation))
 
 
 def plan(config: ArenaConfig) -> Plan:
-    tasks = [ArenaEpisode(c, s, f.family, m, d.label, t, j)
-             for s in config.systems for f in config.families for m in config.map_seeds()
-             for d in config.disturbances for t in config.tunings for c in config.controllers
-             for j in range(config.realisations)]
-    # slow controllers first; within one, a (system, map) stays together (cached set-ups)
-    order = slowest_first()
-    tasks.sort(key=lambda t: (order.index(t.controller), t.system, t.family, t.map_seed,
-                              t.tuning, t.disturbance, t.realisation))
-    return Plan(tuple(tasks))
+    from studies.arena.decisions import members
+
+    grid = [ArenaEpisode(c, s, f.family, m, d.label, t, j)
+            for s in config.systems for f in config.families for m in config.round_seeds(0)
+            for d in config.disturbances for t in config.tunings for c in config.controllers
+            for j in range(config.realisations)]
+    rounds: list[dict[str, tuple[ArenaEpisode, ...]]] = [{"": tuple(_sorted(grid))}]
+    for r in range(1, config.decision.rounds):
+        rounds.append({m.label: tuple(_sorted(
+            ArenaEpisode(c, m.system, f.family, seed, m.disturbance, m.tuning, j)
+            for c in (m.first, m.second) for f in config.families
+            for seed in config.round_seeds(r) for j in range(config.realisations)))
+            for m in members(config)})
+    tasks = list(dict.fromkeys(t for rd in rounds for group in rd.values() for t in group))
+    return Plan(tuple(_sorted(tasks)), tuple(rounds))
 
 
 def system_values(names: tuple[str, ...]) -> dict:
@@ -141,10 +171,12 @@ def fingerprint(config: ArenaConfig) -> dict:
     d = settings_data(config)
     d["system_values"] = system_values(config.systems)
     for k in ("controllers", "systems", "test_maps", "disturbances", "realisations", "tunings",
-              "seed", "tuning", "tuning_maps", "tuning_seed", "tuning_disturbance"):
+              "seed", "tuning", "tuning_maps", "tuning_seed", "tuning_disturbance",
+              "comparisons", "decision", "validation_maps", "validation_seed"):
         d.pop(k)
     # the circle slots depend on every map of a family: part of what a task computed
-    d["capacity"] = {f.family: capacity(f, config.map_seeds() + config.tuning_seeds())
+    d["capacity"] = {f.family: capacity(f, config.map_seeds() + config.tuning_seeds()
+                                        + config.validation_seeds())
                      for f in config.families}
     if "tuned" in config.tunings:
         d["tuned"] = {f"{s}/{c}": settings_data(settings(config, s, c, "tuned"))
@@ -153,5 +185,8 @@ def fingerprint(config: ArenaConfig) -> dict:
 
 
 def declare(config: ArenaConfig) -> Declaration:
+    from studies.arena.decisions import staged
+
     p = plan(config)
-    return Declaration(p.tasks, run_task, fingerprint(config), RESULT_VERSION, p)
+    return Declaration(p.tasks, run_task, fingerprint(config), RESULT_VERSION, p,
+                       staged(config, p.rounds))

@@ -165,7 +165,7 @@ def fingerprint(config: ArenaConfig) -> dict:
     d = asdict(config)
     d["system_values"] = system_values(config.systems)
     for k in ("controllers", "systems", "test_maps", "test_seed", "disturbances",
-              "realisations", "tunings"):
+              "realisations", "tunings", "comparisons", "decision"):
         d.pop(k)
     seeds = config.map_seeds() + config.tuning_seeds() + config.validation_seeds()
     d["capacity"] = {f.family: capacity(f, seeds) for f in config.families}  # test maps too

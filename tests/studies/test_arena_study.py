@@ -145,12 +145,20 @@ def test_summary_is_the_data(tiny_run):
 
 
 def test_task_count_of_the_profiles():
+    from studies.arena.decisions import design, members
     from studies.arena.tasks import plan
+    from workbench.study.sequential import plan_pairs
 
     v = profile_config(STUDY, "verdict")
-    assert v.test_maps >= 10 and {d.model for d in v.disturbances} >= {
-        "velocity_variance", "velocity_std", "white_noise", "kick"}
-    assert len(plan(v).tasks) == 3 * 12 * 5 * 2 * 2
+    assert v.test_maps >= 12 and {d.label for d in v.disturbances} == {
+        "velocity_variance(50)", "velocity_variance(100)"}
+    # round 0: the grid; rounds 1-3: both controllers of each of the 4 declared comparisons
+    assert len(plan(v).tasks) == 2 * 12 * 2 * 2 * 5 + 3 * 4 * 2 * 12 * 5
+    dz = design(v)
+    assert len(members(v)) == dz.comparisons == 4
+    # sized to decide: the budget covers the planned pairs at the declared difference
+    assert dz.max_pairs >= plan_pairs(dz.margin, v.decision.discordance, dz.alpha, dz.power,
+                                      dz.looks, dz.comparisons)
     assert isinstance(profile_config(STUDY, "quick"), ArenaConfig)
 
 
