@@ -60,16 +60,19 @@ study-bound: $(STAMP)
 study-sampling-safety: $(STAMP)
 	$(WB) run sampling-safety --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
 
-# the arena: controllers x systems x generated maps x disturbances (quick: a few minutes;
-# PROFILE=verdict: claim (i) over 12 maps and the four disturbance readings, ~25 min)
-ARENA_PROFILE = $(if $(filter tiny verdict paper,$(PROFILE)),$(PROFILE),quick)
+# the arena: controllers x systems x generated maps x disturbances, declared comparisons decided
+# group-sequentially (quick: a few minutes; PROFILE=verdict: claim (i) on the double integrator
+# at velocity variance 50 and 100, hand and tuned, at most an hour; PROFILE=decide or paper:
+# for a cluster, SCHEDULER=tcp://host:8786)
+ARENA_PROFILE = $(if $(filter tiny verdict decide paper,$(PROFILE)),$(PROFILE),quick)
 study-arena: $(STAMP)
 	$(WB) run arena --profile $(ARENA_PROFILE) $(STUDY_EXEC) $(SETS)
 
 # equal-budget tuning of the arena's controllers; ships the result as their tuned defaults
 # (workbench/scenarios/tuned.json)
+TUNE_PROFILE = $(if $(filter tiny verdict,$(PROFILE)),$(PROFILE),quick)
 tune-arena: $(STAMP)
-	$(WB) run arena-tuning --profile $(ARENA_PROFILE) $(STUDY_EXEC) $(SETS)
+	$(WB) run arena-tuning --profile $(TUNE_PROFILE) $(STUDY_EXEC) $(SETS)
 	$(PY) -m studies.arena.tuning reports/arena_tuning
 
 # reports/index.html: every study's report, figures, tables and manifest, offline
