@@ -9,7 +9,7 @@ same plant disturbances (``ctx.rng(1)``) and draws from the same sampler stream 
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -18,7 +18,7 @@ from studies.arena.episodes import Controls, Where, capacity, run_episode
 from workbench.scenarios.maps import MAP_FAMILIES, MapFamily
 from workbench.scenarios.methods import slowest_first
 from workbench.scenarios.methods.settings import fingerprint as settings_data
-from workbench.scenarios.systems import SYSTEMS, system
+from workbench.scenarios.systems import SYSTEMS, definition, system
 from workbench.scenarios.tuned import ControllerSettings, check_usable, tuned
 from workbench.study import TaskContext, TaskOutput
 from workbench.study.spec import Declaration
@@ -156,15 +156,9 @@ def plan(config: ArenaConfig) -> Plan:
 
 
 def system_values(names: tuple[str, ...]) -> dict:
-    """The numbers of each system's definition that results depend on (a change to them must
-    not reuse stored episodes)."""
-    out = {}
-    for n in names:
-        s = system(n)
-        out[n] = {k: getattr(s, k) for k in ("Q", "S", "sigma", "lam", "q_beta", "disturbed",
-                                             "scale", "level_scale", "cost_form")}
-        out[n]["feedback_weights"] = asdict(s.feedback_weights)
-    return out
+    """Each system's :func:`~workbench.scenarios.systems.definition`: the values results
+    depend on (a change to them must not reuse stored episodes)."""
+    return {n: definition(n) for n in names}
 
 
 def fingerprint(config: ArenaConfig) -> dict:

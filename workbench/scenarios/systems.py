@@ -45,8 +45,12 @@ often than the band, and undisturbed it reaches the goal on 83 % of the training
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, field
+import hashlib
+import json
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field, is_dataclass
+from numbers import Integral, Real
 from typing import Any, Literal
 
 import casadi as ca
@@ -431,6 +435,54 @@ def system(name: str) -> System:
     return SYSTEMS.named(name)
 
 
+# The fields of a system's definition that a controller's results on it depend on: a change to
+# any of them must neither reuse stored episodes nor let values tuned before it be used.
+DEFINITION_FIELDS = ("Q", "S", "sigma", "lam", "q_beta", "disturbed", "scale", "level_scale",
+                     "cost_form", "feedback_weights")
+
+
+def definition(sysm: str | System) -> dict[str, Any]:
+    """The values of :data:`DEFINITION_FIELDS` of ``sysm`` (a :class:`System` or the name of
+    one in :data:`SYSTEMS`); ``feedback_weights`` as a dict of its fields."""
+    s = system(sysm) if isinstance(sysm, str) else sysm
+    out: dict[str, Any] = {k: getattr(s, k) for k in DEFINITION_FIELDS}
+    out["feedback_weights"] = asdict(s.feedback_weights)
+    return out
+
+
+def _canonical(v: Any, where: str) -> Any:
+    # JSON-ready data that is equal for equal definitions: tuples and lists alike, integers
+    # as floats (1 and 1.0 are the same weight), NumPy values as Python ones
+    if v is None or isinstance(v, str):
+        return v
+    if isinstance(v, bool | np.bool_):
+        return bool(v)
+    if isinstance(v, Integral | Real):
+        f = float(v)
+        if not math.isfinite(f):
+            raise fail(where, v, "must be a finite number to be hashed")
+        return f
+    if isinstance(v, Mapping):
+        return {str(k): _canonical(x, f"{where}.{k}") for k, x in v.items()}
+    if is_dataclass(v) and not isinstance(v, type):
+        return _canonical(asdict(v), where)
+    if isinstance(v, tuple | list | np.ndarray):
+        return [_canonical(x, f"{where}[{i}]") for i, x in enumerate(v)]
+    raise fail(where, v, "must be numbers, strings, lists or mappings of them to be hashed")
+
+
+def definition_hash(values: str | System | Mapping[str, Any]) -> str:
+    """16 hex digits naming a system's definition: the SHA-256 of the canonical JSON (sorted
+    keys, tuples as lists, integers as floats) of ``values`` -- a system's :func:`definition`
+    as a dict (e.g. read back from a run's stored fingerprint), or a :class:`System` or the
+    name of one, whose :func:`definition` is hashed. Equal for equal definitions in any
+    process and any key order; a change to any value changes it."""
+    d = values if isinstance(values, Mapping) else definition(values)
+    text = json.dumps(_canonical(d, "definition"), sort_keys=True, separators=(",", ":"),
+                      allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 def register_system(sysm: System) -> System:
     """Add ``sysm`` to :data:`SYSTEMS` under its name (which must be new); returns it. Every
     method, study and the command line's ``workbench list`` then offer it."""
@@ -442,5 +494,6 @@ def unregister_system(name: str) -> System:
     return SYSTEMS.unregister(name)
 
 
-__all__ = ["SYSTEMS", "TUNED_LAMBDA", "TUNED_Q_BETA", "TUNED_SIGMA", "System", "register_system",
-           "system", "unregister_system"]
+__all__ = ["DEFINITION_FIELDS", "SYSTEMS", "TUNED_LAMBDA", "TUNED_Q_BETA", "TUNED_SIGMA",
+           "System", "definition", "definition_hash", "register_system", "system",
+           "unregister_system"]
