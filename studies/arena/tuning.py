@@ -17,7 +17,9 @@ validation episode v likewise (a stream of its own), so every candidate meets th
 validation episodes.
 
 ``make tune-arena`` runs this study and writes its result, with its provenance, as the shipped
-defaults (:mod:`workbench.scenarios.tuned`), read by the arena's ``tuned`` rows.
+defaults (:mod:`workbench.scenarios.tuned`), read by the arena's ``tuned`` rows. Each entry
+records the hash of its system's definition as the run defined it (from the run's stored
+fingerprint, :func:`system_hashes`), so the arena refuses it once the system is redefined.
 """
 
 from __future__ import annotations
@@ -32,8 +34,9 @@ from studies.arena.config import RESULT_VERSION, ArenaConfig
 from studies.arena.episodes import Controls, Where, capacity, run_episode
 from studies.arena.tasks import family, hand_settings, system_values
 from workbench.scenarios.methods import names
-from workbench.scenarios.systems import SYSTEMS, system
+from workbench.scenarios.systems import SYSTEMS, definition_hash, system
 from workbench.scenarios.tuned import (
+    RERUN,
     Evaluation,
     MapSeeds,
     Tuned,
@@ -43,6 +46,7 @@ from workbench.scenarios.tuned import (
     write,
 )
 from workbench.study import TaskContext, TaskOutput, to_jsonable
+from workbench.study.folder import MANIFEST, read_json
 from workbench.study.spec import Declaration, Summary
 from workbench.study.tasks import seed_sequence
 from workbench.study.tuning import select, tune
@@ -196,8 +200,24 @@ def _maps(config: ArenaConfig, seeds: tuple[int, ...]) -> tuple[MapSeeds, ...]:
     return tuple(MapSeeds(f.family, seeds) for f in config.families)
 
 
+def system_hashes(run_dir: Path | str) -> dict[str, str]:
+    """The :func:`~workbench.scenarios.systems.definition_hash` of each system of the tuning
+    run in ``run_dir``, from the system values of the fingerprint its manifest holds: the
+    definitions its tasks were computed with, even if a system has been redefined since."""
+    path = Path(run_dir) / MANIFEST
+    advice = "ship a finished run of `make tune-arena`"
+    data = read_json(path, "run's manifest", advice)
+    values = (data.get("fingerprint") or {}).get("system_values") \
+        if isinstance(data, dict) else None
+    if not isinstance(values, dict) or not all(isinstance(v, dict) for v in values.values()):
+        raise TunedFileError(f"{path}: its fingerprint holds no system values (the definitions "
+                             f"the run tuned on); {advice}")
+    return {name: definition_hash(v) for name, v in values.items()}
+
+
 def tuned_entries(config: ArenaConfig, store) -> list[Tuned]:
     """The run's result per (system, controller) as shipped entries with their provenance."""
+    hashes = system_hashes(store.root)
     out = []
     for _, r in store.table("best").iterrows():
         out.append(Tuned(
@@ -207,7 +227,8 @@ def tuned_entries(config: ArenaConfig, store) -> list[Tuned]:
             Evaluation(_maps(config, config.tuning_seeds()), config.tuning.episodes,
                        float(r["training_hand"]), float(r["training_tuned"])),
             Evaluation(_maps(config, config.validation_seeds()), config.tuning.validation,
-                       float(r["validation_hand"]), float(r["validation_tuned"]))))
+                       float(r["validation_hand"]), float(r["validation_tuned"])),
+            hashes[r["system"]]))
     return sorted(out, key=lambda t: (t.system, t.controller))
 
 
@@ -260,6 +281,10 @@ def report(finished, summ) -> Path:
             f"Objective: {OBJECTIVE}. Disturbance: {c.tuning_disturbance.label}.", "",
             *([f"Training maps: {_maps_text(first.training)}; validation maps: "
                f"{_maps_text(first.validation)}."] if first else []), "",
+            *([("Tuned on the system definitions (hashes): " + ", ".join(
+                f"{n} {h}" for n, h in dict.fromkeys((t.system, t.system_hash)
+                                                     for t in summ.value)) + ".")]
+              if first else []), "",
             *md_table(["system", "controller", "training, hand", "training, tuned",
                        "validation, hand", "validation, tuned", "kept", "hand point",
                        "tuned point", "flag"], rows), "",
@@ -273,10 +298,24 @@ def report(finished, summ) -> Path:
 
 def ship(run_dir: Path | str, path: Path | None = None) -> Path:
     """Write a finished tuning run's results as the shipped defaults (entries for other
-    (system, controller) pairs are kept, each with its own provenance)."""
+    (system, controller) pairs are kept, each with its own provenance). Each entry's
+    ``system_hash`` is that of its system as the run defined it (:func:`system_hashes`; a
+    summary written before entries carried one gets it from there too)."""
     source = Path(run_dir) / "summary.json"
     data = json.loads(source.read_text(encoding="utf-8"))
-    new = [Tuned.from_dict(e, source) for e in data["tuned"]]
+    hashes = system_hashes(run_dir)
+    new = []
+    for e in data["tuned"]:
+        name = e.get("system") if isinstance(e, dict) else None
+        h = hashes.get(name) if isinstance(name, str) else None
+        if h is None:
+            raise TunedFileError(f"{source}: entry {e!r} is of no system the run's manifest "
+                                 f"defines ({sorted(hashes)}); {RERUN}")
+        if e.setdefault("system_hash", h) != h:
+            raise TunedFileError(f"{source}: ({e['system']}, {e.get('controller')}) records "
+                                 f"system hash {e['system_hash']}, but the run's manifest "
+                                 f"defines {e['system']} as {h}; {RERUN}")
+        new.append(Tuned.from_dict(e, source))
     try:
         entries = shipped(path)
     except TunedFileError as exc:

@@ -1,10 +1,13 @@
 """The arena's tuning: the test, training and validation map ranges are pairwise disjoint at
-config time; the arena refuses shipped values tuned or validated on its test maps, or tuned
-without validation; the objective is one function; a tiny tuning run ships entries with their
-provenance and keeps the tuned point only when it beats the hand point on validation."""
+config time; the arena refuses shipped values tuned or validated on its test maps, tuned
+without validation, or tuned on another definition of their system; the objective is one
+function; a tiny tuning run ships entries with their provenance (the hash of each system as
+the run defined it) and keeps the tuned point only when it beats the hand point on
+validation."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -12,9 +15,10 @@ import pytest
 
 from studies.arena import STUDY as ARENA
 from studies.arena.tasks import settings
-from studies.arena.tuning import check, objective_value, ship
+from studies.arena.tuning import check, objective_value, ship, system_hashes
 from studies.arena_tuning import STUDY
 from workbench.scenarios import tuned as tuned_module
+from workbench.scenarios.systems import SYSTEMS, definition, definition_hash, system
 from workbench.scenarios.tuned import (
     Evaluation,
     MapSeeds,
@@ -70,14 +74,16 @@ def test_the_objective():
         objective_value([1, 0], [0.0])
 
 
-def entry(controller: str, train: tuple[int, ...], val: tuple[int, ...] | None) -> Tuned:
+def entry(controller: str, train: tuple[int, ...], val: tuple[int, ...] | None,
+          system_hash: str | None = None) -> Tuned:
     hand = {"sigma_scale": 1.0, "lam": 10.0} | ({"kappa": 0.1} if controller != "bas_mppi"
                                                  else {})
     return Tuned("double_integrator", controller, "tuned", hand, hand, hand, TuningBudget(),
                  "x", "velocity_variance(50)",
                  Evaluation((MapSeeds("spec", train),), 8, 0.1, 0.2),
                  Evaluation(None, None, None, None) if val is None else
-                 Evaluation((MapSeeds("spec", val),), 8, 0.1, 0.2))
+                 Evaluation((MapSeeds("spec", val),), 8, 0.1, 0.2),
+                 system_hash or definition_hash("double_integrator"))
 
 
 def test_the_arena_refuses_tuned_values_tuned_on_its_test_maps(tmp_path, monkeypatch):
@@ -104,7 +110,35 @@ def test_the_arena_refuses_tuned_values_tuned_on_its_test_maps(tmp_path, monkeyp
     assert settings(cfg, "double_integrator", "bas_mppi", "hand").sampler.lam == 10.0
 
 
-def test_a_tiny_tuning_run_ships_its_provenance(tmp_path):
+def test_the_arena_refuses_tuned_values_of_a_redefined_system(tmp_path, monkeypatch):
+    """Values tuned before the system's definition changed (here its disturbance scale), or
+    whose definition was not recorded, are refused where the arena resolves them, naming the
+    pair, the file and both hashes."""
+    path = tmp_path / "tuned.json"
+    monkeypatch.setattr(tuned_module, "SHIPPED", path)
+    cfg = profile_config(ARENA, "tiny", tunings=("hand", "tuned"), test_maps=3)
+    old = definition_hash("double_integrator")
+    write([entry("bas_mppi", (0, 1, 2, 3), (500, 501), old)], path)
+    assert settings(cfg, "double_integrator", "bas_mppi", "tuned").sampler.lam == 10.0
+    monkeypatch.setitem(SYSTEMS, "double_integrator", dataclasses.replace(
+        system("double_integrator"), level_scale=2.0))
+    new = definition_hash("double_integrator")
+    assert new != old
+    with pytest.raises(TunedFileError) as info:
+        settings(cfg, "double_integrator", "bas_mppi", "tuned")
+    msg = str(info.value)
+    for words in (f"(double_integrator, bas_mppi) in {path}", old, new,
+                  "definition changed since tuning", "rerun `make tune-arena`"):
+        assert words in msg, msg
+    d = json.loads(path.read_text())
+    d["tuned"][0]["system_hash"] = None
+    path.write_text(json.dumps(d))
+    with pytest.raises(TunedFileError, match=r"\(double_integrator, bas_mppi\) in .*no system "
+                       r"hash.*rerun `make tune-arena`"):
+        settings(cfg, "double_integrator", "bas_mppi", "tuned")
+
+
+def test_a_tiny_tuning_run_ships_its_provenance(tmp_path, monkeypatch):
     cfg = tiny(systems=("double_integrator",), controllers=("bas_mppi", "sa_rmppi"),
                tuning=TuningBudget(trials=3, episodes=1, validation=1, finalists=2))
     out = tmp_path / "run"
@@ -140,3 +174,33 @@ def test_a_tiny_tuning_run_ships_its_provenance(tmp_path):
     text = outcome.report.read_text()
     assert "validation, hand" in text and "validation, tuned" in text
     assert "spec seeds 500..500" in text
+    # the system hash is that of the run's stored fingerprint, which round-trips to the live
+    # definition's hash while the system is unchanged
+    stored = json.loads((out / "manifest.json").read_text())["fingerprint"]["system_values"]
+    h = definition_hash(stored["double_integrator"])
+    assert stored["double_integrator"] == json.loads(json.dumps(definition("double_integrator")))
+    assert h == definition_hash("double_integrator") == system_hashes(out)["double_integrator"]
+    assert {t.system_hash for t in entries.values()} == {h}
+    assert f"double_integrator {h}" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert {e["system_hash"] for e in summary["tuned"]} == {h}
+    # shipped after the system was redefined: the run's definition is recorded, not the new
+    # one, also from a summary written before entries carried a hash; the arena refuses it
+    monkeypatch.setitem(SYSTEMS, "double_integrator", dataclasses.replace(
+        system("double_integrator"), disturbed=("vx",)))
+    assert definition_hash("double_integrator") != h
+    for e in summary["tuned"]:
+        del e["system_hash"]
+    (out / "summary.json").write_text(json.dumps(summary))
+    later = tmp_path / "later.json"
+    ship(out, later)
+    for t in shipped(later).values():
+        assert t.system_hash == h
+        with pytest.raises(TunedFileError, match="definition changed since tuning"):
+            check_usable(t, ["spec"], cfg.map_seeds())
+    # a summary whose hash disagrees with the run's manifest is not shipped
+    summary["tuned"][0]["system_hash"] = "0" * 16
+    (out / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(TunedFileError, match=r"records system hash 0{16}, but the run's "
+                       r"manifest defines double_integrator as"):
+        ship(out, tmp_path / "bad.json")

@@ -8,11 +8,13 @@ tuned: it is compiled into the sampling kernels, so each value would cost a comp
 
 The shipped defaults (``tuned.json`` beside this module) are written by the arena's tuning run
 (``make tune-arena``). Each entry carries its provenance: the maps (family and seeds) it was
-trained and validated on, the disturbance, the budget, the objective, the training and
-validation scores of the hand-tuned and the tuned point, and which of the two was kept
+trained and validated on, the disturbance, the hash of the system's definition it was tuned on
+(:func:`~workbench.scenarios.systems.definition_hash`), the budget, the objective, the training
+and validation scores of the hand-tuned and the tuned point, and which of the two was kept
 (``params``). :func:`shipped` reads them (format :data:`FORMAT` only: an older or damaged file is
 refused, naming it); :func:`check_usable` refuses an entry for an evaluation whose test maps
-overlap the maps it was tuned or validated on, or one tuned without validation.
+overlap the maps it was tuned or validated on, one tuned without validation, and one tuned on
+another definition of its system (or on an unrecorded one).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cache
@@ -29,11 +32,12 @@ from pathlib import Path
 from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.methods import MethodSettings, method
+from workbench.scenarios.systems import definition_hash
 from workbench.study.tuning import Param, TuningBudget
 from workbench.validation import fail
 
 SHIPPED = Path(__file__).with_name("tuned.json")
-FORMAT = 2  # the version of tuned.json this module reads and writes
+FORMAT = 3  # the version of tuned.json this module reads and writes
 KEPT = ("tuned", "hand")
 RERUN = "rerun `make tune-arena`"
 
@@ -140,7 +144,10 @@ class Tuned:
     training). ``params`` are the values an evaluation uses: ``tuned`` when ``kept`` is
     "tuned", ``hand`` when ``kept`` is "hand" (the tuned point did not beat it on validation).
     ``training`` and ``validation`` hold both points' scores. ``disturbance`` is the label of
-    the disturbance both were run under; ``source`` the file the entry was read from."""
+    the disturbance both were run under; ``system_hash`` the
+    :func:`~workbench.scenarios.systems.definition_hash` of the system as the tuning run
+    defined it (None: not recorded; such an entry is refused for use); ``source`` the file the
+    entry was read from."""
 
     system: str
     controller: str
@@ -153,6 +160,7 @@ class Tuned:
     disturbance: str
     training: Evaluation
     validation: Evaluation
+    system_hash: str | None
     source: Path | None = field(default=None, compare=False)
 
     @property
@@ -173,7 +181,7 @@ class Tuned:
         return {"system": self.system, "controller": self.controller, "kept": self.kept,
                 "params": dict(self.params), "hand": dict(self.hand), "tuned": dict(self.tuned),
                 "objective": self.objective, "disturbance": self.disturbance,
-                "budget": dataclasses.asdict(self.budget),
+                "system_hash": self.system_hash, "budget": dataclasses.asdict(self.budget),
                 "training": self.training.as_dict(), "validation": self.validation.as_dict()}
 
     @classmethod
@@ -184,7 +192,8 @@ class Tuned:
 
 
 ENTRY_KEYS = ("system", "controller", "kept", "params", "hand", "tuned", "objective",
-              "disturbance", "budget", "training", "validation")
+              "disturbance", "system_hash", "budget", "training", "validation")
+HASH = re.compile(r"[0-9a-f]{16}")  # definition_hash's form
 EVALUATION_KEYS = ("maps", "episodes", "hand", "tuned")
 
 
@@ -275,10 +284,13 @@ def _entry(d: object, path: Path, index: int | None) -> Tuned:
         raise _bad(path, f"{at}budget: ", str(exc)) from exc
     if budget is None:
         raise _bad(path, f"{at}budget: ", f"expected an object, got {b!r}")
+    h = d["system_hash"]
+    if h is not None and not (isinstance(h, str) and HASH.fullmatch(h)):
+        raise _bad(path, f"{at}system_hash: ", f"expected null or 16 hex digits, got {h!r}")
     training = _evaluation(path, f"{at}training.", d["training"], False)
     validation = _evaluation(path, f"{at}validation.", d["validation"], True)
     return Tuned(d["system"], d["controller"], d["kept"], params, hand, tuned_, budget,
-                 d["objective"], d["disturbance"], training, validation, path)
+                 d["objective"], d["disturbance"], training, validation, h, path)
 
 
 @cache
@@ -348,10 +360,20 @@ def write(entries: Iterable[Tuned], path: Path | None = None) -> Path:
 
 def check_usable(entry: Tuned, families: Iterable[str], seeds: Iterable[int]) -> Tuned:
     """Refuse to evaluate ``entry`` on the test maps ``seeds`` of each of ``families``: an
-    entry tuned without validation, one whose parameters are not its controller's full search
-    space, or one whose training or validation maps of a family share a seed with the test
-    maps. Returns the entry. Errors name the system, the controller and the file."""
+    entry without a system hash or tuned on another definition of its system than the current
+    one, one tuned without validation, one whose parameters are not its controller's full
+    search space, or one whose training or validation maps of a family share a seed with the
+    test maps. Returns the entry. Errors name the system, the controller and the file."""
     who = f"the tuned values of ({entry.system}, {entry.controller}) in {entry.file}"
+    if entry.system_hash is None:
+        raise TunedFileError(f"{who} have no system hash (null: the definition of "
+                             f"{entry.system} they were tuned on was not recorded), so whether "
+                             f"they were tuned on its current definition is unknown; {RERUN}")
+    now = definition_hash(entry.system)
+    if entry.system_hash != now:
+        raise TunedFileError(f"{who} were tuned on {entry.system} with definition hash "
+                             f"{entry.system_hash}, but its current definition hashes to {now}: "
+                             f"the system's definition changed since tuning: {RERUN}")
     val = entry.validation
     if not val.done or val.hand is None or val.tuned is None:
         raise TunedFileError(f"{who} have no validation score (null: tuned without held-out "
