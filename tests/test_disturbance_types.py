@@ -292,6 +292,26 @@ def test_a_crash_before_the_goal_is_a_crash():
     assert ep.crashed and ep.crash_step == 20 and not ep.reached_goal
 
 
+def test_stop_at_goal_with_a_distance_of_its_own():
+    """``goal_distance`` measures the distance itself, so a plant without a position stops at
+    its goal too (x_k = 0.1 k is within 0.05 of 1 first at k = 10); a goal given besides it, or
+    the distance without ``stop_at_goal``, is refused."""
+    plant = _scalar()
+    assert plant.position is None
+
+    def run(**kw):
+        return closed_loop(_Hold([1.0]), plant, np.zeros(1), 100, np.random.default_rng(0),
+                           np.random.default_rng(1), **kw)
+
+    ep = run(stop_at_goal=0.05, goal_distance=lambda x: abs(float(x[0]) - 1.0))
+    assert ep.reached_goal and ep.goal_step == 10 and len(ep.U) == 10 and not ep.crashed
+    with pytest.raises(ValueError, match=r"^goal = .* is invalid: is not read with "
+                       "goal_distance"):
+        run(stop_at_goal=0.05, goal=[1.0], goal_distance=lambda x: 0.0)
+    with pytest.raises(ValueError, match=r"^goal_distance = .* given with stop_at_goal"):
+        run(goal_distance=lambda x: 0.0)
+
+
 def _scalar():
     x, u = ca.SX.sym("x", 1), ca.SX.sym("u", 1)
     return Model.from_expressions("scalar", x, u, x + 0.1 * u, dt=0.1, u_min=[-1], u_max=[1])

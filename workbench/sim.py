@@ -388,7 +388,8 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
                 disturbance: Disturbance = Disturbance(), keep_infos: bool = True,
                 scene: SceneInput = None,
                 stop_at_goal: float | None = None, goal=None,
-                check_episode: bool = True) -> Episode:
+                check_episode: bool = True,
+                goal_distance: Callable[[np.ndarray], float] | None = None) -> Episode:
     """Run ``controller`` on the plant x+ = F(x, u) + w for ``steps`` steps; stop at a crash
     (min_i h_i <= 0 on the true plant, in the scene of that time). w acts on
     ``disturbance.indices(plant)`` (none when that is empty: a plant of one's own without a
@@ -405,6 +406,10 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     within it (Euclidean, on ``plant.position``) of the goal position (``reached_goal``,
     ``goal_step``). ``goal``: a physical state or a position; default ``controller.goal``.
     A state that crashes is a crash, never a goal, even when within the distance.
+    ``goal_distance``: with ``stop_at_goal``, ``x -> distance`` of a physical state to the goal,
+    used instead of the Euclidean distance on ``plant.position`` (e.g.
+    :meth:`~workbench.scenarios.navigation.NavigationSetup.goal_distance` for a plant without a
+    position); ``goal`` is then not read.
 
     ``check_episode``: when the controller has a ``check_episode`` (see :class:`Controller`)
     and the infos are kept, hand it the episode before returning it (False: skip, e.g. in a
@@ -414,8 +419,16 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     x = np.asarray(x0, dtype=float)
     if x.shape != (plant.nx,) or not np.all(np.isfinite(x)):
         raise fail("x0", x0, f"must be {plant.nx} finite numbers")
-    goal_p = None if stop_at_goal is None else _goal_position(plant, controller, stop_at_goal,
-                                                              goal)
+    if goal_distance is not None:
+        if stop_at_goal is None or not callable(goal_distance):
+            raise fail("goal_distance", goal_distance, "must be a function of the state, "
+                       "given with stop_at_goal")
+        if goal is not None:
+            raise fail("goal", goal, "is not read with goal_distance (it measures the "
+                       "distance itself); give one of them")
+        real("stop_at_goal", stop_at_goal, 0.0, strict=True)
+    goal_p = None if stop_at_goal is None or goal_distance is not None else _goal_position(
+        plant, controller, stop_at_goal, goal)
     if stop_at_goal is None and goal is not None:
         raise fail("goal", goal, "is only read with stop_at_goal (give both, or neither)")
     reached, goal_step = False, None
@@ -472,8 +485,9 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
             if h <= 0:
                 crashed, crash_step = True, k + 1
                 break
-        if (goal_p is not None and stop_at_goal is not None
-                and np.linalg.norm(x[pos] - goal_p) <= stop_at_goal):
+        if stop_at_goal is not None and (
+                goal_distance(x[:plant.n_physical]) <= stop_at_goal if goal_distance is not None
+                else goal_p is not None and np.linalg.norm(x[pos] - goal_p) <= stop_at_goal):
             reached, goal_step = True, k + 1
             break
     episode = Episode(X=np.array(X), U=np.array(U), crashed=crashed, crash_step=crash_step,
