@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from studies.arena.episodes import arena_system
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule
 from workbench.scenarios.maps import MapFamily, generate
 from workbench.scenarios.methods import MethodSettings, names
-from workbench.scenarios.systems import SYSTEMS
+from workbench.scenarios.systems import SYSTEMS, System
 from workbench.sim import DISTURBANCE_MODELS, Disturbance
 from workbench.study.tuning import TuningBudget
 from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, real
@@ -28,6 +29,34 @@ def _names(field_name: str, values, allowed: tuple[str, ...], what: str) -> tupl
     if len(set(values)) != len(values):
         raise fail(field_name, values, f"must not repeat a {what}")
     return tuple(a for a in allowed if a in values)
+
+
+def _systems(values) -> tuple[str, ...]:
+    """``systems``: registered names (in the registry's order) and entries (in the order
+    given), each loaded here once (an entry's system is then registered in this process)."""
+    what = (f"registered system names {tuple(SYSTEMS)} or entries 'module:function' / "
+            "'path/file.py:function' returning a System (system_from_model)")
+    if isinstance(values, str) or not hasattr(values, "__iter__") or len(values) == 0:
+        raise fail("systems", values, f"must be a non-empty list of {what}")
+    seen: dict[str, str] = {}
+    for v in values:
+        if not isinstance(v, str):
+            raise fail("systems", v, f"must be one of the {what}")
+        try:
+            sysm: System = arena_system(v)
+        except ValueError as exc:  # the loader's reason, without its own field name
+            reason = str(exc).split(" is invalid: ", 1)[-1]
+            if ":" not in v:
+                reason = f"unknown system; allowed values are {what}"
+            raise fail("systems", v, reason) from None
+        except Exception as exc:  # an entry's own code failed while loading
+            raise fail("systems", v, f"loading it raised {type(exc).__name__}: {exc}") from exc
+        if sysm.name in seen:
+            raise fail("systems", v, f"must not repeat a system: it is {sysm.name!r}, as "
+                       f"{seen[sysm.name]!r} is")
+        seen[sysm.name] = v
+    return (tuple(a for a in SYSTEMS if a in values)
+            + tuple(v for v in values if ":" in v))
 
 
 @dataclass(frozen=True)
@@ -136,11 +165,23 @@ class ArenaConfig:
     """Cells: every controller x system x test map x disturbance, ``realisations`` episodes
     each, with the hand-tuned settings and/or the shipped tuned ones (``tunings``).
 
+    ``systems``: registered names (``workbench list``) and your own systems as entries
+    ``"path/file.py:function"`` or ``"module:function"`` returning a System
+    (:func:`~workbench.scenarios.model_system.system_from_model`); each worker process loads an
+    entry itself.
+
     Maps: ``test_maps`` maps of each family in ``families`` with seeds from ``test_seed``
     on (the tuning runs use ``tuning_maps`` maps from ``tuning_seed`` on: the ranges must not
     overlap). Common random numbers: realisation j of a (system, map, disturbance) gives every
     controller and tuning the same plant and sampler streams. An episode ends at a crash, at
-    the goal (within ``goal_radius``, scaled by the system) or after ``steps`` steps."""
+    the goal (within ``goal_radius``, scaled by the system) or after ``steps`` steps.
+
+    A system built from a model runs on its own scene (start, goal, constraints), never on a
+    generated map; its map seeds only select the random streams, so each round still draws new
+    disturbances (assumptions §12.4). A run with such a system takes one static map family
+    (the built-in systems' maps; when every system has its own scene, only the default one),
+    and such a system uses its own goal radius (``System.goal_radius``, in its own distance to
+    the goal), not ``goal_radius`` (map units); tuned values do not exist for it."""
 
     controllers: tuple[str, ...] = ("bas_mppi", "sa_rmppi")
     systems: tuple[str, ...] = ("double_integrator", "unicycle")
@@ -171,8 +212,7 @@ class ArenaConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "controllers",
                            _names("controllers", self.controllers, names(), "controller"))
-        object.__setattr__(self, "systems",
-                           _names("systems", self.systems, tuple(SYSTEMS), "system"))
+        object.__setattr__(self, "systems", _systems(self.systems))
         object.__setattr__(self, "tunings", _names("tunings", self.tunings, TUNINGS, "tuning"))
         for name, kind in (("families", MapFamily), ("disturbances", DisturbanceSpec)):
             v = getattr(self, name)
@@ -212,6 +252,7 @@ class ArenaConfig:
         if self.feedback is not None and not isinstance(self.feedback, FeedbackWeights):
             raise fail("feedback", self.feedback, "must be a FeedbackWeights or None")
         real("goal_radius", self.goal_radius, 0.0, strict=True)
+        self._check_own_scenes()
         for f in self.families:  # a start or goal inside a generated obstacle fails here
             generate(f, self.test_seed)
         for name, kind in (("sampler", MPPIConfig), ("robust", RMPPIConfig),
@@ -220,6 +261,36 @@ class ArenaConfig:
                            ("tuning_disturbance", DisturbanceSpec)):
             if not isinstance(getattr(self, name), kind):
                 raise fail(name, getattr(self, name), f"must be a {kind.__name__}")
+
+    def _check_own_scenes(self) -> None:
+        """The rules for systems with a scene of their own (assumptions §12.4): no tuned
+        values, one static map family, and no family or goal radius that nothing would use."""
+        own = [s for s in self.systems if arena_system(s).scene is not None]
+        user = [s for s in self.systems if ":" in s or s in own]
+        if "tuned" in self.tunings and user:
+            raise fail("tunings", "tuned", f"no tuned values exist for the system {user[0]!r} "
+                       "(tuned values are shipped for the built-in systems only); use "
+                       "tunings = [\"hand\"]")
+        if not own:
+            return
+        fams = [f.family for f in self.families]
+        why = (f"the system {own[0]!r} runs on its own scene, not on generated maps (its map "
+               "seeds only select the random streams)")
+        if len(self.families) != 1 or self.families[0].moving:
+            raise fail("families", fams, f"{why}: a run with it takes one static map family "
+                       "(for the built-in systems of the run); run other families or moving "
+                       "obstacles in a run without it")
+        if len(own) == len(self.systems):
+            if self.families[0] != MapFamily():
+                raise fail("families", self.families[0], f"{why}, and so does every system "
+                           "of this run: no system would use this map family; leave "
+                           "families out")
+            default = type(self).__dataclass_fields__["goal_radius"].default
+            if self.goal_radius != default:
+                raise fail("goal_radius", self.goal_radius, f"{why}, and so does every system "
+                           "of this run: each uses its own goal radius (System.goal_radius, "
+                           "system_from_model(goal_radius=...)), so this map-unit radius "
+                           f"would be used by none; leave it out (default {default:g})")
 
     def _check_comparisons(self) -> None:
         v = self.comparisons

@@ -18,6 +18,10 @@ Rerun (one process; prints what it measured)::
 
     python -m studies.arena.difficulty --system unicycle                  # the system's values
     python -m studies.arena.difficulty --system unicycle --states theta --calibrate 0.01 1
+    python -m studies.arena.difficulty --system examples/user_models.py:point_mass_system
+
+A system of your own (an entry, as in the arena's ``systems``) runs on its own scene: the map
+seeds then only select the random streams.
 
 The chosen values and their figures are recorded beside each system's definition
 (:mod:`workbench.scenarios.systems`) and in assumptions §2.6.
@@ -34,9 +38,9 @@ import numpy as np
 
 from studies.arena import STUDY
 from studies.arena.config import ArenaConfig, DisturbanceSpec
-from studies.arena.episodes import Controls, Where, capacity, run_episode
-from studies.arena.tasks import hand_settings
-from workbench.scenarios.systems import SYSTEMS, system
+from studies.arena.episodes import Controls, Where, arena_system, capacity, run_episode
+from studies.arena.tasks import hand_settings, system_key
+from workbench.scenarios.systems import SYSTEMS
 from workbench.sim import Disturbance
 from workbench.study import Rate, fmt_rate, seed_sequence
 from workbench.study.runner import profile_config
@@ -81,7 +85,7 @@ class Measured:
 def streams(system_name: str, map_seed: int,
             realisation: int) -> tuple[np.random.Generator, np.random.Generator]:
     """The (controller, plant) Generators of one calibration episode."""
-    ss = seed_sequence(SEED, (list(SYSTEMS).index(system_name), map_seed, realisation))
+    ss = seed_sequence(SEED, (system_key(system_name), map_seed, realisation))
     rc, rp = (np.random.default_rng(s) for s in ss.spawn(2))
     return rc, rp
 
@@ -100,9 +104,12 @@ class Bench:
     controller: str = REFERENCE
 
     def __post_init__(self) -> None:
-        if self.system_name not in SYSTEMS:
-            raise fail("system", self.system_name, f"unknown system; allowed values are "
-                       f"{tuple(SYSTEMS)}")
+        try:
+            arena_system(self.system_name)
+        except ValueError as exc:
+            raise fail("system", self.system_name, str(exc).split(" is invalid: ", 1)[-1]
+                       if ":" in self.system_name else "unknown system; allowed values are "
+                       f"{tuple(SYSTEMS)} or an entry 'path/file.py:function'") from None
         if not self.seeds:
             raise fail("seeds", self.seeds, "must name at least one map seed")
         integer("realisations", self.realisations, 1)
@@ -110,6 +117,8 @@ class Bench:
 
     def _where(self, seed: int) -> Where:
         fam = self.config.families[0]  # circle slots for these maps (padding: same results)
+        if arena_system(self.system_name).scene is not None:  # its own scene: no slots
+            return Where(self.system_name, fam, seed, None)
         return Where(self.system_name, fam, seed, capacity(fam, tuple(self.seeds)))
 
     def _controls(self) -> Controls:
@@ -231,7 +240,8 @@ def uninformative(rates: Mapping[str, float], n: int) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m studies.arena.difficulty",
                                  description=__doc__.split("\n\n")[0])
-    ap.add_argument("--system", required=True, choices=tuple(SYSTEMS))
+    ap.add_argument("--system", required=True,
+                    help=f"one of {', '.join(SYSTEMS)}, or an entry 'path/file.py:function'")
     ap.add_argument("--states", nargs="+", help="disturbed states (default: the system's)")
     ap.add_argument("--scale", type=float, help="level scale (default: the system's)")
     ap.add_argument("--calibrate", nargs=2, type=float, metavar=("LOW", "HIGH"),
@@ -252,7 +262,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if overlap:
         raise SystemExit(f"the training maps {seeds} overlap the test maps "
                          f"{config.map_seeds()}")
-    sysm = system(args.system)
+    try:
+        sysm = arena_system(args.system)
+    except ValueError as exc:
+        ap.error(str(exc))
     states = tuple(args.states) if args.states else sysm.disturbed
     scale = sysm.level_scale if args.scale is None else args.scale
     fam = config.families[0].family

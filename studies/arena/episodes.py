@@ -3,6 +3,10 @@ disturbance, from given random streams; shared by the arena's tasks and its tuni
 
 Everything built here is cached per process (maps, set-ups, controllers, thresholds): a worker
 that runs many episodes of one (system, map, settings) builds them once.
+
+A system is named as in the config: a registered name or an entry (``"module:function"`` or
+``"path/file.py:function"``) that a worker process loads itself (:func:`arena_system`). A system
+built from a model runs on its own scene, never on a generated map (assumptions §12.4).
 """
 
 from __future__ import annotations
@@ -18,10 +22,30 @@ from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.robust import RMPPIConfig
 from workbench.scenarios.maps import GeneratedMap, MapFamily, generate, scaled
 from workbench.scenarios.methods import build, method
+from workbench.scenarios.model_system import resolve_system
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
-from workbench.scenarios.systems import System, system
+from workbench.scenarios.systems import System
 from workbench.scenarios.tuned import ControllerSettings
 from workbench.sim import Disturbance, closed_loop
+
+
+@cache
+def _entry_system(entry: str) -> System:
+    return resolve_system(entry)
+
+
+def arena_system(name: str) -> System:
+    """The system a config names: a registered name, or an entry whose system is loaded and
+    registered in this process the first time
+    (:func:`~workbench.scenarios.model_system.resolve_system`; cached per process), so a
+    spawned worker loads it itself."""
+    return _entry_system(name) if ":" in name else resolve_system(name)
+
+
+def own_scene(name: str) -> bool:
+    """Whether the system ``name`` runs on a scene of its own (a system built from a model:
+    start, goal and constraints of its own), where the generated maps do not apply."""
+    return arena_system(name).scene is not None
 
 
 @cache
@@ -39,22 +63,33 @@ def capacity(family: MapFamily, seeds: tuple[int, ...]) -> int:
 
 @dataclass(frozen=True)
 class Where:
-    """A system on one map: the map's family and seed, and the circle slots of its kernels."""
+    """A system on one map: the map's family and seed, and the circle slots of its kernels.
+    A system with a scene of its own runs on that scene whatever the map (``capacity`` None:
+    no circle slots); the map's seed then only selects the episode's random streams."""
 
     system: str
     family: MapFamily
     seed: int
-    capacity: int
+    capacity: int | None
 
     @property
     def spec(self) -> System:
-        return system(self.system)
+        return arena_system(self.system)
+
+    @property
+    def own(self) -> bool:
+        return self.spec.scene is not None
 
     def scene(self):
+        if self.own:
+            return self.spec.scene
         return scaled(arena_map(self.family, self.seed), self.spec.scale).scene()
 
     def moving(self, dt: float):
-        """The moving scene ``k -> circles`` (None for a static map), in the system's scale."""
+        """The moving scene ``k -> circles`` (None for a static map or a scene of the
+        system's own), in the system's scale."""
+        if self.own:
+            return None
         m = arena_map(self.family, self.seed)
         return scaled(m, self.spec.scale).moving_scene(dt) if m.moving else None
 
@@ -72,7 +107,7 @@ class Controls:
 
 @cache
 def setup(where: Where, settings: ControllerSettings) -> NavigationSetup:
-    return navigation_setup(where.scene(), system=where.system, q_beta=settings.q_beta,
+    return navigation_setup(where.scene(), system=where.spec, q_beta=settings.q_beta,
                             mppi=settings.sampler, scene_capacity=where.capacity)
 
 
@@ -117,18 +152,26 @@ def run_episode(where: Where, c: Controls, disturbance: Disturbance, steps: int,
                 goal_radius: float, rng_controller: np.random.Generator,
                 rng_plant: np.random.Generator, threads: int = 1) -> Outcome:
     """One closed-loop episode; it ends at a crash, within ``goal_radius`` (scaled by the
-    system) of the goal, or after ``steps`` steps."""
+    system) of the goal, or after ``steps`` steps. A system with a scene of its own uses its
+    own goal radius in its own distance to the goal (:meth:`System.goal_distance`) instead."""
     nav = setup(where, c.settings)
     ctrl = controller(where, c)
     lib = getattr(getattr(ctrl, "sampler", None), "lib", None)
     if lib is not None:
         lib.set_threads(threads)
-    radius = goal_radius * where.spec.scale
-    ep = closed_loop(ctrl, nav.plant, nav.x0, steps, rng_controller, rng_plant, disturbance,
-                     scene=where.moving(nav.plant.dt), stop_at_goal=radius, goal=nav.goal,
-                     check_episode=False)  # the report checks every cell
-    pos = list(nav.plant.position)
-    dist = np.linalg.norm(ep.X[:, pos] - nav.goal[pos], axis=1)
+    if where.own:
+        ep = closed_loop(ctrl, nav.plant, nav.x0, steps, rng_controller, rng_plant,
+                         disturbance, stop_at_goal=where.spec.goal_radius,
+                         goal_distance=lambda x: float(nav.goal_distance(x)[0]),
+                         check_episode=False)
+        dist = nav.goal_distance(ep.X)
+    else:
+        radius = goal_radius * where.spec.scale
+        ep = closed_loop(ctrl, nav.plant, nav.x0, steps, rng_controller, rng_plant,
+                         disturbance, scene=where.moving(nav.plant.dt), stop_at_goal=radius,
+                         goal=nav.goal, check_episode=False)  # the report checks every cell
+        pos = list(nav.plant.position)
+        dist = np.linalg.norm(ep.X[:, pos] - nav.goal[pos], axis=1)
     stats = [i.stats for i in ep.infos]
     cf = np.array([s.n_collision_free / max(s.n_samples, 1) for s in stats])
     keys = sorted({k for s in stats for k in s.activity})

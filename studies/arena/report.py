@@ -11,11 +11,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from studies.arena.episodes import arena_system
 from studies.arena.findings import frontier, recommended, verdict, verdict_sentence
 from studies.arena.summary import ALL, ArenaSummary, summarise
 from workbench.scenarios.mechanism_health import console_lines, headline, report_lines
 from workbench.scenarios.methods import labels, markers, method
-from workbench.scenarios.systems import system
 from workbench.study import md_table, png_bytes, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
 from workbench.study.spec import Summary
@@ -38,7 +38,7 @@ def frontier_figure(s: ArenaSummary) -> bytes:
         ax.set_xlabel("compute time per control step [ms] (log)")
         ax.set_ylabel("safety: episodes without a crash [%]")
         ax.set_ylim(-3, 103)
-        ax.set_title(system(sysname).label, fontsize=10)
+        ax.set_title(arena_system(sysname).label, fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
@@ -46,9 +46,17 @@ def frontier_figure(s: ArenaSummary) -> bytes:
 
 
 def difficulty_figure(s: ArenaSummary) -> bytes:
-    """Safety per map (every disturbance pooled) against the map's bottleneck clearance."""
+    """Safety per map (every disturbance pooled) against the map's bottleneck clearance; the
+    systems on their own scenes have no map and no panel."""
     bottleneck = {m.map: m.bottleneck for m in s.maps}
-    systems = list(dict.fromkeys(c.system for c in s.cells))
+    own = {x.system for x in s.scenes}
+    systems = list(dict.fromkeys(c.system for c in s.cells if c.system not in own))
+    if not systems:
+        fig, ax = plt.subplots(figsize=(4.8, 1.2))
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no generated maps: every system ran on its own scene",
+                ha="center", va="center", fontsize=9)
+        return png_bytes(fig)
     fig, axes = plt.subplots(1, len(systems), figsize=(4.8 * len(systems), 4.0),
                              squeeze=False)
     for ax, sysname in zip(axes[0], systems, strict=True):
@@ -68,7 +76,7 @@ def difficulty_figure(s: ArenaSummary) -> bytes:
         ax.set_xlabel("map bottleneck: least clearance on the widest path [m]")
         ax.set_ylabel("safety on the map [%]")
         ax.set_ylim(-3, 103)
-        ax.set_title(system(sysname).label, fontsize=10)
+        ax.set_title(arena_system(sysname).label, fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
@@ -102,7 +110,7 @@ def _ms(b) -> str:
 
 
 def leaderboard_table(s: ArenaSummary) -> list[str]:
-    rows = [[system(b.system).label, b.tuning, b.rank, labels()[b.controller],
+    rows = [[arena_system(b.system).label, b.tuning, b.rank, labels()[b.controller],
              method(b.controller).mechanism, b.n, _pct(b.safety, b.ci_low, b.ci_high),
              _pct(b.success, b.success_low, b.success_high), _ms(b),
              "uninformative" if _all_flagged(s, b.system, b.tuning) else ""]
@@ -116,7 +124,7 @@ def recommendation_lines(s: ArenaSummary) -> list[str]:
     safety-versus-cost frontier."""
     out = []
     for sysname, tuning in dict.fromkeys((b.system, b.tuning) for b in s.leaderboard):
-        label = f"### {system(sysname).label}, {tuning}"
+        label = f"### {arena_system(sysname).label}, {tuning}"
         if _all_flagged(s, sysname, tuning):
             out += [label, "", "No recommendation: every setting of this system is "
                     "uninformative (" + "; ".join(
@@ -143,7 +151,7 @@ def recommendation_lines(s: ArenaSummary) -> list[str]:
 
 
 def decisions_table(s: ArenaSummary) -> list[str]:
-    rows = [[f"{labels()[r.first]} vs {labels()[r.second]}", r.metric, system(r.system).label,
+    rows = [[f"{labels()[r.first]} vs {labels()[r.second]}", r.metric, arena_system(r.system).label,
              r.disturbance, r.tuning, r.looks, r.n, f"{r.b} / {r.c}",
              f"{100 * r.difference:+.1f} [{100 * r.low:+.1f}, {100 * r.high:+.1f}]",
              r.verdict + (" (uninformative setting)" if r.uninformative else ""),
@@ -183,7 +191,7 @@ def design_lines(s: ArenaSummary) -> list[str]:
 
 
 def pooled_table(s: ArenaSummary) -> list[str]:
-    rows = [[system(p.system).label, p.disturbance, p.tuning, f"{p.first} vs {p.second}",
+    rows = [[arena_system(p.system).label, p.disturbance, p.tuning, f"{p.first} vs {p.second}",
              p.n_maps, p.n, f"{p.b} / {p.c}",
              f"{100 * p.difference:+.1f} [{100 * p.low:+.1f}, {100 * p.high:+.1f}]",
              _p(p.p_value), _p(p.cmh_p), _p(p.homogeneity_p)] for p in s.pooled]
@@ -197,6 +205,23 @@ def maps_table(s: ArenaSummary) -> list[str]:
              f"{m.straight_clearance:.2f}"] for m in s.maps]
     return md_table(["map", "circles", "moving", "bottleneck [m]", "widest path length [m]",
                      "straight-line clearance [m]"], rows)
+
+
+def _state(names: tuple[str, ...], x: tuple[float, ...]) -> str:
+    return ", ".join(f"{n} {v:.3g}" for n, v in zip(names, x, strict=True))
+
+
+def scenes_lines(s: ArenaSummary) -> list[str]:
+    """The systems that ran on their own scene, each described once (they have no map)."""
+    out = []
+    for x in s.scenes:
+        out += [f"- {x.label} ({x.system}) ran on its own scene, not on the generated maps: "
+                f"from ({_state(x.state_names, x.start)}) to ({_state(x.state_names, x.goal)}), "
+                f"{x.constraints} constraint{'s' if x.constraints != 1 else ''} h(x) > 0, "
+                f"dt {x.dt:g} s, goal radius {x.goal_radius:.3g} (in its own distance to the "
+                "goal). Its episodes are labelled own-<seed>: the seed only selects the "
+                "random streams, so each round draws new disturbances on the same scene."]
+    return out + ([""] if out else [])
 
 
 def _score(e: dict, part: str) -> str:
@@ -306,7 +331,8 @@ def report(finished, summ) -> Path:
               *pooled_table(s), "",
               *report_lines(s.health),
               "## Safety against map difficulty", "", "![difficulty](difficulty.png)", "",
-              *maps_table(s), "",
+              *(maps_table(s) if s.maps else ["No generated maps in this run."]), "",
+              *scenes_lines(s),
               "## Tuning", "",
               "Hand-tuned values are the workbench's defaults for each system; tuned values "
               "come from the same budget of automatic tuning (optuna's TPE) per controller on "
@@ -317,13 +343,18 @@ def report(finished, summ) -> Path:
               "the same objective on each set of episodes.", "",
               *tuned_table(s), "",
               "## Assumed values", "",
-              "- An episode ends when the robot is within the goal radius "
-              f"({cfg['goal_radius']:g} m, times the system's map scale): safety is counted "
-              "up to the goal, not while holding position there.",
+              *([("- An episode ends when the robot is within the goal radius "
+                  f"({cfg['goal_radius']:g} m, times the system's map scale): safety is "
+                  "counted up to the goal, not while holding position there.")]
+                if s.maps else []),
               "- A disturbance level is given in the double integrator's units; each system "
               "scales it by its own factor and applies it to its own default states.",
               "- The barrier-state weight q_beta is not tuned (it is compiled into the "
               "kernels).",
+              *(["- A system built from a model runs on its own scene: an episode ends "
+                 "within its own goal radius, in its own distance to the goal (safety is "
+                 "counted up to the goal), and it has no tuned values (assumptions §12.4)."]
+                if s.scenes else []),
               f"- The share of discordant pairs assumed when sizing the rounds: "
               f"{100 * cfg['decision']['discordance']:.0f} %.", "",
               "## Every cell", "", *cells_table(s), ""]

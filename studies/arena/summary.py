@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from studies.arena.episodes import arena_map
+from studies.arena.episodes import arena_map, arena_system, own_scene
 from studies.arena.tasks import family
 from workbench.scenarios.mechanism_health import StudyHealth, study_health
 from workbench.scenarios.tuned import shipped, space
@@ -162,6 +162,23 @@ class MapInfo:
 
 
 @dataclass(frozen=True)
+class SceneInfo:
+    """The scene of a system that runs on its own (a system built from a model), described
+    once in place of the generated maps it does not use: start and goal states, the number of
+    its constraints h(x) > 0, its time step and goal radius (in its own distance to the
+    goal)."""
+
+    system: str
+    label: str
+    start: tuple[float, ...]
+    goal: tuple[float, ...]
+    state_names: tuple[str, ...]
+    constraints: int
+    dt: float
+    goal_radius: float
+
+
+@dataclass(frozen=True)
 class ArenaSummary:
     config: dict
     cells: tuple[Cell, ...]
@@ -173,6 +190,7 @@ class ArenaSummary:
     decisions: tuple[DecisionRow, ...] = ()
     design: dict | None = None  # the group-sequential design shared by the decisions
     uninformative: dict[str, str] | None = None  # "system / disturbance / tuning" -> why
+    scenes: tuple[SceneInfo, ...] = ()  # the systems that run on their own scene, not on maps
 
     def pair(self, first: str, second: str, system: str, disturbance: str,
              tuning: str) -> Pooled | None:
@@ -305,8 +323,11 @@ def uninformative_settings(ep: pd.DataFrame) -> dict[str, str]:
 
 
 def map_infos(config) -> list[MapInfo]:
-    """Every test map with its difficulty (in the map's own units, before a system's scale)."""
-    out = []
+    """Every test map with its difficulty (in the map's own units, before a system's scale);
+    none when every system of the run has its own scene."""
+    out: list[MapInfo] = []
+    if all(own_scene(s) for s in config.systems):
+        return out
     for f in config.families:
         for seed in config.map_seeds():
             g = arena_map(family(config, f.family), seed)
@@ -317,6 +338,20 @@ def map_infos(config) -> list[MapInfo]:
     return out
 
 
+def scene_infos(config) -> list[SceneInfo]:
+    """The scene of every system of the run that runs on its own."""
+    out = []
+    for name in config.systems:
+        s = arena_system(name)
+        if s.scene is None:
+            continue
+        m = s.plant(s.scene)
+        out.append(SceneInfo(name, s.label, tuple(float(v) for v in s.scene.start),
+                             tuple(float(v) for v in s.scene.goal), tuple(m.state_names),
+                             int(m.nh), float(s.scene.dt), float(s.goal_radius)))
+    return out
+
+
 def tuned_section(config, ep: pd.DataFrame | None = None) -> dict:
     """The parameters each controller got on each system, and the budget used: the hand-tuned
     values always; with the shipped tuned ones (when this run used them) their training and
@@ -324,7 +359,6 @@ def tuned_section(config, ep: pd.DataFrame | None = None) -> dict:
     (same objective: :func:`~studies.arena.tuning.objective_value`)."""
     from studies.arena.tasks import hand_settings
     from studies.arena.tuning import objective_value
-    from workbench.scenarios.systems import system
 
     ship = shipped()
     out = {}
@@ -351,7 +385,7 @@ def tuned_section(config, ep: pd.DataFrame | None = None) -> dict:
                         if len(g):
                             ok = g["reached"].to_numpy(bool) & ~g["crashed"].to_numpy(bool)
                             test[tuning] = objective_value(
-                                ok, g["final_error"].to_numpy(float) / system(s).scale)
+                                ok, g["final_error"].to_numpy(float) / arena_system(s).scale)
                     entry["test"] = {**test, "episodes": len(ep[
                         (ep["system"] == s) & (ep["controller"] == c)
                         & (ep["tuning"] == "tuned")])}
@@ -385,7 +419,8 @@ def summarise(config, store) -> ArenaSummary:
     return ArenaSummary(config.as_dict(), tuple(cells), tuple(pooled_rows(config, ep)),
                         tuple(leaderboard(ep, timing)), tuple(map_infos(config)),
                         tuned_section(config, ep), health(ep, act),
-                        tuple(decision_rows(config, ep, flags)), plan, flags)
+                        tuple(decision_rows(config, ep, flags)), plan, flags,
+                        tuple(scene_infos(config)))
 
 
 HEALTH_CELL = ("system", "disturbance", "tuning")  # one mechanism check over every test map

@@ -4,6 +4,11 @@ tuning, realisation).
 Common random numbers: an episode's stream key is (system, map family, map seed, disturbance,
 realisation), not the controller or the tuning, so in realisation j every controller meets the
 same plant disturbances (``ctx.rng(1)``) and draws from the same sampler stream (``ctx.rng(0)``).
+
+A system is a registered name or an entry (``"path/file.py:function"``, ``"module:function"``)
+that each worker loads itself (:func:`~studies.arena.episodes.arena_system`). A system built
+from a model runs on its own scene: its map seed only selects the random streams, and its
+episodes are labelled ``own-<seed>`` instead of a map (assumptions §12.4).
 """
 
 from __future__ import annotations
@@ -14,11 +19,18 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from studies.arena.config import RESULT_VERSION, ArenaConfig, DisturbanceSpec
-from studies.arena.episodes import Controls, Where, capacity, run_episode
+from studies.arena.episodes import (
+    Controls,
+    Where,
+    arena_system,
+    capacity,
+    own_scene,
+    run_episode,
+)
 from workbench.scenarios.maps import MAP_FAMILIES, MapFamily
 from workbench.scenarios.methods import slowest_first
 from workbench.scenarios.methods.settings import fingerprint as settings_data
-from workbench.scenarios.systems import SYSTEMS, definition, system
+from workbench.scenarios.systems import SYSTEMS, definition
 from workbench.scenarios.tuned import ControllerSettings, check_usable, tuned
 from workbench.study import TaskContext, TaskOutput
 from workbench.study.spec import Declaration
@@ -28,6 +40,13 @@ from workbench.validation import fail
 def word(text: str) -> int:
     """A stable 31-bit stream word for a label."""
     return int(hashlib.sha256(text.encode()).hexdigest()[:8], 16) >> 1
+
+
+def system_key(name: str) -> int:
+    """A system's word in the stream keys: its place in the registry for a registered name
+    (the built-in systems keep their streams), a stable word of the entry string for an entry
+    (``"path/file.py:function"``: the same entry gives the same streams in every process)."""
+    return word(name) if ":" in name else list(SYSTEMS).index(name)
 
 
 @dataclass(frozen=True)
@@ -41,12 +60,13 @@ class ArenaEpisode:
     realisation: int
 
     def stream_key(self) -> tuple[int, ...]:
-        return (list(SYSTEMS).index(self.system), MAP_FAMILIES.index(self.family),
+        return (system_key(self.system), MAP_FAMILIES.index(self.family),
                 self.map_seed, word(self.disturbance), self.realisation)
 
     def columns(self) -> dict[str, object]:
+        place = "own" if own_scene(self.system) else self.family  # no map on its own scene
         return {"controller": self.controller, "system": self.system,
-                "map": f"{self.family}-{self.map_seed}", "family": self.family,
+                "map": f"{place}-{self.map_seed}", "family": self.family,
                 "map_seed": self.map_seed, "disturbance": self.disturbance,
                 "tuning": self.tuning, "realisation": self.realisation}
 
@@ -54,7 +74,7 @@ class ArenaEpisode:
 def hand_settings(config: ArenaConfig, system_name: str) -> ControllerSettings:
     """The hand-tuned settings on a system: the config's sampler (N, T, ...) with the system's
     own sigma and lambda, its q_beta, the config's alpha rule and method options."""
-    s = system(system_name)
+    s = arena_system(system_name)
     sampler = replace(config.sampler, sigma=tuple(s.sigma), lam=float(s.lam))
     return ControllerSettings(sampler, float(s.q_beta), config.rule, config.methods)
 
@@ -83,6 +103,8 @@ def family(config: ArenaConfig, name: str) -> MapFamily:
 
 def where(config: ArenaConfig, system_name: str, family_name: str, seed: int) -> Where:
     fam = family(config, family_name)
+    if own_scene(system_name):  # its own scene: no circle slots to size
+        return Where(system_name, fam, seed, None)
     return Where(system_name, fam, seed, capacity(fam, config.map_seeds()
                                                   + config.tuning_seeds()
                                                   + config.validation_seeds()))
@@ -94,7 +116,7 @@ def disturbance_spec(config: ArenaConfig, label: str) -> DisturbanceSpec:
 
 def run_task(task: ArenaEpisode, ctx: TaskContext, config: ArenaConfig,
              prepared=None) -> TaskOutput:
-    sys_ = system(task.system)
+    sys_ = arena_system(task.system)
     dist = disturbance_spec(config, task.disturbance).disturbance(sys_.level_scale,
                                                                   sys_.disturbed)
     out = run_episode(where(config, task.system, task.family, task.map_seed),
@@ -157,8 +179,18 @@ def plan(config: ArenaConfig) -> Plan:
 
 def system_values(names: tuple[str, ...]) -> dict:
     """Each system's :func:`~workbench.scenarios.systems.definition`: the values results
-    depend on (a change to them must not reuse stored episodes)."""
-    return {n: definition(n) for n in names}
+    depend on (a change to them must not reuse stored episodes); for a system with a scene of
+    its own also its name, goal radius, state scales, start, goal and model."""
+    out = {}
+    for n in names:
+        s = arena_system(n)
+        out[n] = definition(s)
+        if s.scene is not None:
+            m = s.plant(s.scene)
+            out[n].update(name=s.name, goal_radius=s.goal_radius, state_scale=s.state_scale,
+                          start=list(s.scene.start), goal=list(s.scene.goal),
+                          model=[str(m.x_next), str(m.h), list(m.u_min), list(m.u_max), m.dt])
+    return out
 
 
 def fingerprint(config: ArenaConfig) -> dict:
@@ -168,10 +200,12 @@ def fingerprint(config: ArenaConfig) -> dict:
               "seed", "tuning", "tuning_maps", "tuning_seed", "tuning_disturbance",
               "comparisons", "decision", "validation_maps", "validation_seed"):
         d.pop(k)
-    # the circle slots depend on every map of a family: part of what a task computed
-    d["capacity"] = {f.family: capacity(f, config.map_seeds() + config.tuning_seeds()
-                                        + config.validation_seeds())
-                     for f in config.families}
+    # the circle slots depend on every map of a family: part of what a task computed (on a
+    # generated map: a run of systems on their own scenes has none)
+    if not all(own_scene(s) for s in config.systems):
+        d["capacity"] = {f.family: capacity(f, config.map_seeds() + config.tuning_seeds()
+                                            + config.validation_seeds())
+                         for f in config.families}
     if "tuned" in config.tunings:
         d["tuned"] = {f"{s}/{c}": settings_data(settings(config, s, c, "tuned"))
                       for s in config.systems for c in config.controllers}

@@ -31,10 +31,10 @@ from pathlib import Path
 import numpy as np
 
 from studies.arena.config import RESULT_VERSION, ArenaConfig
-from studies.arena.episodes import Controls, Where, capacity, run_episode
+from studies.arena.episodes import Controls, Where, arena_system, capacity, run_episode
 from studies.arena.tasks import family, hand_settings, system_values
 from workbench.scenarios.methods import names
-from workbench.scenarios.systems import SYSTEMS, definition_hash, system
+from workbench.scenarios.systems import SYSTEMS, definition_hash
 from workbench.scenarios.tuned import (
     RERUN,
     Evaluation,
@@ -102,7 +102,7 @@ def episodes_score(config: ArenaConfig, task: TuningTask, maps: list[tuple[str, 
     tuning disturbance, episode e on ``maps[e mod len(maps)]`` with streams keyed by the
     system, ``stream`` and e (never by the controller or the parameters)."""
     base = hand_settings(config, task.system)
-    spec = system(task.system)
+    spec = arena_system(task.system)
     dist = config.tuning_disturbance.disturbance(spec.level_scale, spec.disturbed)
     key = list(SYSTEMS).index(task.system)
 
@@ -180,6 +180,11 @@ def check(config: ArenaConfig) -> None:
     """What a tuning run needs beyond a valid arena config: a validation step, and enough
     episodes for every trial to see every training map and every candidate every validation
     map."""
+    for s in config.systems:  # tuned values are shipped for the built-in systems only
+        if ":" in s:
+            raise fail("systems", s, "is a system of your own: the arena's tuning runs on "
+                       "generated maps and ships values for the built-in systems only; its "
+                       "controllers keep the hand-tuned settings (tunings = [\"hand\"])")
     b = config.tuning
     if b.validation < 1:
         raise fail("tuning.validation", b.validation, "must be >= 1: the arena's tuning "
