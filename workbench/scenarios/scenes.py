@@ -99,21 +99,44 @@ class NavigationScene:
         """
         circles = self._gates()
         rng = np.random.default_rng(self.seed)
-        ends = (np.array(self.start), np.array(self.goal))
-        for _ in range(_DRAWS):
-            if len(circles) == self.n_obstacles:
-                break
-            r = rng.uniform(*self.radius_range)
-            c = rng.uniform(*self.center_range, size=2)
-            if any(np.linalg.norm(c - e) - r < self.endpoint_clearance for e in ends):
-                continue
-            if any(np.linalg.norm(c - np.array(o.center)) - r - o.radius < self.edge_gap
-                   for o in circles):
-                continue
-            circles.append(Circle((float(c[0]), float(c[1])), float(r)))
+        circles = self._sample(circles, rng)
         if len(circles) < self.n_obstacles:
             circles = self._complete(circles, rng)
         return tuple(circles)
+
+    def _sample(self, circles: list[Circle], rng: np.random.Generator) -> list[Circle]:
+        """Rejection sampling, all ``_DRAWS`` draws at once: draw i is a radius then a centre
+        (the generator's doubles 3i, 3i + 1, 3i + 2, as one ``uniform`` call for the radius
+        and one for the centre would take them); it is kept when it clears both endpoints and
+        every circle kept before it. The same circles as drawing one at a time; the generator
+        ends where that loop would when the map is not complete (the grid placement goes on
+        from there)."""
+        if len(circles) >= self.n_obstacles:
+            return circles
+        u = rng.random((_DRAWS, 3))
+        (rlo, rhi), (clo, chi) = self.radius_range, self.center_range
+        r = rlo + (rhi - rlo) * u[:, 0]
+        c = clo + (chi - clo) * u[:, 1:]
+
+        def dist(p) -> np.ndarray:
+            d = c - np.asarray(p, dtype=float)
+            return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+
+        ok = np.ones(_DRAWS, dtype=bool)
+        for e in (self.start, self.goal):
+            ok &= ~(dist(e) - r < self.endpoint_clearance)
+        for o in circles:
+            ok &= ~(dist(o.center) - r - o.radius < self.edge_gap)
+        out, i = list(circles), 0
+        while len(out) < self.n_obstacles:
+            rest = np.flatnonzero(ok[i:])
+            if rest.size == 0:
+                break
+            i += int(rest[0])
+            out.append(Circle((float(c[i, 0]), float(c[i, 1])), float(r[i])))
+            ok[i + 1:] &= ~(dist(c[i])[i + 1:] - r[i + 1:] - r[i] < self.edge_gap)
+            i += 1
+        return out
 
     def _gates(self) -> list[Circle]:
         off = self.gate_radius + self.corridor_width / 2
