@@ -261,6 +261,14 @@ class ArenaConfig:
                            ("tuning_disturbance", DisturbanceSpec)):
             if not isinstance(getattr(self, name), kind):
                 raise fail(name, getattr(self, name), f"must be a {kind.__name__}")
+        default = MPPIConfig()
+        for name in ("sigma", "lam"):  # each system's own (hand) or its tuned value runs
+            if getattr(self.sampler, name) != getattr(default, name):
+                raise fail(f"sampler.{name}", getattr(self.sampler, name),
+                           "is set per system in the arena: the hand-tuned rows use each "
+                           "system's own value and the tuned rows the shipped tuned one; "
+                           "leave it out (or compare your values with the sampling-safety "
+                           "study, whose [sampler] table applies them)")
 
     def _check_own_scenes(self) -> None:
         """The rules for systems with a scene of their own (assumptions §12.4): no tuned

@@ -44,6 +44,17 @@ def test_bad_config_names_the_field(overrides, field):
         tiny(**overrides)
 
 
+@pytest.mark.parametrize("name, value", [("lam", 50.0), ("sigma", (0.1, 0.1))])
+def test_sampler_values_the_arena_sets_per_system_are_refused(name, value):
+    """sigma and lambda come from each system (hand) or its tuned values: a value given in
+    the config would be recorded and ignored, so it is refused."""
+    from dataclasses import replace
+
+    base = tiny()
+    with pytest.raises(ValueError, match=rf"^sampler\.{name} = .*set per system"):
+        tiny(sampler=replace(base.sampler, **{name: value}))
+
+
 def test_zero_budget_unknown_family_and_disturbance_name_the_field():
     with pytest.raises(ValueError, match=r"^disturbances\.model"):
         DisturbanceSpec("gust")
