@@ -141,28 +141,34 @@ def decide(config: ArenaConfig, ep: pd.DataFrame, m: Member) -> Decided | None:
 
 
 # ----------------------------------------------------------------------------- rounds
-def _frame(tasks, outputs) -> pd.DataFrame:
-    rows = []
-    for t in tasks:
-        e = outputs(t)["episodes"]
-        rows.append({**t.columns(), "crashed": bool(e["crashed"][0]),
-                     "reached": bool(e["reached"][0])})
-    return pd.DataFrame(rows)
+def _row(task, out) -> dict:
+    e = out["episodes"]
+    return {**task.columns(), "crashed": bool(e["crashed"][0]),
+            "reached": bool(e["reached"][0])}
 
 
 def stages(config: ArenaConfig, rounds: tuple[tuple, ...], outputs) -> list:
     """The tasks to have finished now: round 0, then round r for every member still open
-    after the looks at rounds < r (``rounds[r]``: round r's tasks by member label)."""
+    after the looks at rounds < r (``rounds[r]``: round r's tasks by member label). Each
+    task's outputs are read once."""
     wanted = list(rounds[0][""])
+    rows: dict = {}
     ms = members(config)
     for r in range(1, len(rounds)):
-        if any(outputs(t) is None for t in wanted):
-            return wanted
-        ep = _frame(wanted, outputs)
+        for t in wanted:
+            if t not in rows:
+                out = outputs(t)
+                if out is None:
+                    return wanted
+                rows[t] = _row(t, out)
+        ep = pd.DataFrame([rows[t] for t in wanted])
+        seen = set(wanted)
         for m in ms:
             ls = looks(config, ep, m)
             if ls and ls[-1].decision == "continue" and len(ls) == r:
-                wanted += [t for t in rounds[r][m.label] if t not in wanted]
+                new = [t for t in rounds[r][m.label] if t not in seen]
+                wanted += new
+                seen.update(new)
     return wanted
 
 

@@ -378,7 +378,8 @@ def tuned_section(config, ep: pd.DataFrame | None = None) -> dict:
                                              "tuned": t.validation.tuned,
                                              "episodes": t.validation.episodes}})
                 if ep is not None:
-                    test = {}
+                    test: dict = {}
+                    n_tuned = 0
                     for tuning in ("hand", "tuned"):
                         g = ep[(ep["system"] == s) & (ep["controller"] == c)
                                & (ep["tuning"] == tuning)]
@@ -386,9 +387,9 @@ def tuned_section(config, ep: pd.DataFrame | None = None) -> dict:
                             ok = g["reached"].to_numpy(bool) & ~g["crashed"].to_numpy(bool)
                             test[tuning] = objective_value(
                                 ok, g["final_error"].to_numpy(float) / arena_system(s).scale)
-                    entry["test"] = {**test, "episodes": len(ep[
-                        (ep["system"] == s) & (ep["controller"] == c)
-                        & (ep["tuning"] == "tuned")])}
+                        if tuning == "tuned":
+                            n_tuned = len(g)
+                    entry["test"] = {**test, "episodes": n_tuned}
             out[f"{s}/{c}"] = entry
     return out
 
