@@ -513,7 +513,7 @@ def _run_claimed(study: Study, store: RunStore, workers: int, client: Any, addre
                 bar.close()
             n = len(store.finished(id_of[t] for t in targets))
             raise exc.with_advice(
-                f"{n} of {len(ids)} tasks are finished and stored; once there is room (or the "
+                f"{n} of {len(targets)} tasks are finished and stored; once there is room (or the "
                 "limit is raised), rerun the same command to continue") from exc
         finally:
             if records is not None:

@@ -233,9 +233,10 @@ class RunStore:
         for task, tid in zip(study.tasks, study.task_ids(), strict=True):
             if chosen is not None and task not in chosen:
                 continue
-            entries = self._require(tid)
-            for t, cols in entries[_RECORD]["tables"].items():
-                data = {c: entries[f"{_TABLE}{t}:{c}"] for c in cols}
+            stored = self.outputs(tid)
+            if stored is None:
+                raise fail("task_id", tid, f"no finished task with this id in {self.root}")
+            for t, data in stored.items():
                 n = len(next(iter(data.values()))) if data else 0
                 head = {"task_id": np.full(n, tid),
                         **{c: np.full(n, v) for c, v in columns(task).items()}}
