@@ -22,6 +22,7 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.sampling.feedback.base import FeedbackLaw, Gains
+from workbench.sampling.feedback.effect import differs
 from workbench.sampling.feedback.ilqg import ILQGFeedback
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.mppi import MPPI, MPPIConfig, savgol_matrix
@@ -107,7 +108,8 @@ class RMPPIInfo:
     candidate_free_energy: np.ndarray
     candidate_alpha: np.ndarray
     fallback_used: bool  # alpha fallback: no candidate admissible
-    nominal_differs: bool  # x*_0 != the measured state after selection
+    # x*_0 differs from the measured state after selection (effect.differs)
+    nominal_differs: bool
     alpha: float  # threshold used in the SAIS clamp (at the chosen nominal state)
     # some threshold of this step is finite: the selection could bind. False with the explicit
     # opt-out (alpha = +inf everywhere): the real state is taken and the robust part is inert
@@ -135,13 +137,18 @@ class RMPPIInfo:
     @property
     def stats(self) -> StepStats:
         """The real samples (with feedback: the system the plan is for) of the last SAIS
-        batch, and the ESS of the nominal weights (the ones that make the update). Activity:
-        the nominal state differs from the measured one, the feedback law fell back, the
-        selection found no admissible candidate, and the feedback law's own mechanism
-        activity (:attr:`Gains.activity`)."""
-        act = {"nominal_differs": float(self.nominal_differs),
+        batch, and the ESS of the nominal weights (the ones that make the update). Activity
+        (effects, :mod:`workbench.sampling.feedback.effect`): the nominal state differs from
+        the measured one, and the feedback law's own mechanism activity
+        (:attr:`Gains.activity`) on such a step only: with x*_0 = x every sample's real and
+        nominal rollouts coincide and the applied control's K_0 (x - x*_0) is 0, so no gain
+        reaches the plant and the law's activity is 0. Events: the feedback law fell back,
+        the selection found no admissible candidate."""
+        gate = 1.0 if self.nominal_differs else 0.0
+        act = {"nominal_differs": gate,
                "feedback_fallback": float(self.ksafe_fallback is not None),
-               "selection_fallback": float(self.fallback_used), **self.gains_activity}
+               "selection_fallback": float(self.fallback_used),
+               **{k: gate * v for k, v in self.gains_activity.items()}}
         return StepStats(n_samples=self.n_samples,
                          n_collision_free=self.n_samples - self.n_crashed_real,
                          ess=self.ess_nom, activity=act)
@@ -366,7 +373,7 @@ class RobustMPPI(RecordsSamples):
         info = RMPPIInfo(
             candidate=sel.index, candidate_free_energy=sel.free_energy,
             candidate_alpha=sel.alpha, fallback_used=sel.fallback,
-            nominal_differs=not bool((x_nom == xb).all()), alpha=alpha,
+            nominal_differs=bool(differs(x_nom, xb)), alpha=alpha,
             alpha_finite=math.isfinite(alpha) or bool(np.isfinite(sel.alpha).any()),
             free_energy_nom=Wn.free_energy, free_energy_real=Wr.free_energy, ess_nom=Wn.ess,
             ess_real=Wr.ess, n_crashed_real=int(np.count_nonzero(b.crashed_real)),

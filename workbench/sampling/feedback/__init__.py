@@ -10,7 +10,10 @@
 * :mod:`~workbench.sampling.feedback.al` — :class:`ALFeedback`: gains from an augmented
   Lagrangian iLQG on the plain model;
 * :mod:`~workbench.sampling.feedback.ecbf` — :class:`ECBFFeedback`: the sensitivity of an
-  exponential-CBF safety filter.
+  exponential-CBF safety filter;
+* :mod:`~workbench.sampling.feedback.effect` — what counts as a mechanism acting, for every
+  method (an effect on what reaches the plant, by more than ``EFFECT_RTOL``); here because the
+  laws use it too.
 
 The AL and ECBF laws come from the paper's two other safety mechanisms. Next to K_safe (barrier
 states, :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback` on the barrier-embedded model),

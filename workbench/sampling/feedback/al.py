@@ -97,7 +97,10 @@ class ALFeedback:
     gains and happens in every call with a finite nominal rollout.
 
     Activity: ``al_active`` — the share of the horizon's constrained steps x_1..x_T where some
-    penalty term is active (mu c + lambda > 0) in the gains' parameters.
+    penalty term is active (mu c + lambda > 0) in the gains' parameters: only an active term
+    moves the gains away from the plain tracking gains (its Gauss-Newton term mu grad(c)
+    grad(c)^T). Robust MPPI counts it only on steps where the gains reach the plant (the
+    nominal state differs from the measured one, :mod:`workbench.sampling.feedback.effect`).
     """
 
     def __init__(self, model: Model, horizon: int, nx_full: int,

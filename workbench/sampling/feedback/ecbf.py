@@ -26,6 +26,7 @@ from workbench.sampling.feedback.base import (
     fallback_gains,
     pad_gains,
 )
+from workbench.sampling.feedback.effect import differs
 from workbench.sampling.feedback.ilqg import ILQGFeedback
 from workbench.validation import as_array, fail
 
@@ -131,9 +132,12 @@ class ECBFFeedback:
     ``FALLBACK_REASONS``): when the tracking gains fall back, or the row Jacobians or the
     filtered gains are not finite, the previous gains are shifted by the stride.
 
-    Activity: ``ecbf_active`` — the share of horizon steps where some ECBF row is active (the
-    filter changes the reference there); ``ecbf_infeasible`` — the share where the QP is
-    infeasible (positive slacks, or the hard-mode fallback).
+    Activity: ``ecbf_active`` — the share of horizon steps whose gain the filter changed: some
+    ECBF row is active there and the filter's gain differs from the tracking gain K_k
+    (:func:`~workbench.sampling.feedback.effect.differs`; a hard-mode infeasible step keeps
+    K_k and does not count); ``ecbf_infeasible`` — the share where the QP is infeasible
+    (positive slacks, or the hard-mode fallback), an event. Robust MPPI counts both only on
+    steps where the gains reach the plant (the nominal state differs from the measured one).
     """
 
     def __init__(self, model: Model, horizon: int, nx_full: int,
@@ -332,7 +336,10 @@ class ECBFFeedback:
                 reason = "nonfinite_gains" if finite else "nonfinite_derivatives"
                 break
             K[k] = gain
-        activity = {"ecbf_active": float(active.mean()),
+        # effects (workbench.sampling.feedback.effect): the steps whose gain the filter changed
+        # (none when the gains fall back: the previous ones are used)
+        changed = differs(K, g.K, axis=(1, 2)) if reason is None else np.zeros(self.T, bool)
+        activity = {"ecbf_active": float(changed.mean()),
                     "ecbf_infeasible": float(infeasible.mean())}
         if reason is not None:
             return Gains(K=fallback_gains(previous, stride, shape), fallback=reason,
