@@ -71,7 +71,7 @@ def kinds(h, **where) -> list[tuple[str, str]]:
 def test_never_and_always_over_a_cell():
     h = study_health(*tables({10.0: {
         "sais_al": runs(SAFE10, 0.0),  # AL gains never active: the users' case
-        "tube_mppi": runs(SAFE10, 1.0),  # a tube that resets on every step
+        "tube_mppi": runs(SAFE10, 1.0),  # a tube that never falls back to MPPI's control
         "bas_mppi": runs(SAFE10, None), "mppi_crash": runs(SAFE10, None)}}),
         cell=("variance",))
     assert kinds(h) == [("tube_mppi", "always"), ("sais_al", "never")]
@@ -80,7 +80,7 @@ def test_never_and_always_over_a_cell():
     assert never.cell == {"variance": 10.0} and never.problem
     assert "al_active = 0 on all 500 steps of its 10 episodes" in never.figures
     always = next(f for f in h.findings if f.kind == "always")
-    assert "nominal_reset = 1" in always.figures and "tube.threshold" in always.advice
+    assert "nominal_tracked = 1" in always.figures and "tube.threshold" in always.advice
     assert h.checked == {"activity": 2, "paired": 2}
 
 
@@ -375,8 +375,10 @@ def test_the_hook_warns_only_on_a_problem():
 
 
 def test_closed_loop_warns_about_a_tube_that_resets_on_every_step():
-    """Tube-MPPI with its default threshold resets its nominal on every undisturbed step:
-    closed_loop says so, pointing at the caller's line; check_episode=False is silent."""
+    """Tube-MPPI with its default threshold resets its nominal on every undisturbed step, so
+    the plant gets MPPI's control on every step: its mechanism never acted (it counted as
+    acting on every step while resets were counted), and closed_loop says so, pointing at the
+    caller's line; check_episode=False is silent."""
     nav = wb.navigation_setup(mppi=wb.MPPIConfig(n_samples=64, horizon=30, sigma=(5.0, 5.0),
                                                  lam=10.0))
     ctrl = nav.controller("tube_mppi")
@@ -390,8 +392,9 @@ def test_closed_loop_warns_about_a_tube_that_resets_on_every_step():
         ep = run()
     ours = [w for w in caught if issubclass(w.category, MechanismWarning)]
     assert len(ours) == 1 and ours[0].filename == __file__
-    assert "Tube-MPPI: mechanism acted on every step: nominal_reset = 1" in str(ours[0].message)
-    assert [f.kind for f in episode_health("tube_mppi", ep)] == ["always"]
+    assert "Tube-MPPI: mechanism never acted: nominal_tracked = 0" in str(ours[0].message)
+    assert [f.kind for f in episode_health("tube_mppi", ep)] == ["never"]
+    assert all(i.stats.activity["nominal_reset"] == 1.0 for i in ep.infos)
     with warnings.catch_warnings():
         warnings.simplefilter("error", MechanismWarning)
         run(check_episode=False)

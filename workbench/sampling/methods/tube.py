@@ -29,6 +29,7 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.sampling.feedback.base import FeedbackLaw, FeedbackWeights, Gains
+from workbench.sampling.feedback.effect import differs
 from workbench.sampling.feedback.ilqg import ILQGFeedback
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.mppi import MPPI, MPPIConfig
@@ -72,7 +73,11 @@ class TubeInfo:
     """One Tube-MPPI step. ``free_energy``, ``ess``, ``n_crashed`` and ``n_samples`` describe
     the batch the applied plan comes from: the nominal batch, or the actual batch on a step
     where the nominal reset in the last iteration (then U_n = U_a). ``nominal_reset``: the
-    nominal reset in some iteration of this step."""
+    nominal reset in some iteration of this step (an event: the tube's fall-back to the
+    measured state). ``nominal_tracked``: the applied control differs from the first control
+    of the actual plan (the one MPPI from the measured state applies) by more than
+    :data:`~workbench.sampling.feedback.effect.EFFECT_RTOL`: the tube changed what reaches the
+    plant (never on a step whose last iteration reset the nominal)."""
 
     free_energy: float
     ess: float
@@ -80,6 +85,7 @@ class TubeInfo:
     n_samples: int
     time_s: float
     nominal_reset: bool
+    nominal_tracked: bool
     baseline_actual: float  # min sample cost of the actual batch (last iteration)
     baseline_nominal: float  # min sample cost of the nominal batch, before any reset
     free_energy_actual: float
@@ -91,11 +97,14 @@ class TubeInfo:
 
     @property
     def stats(self) -> StepStats:
-        """The applied plan's batch (see the class docstring); activity: the nominal reset
-        this step, the tracking law fell back, and the law's own activity."""
-        act = {"nominal_reset": float(self.nominal_reset),
+        """The applied plan's batch (see the class docstring); activity (effects,
+        :mod:`workbench.sampling.feedback.effect`): ``nominal_tracked``, and the tracking law's
+        own activity on such a step only (else no gain reached the plant); events: the nominal
+        reset this step, the tracking law fell back."""
+        gate = 1.0 if self.nominal_tracked else 0.0
+        act = {"nominal_tracked": gate, "nominal_reset": float(self.nominal_reset),
                "feedback_fallback": float(self.feedback_fallback is not None),
-               **self.gains_activity}
+               **{k: gate * v for k, v in self.gains_activity.items()}}
         return StepStats(n_samples=self.n_samples,
                          n_collision_free=self.n_samples - self.n_crashed, ess=self.ess,
                          activity=act)
@@ -204,6 +213,7 @@ class TubeMPPI(RecordsSamples):
         info = TubeInfo(
             free_energy=W.free_energy, ess=W.ess, n_crashed=int(b.crashed.sum()),
             n_samples=cfg.n_samples, time_s=dt, nominal_reset=reset,
+            nominal_tracked=bool(differs(u, np.clip(U_a[0], lo, hi))),
             baseline_actual=Wa.rho, baseline_nominal=Wn.rho, free_energy_actual=Wa.free_energy,
             free_energy_nominal=Wn.free_energy, x_nom=x_nom, feedback_fallback=gains.fallback,
             gains_activity=dict(gains.activity), samples=samples)

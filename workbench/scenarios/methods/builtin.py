@@ -80,7 +80,7 @@ BUILTIN = (
     MethodSpec("tube_mppi", "Tube-MPPI", "crash cost + ancillary tracker", _tube, marker="D",
                options=TubeConfig, options_key="tube",
                tunable=(Param("tube.threshold", -100.0, 20.0, log=False),),
-               activity="nominal_reset", cost_rank=5, wraps="mppi_crash"),
+               activity="nominal_tracked", cost_rank=5, wraps="mppi_crash"),
     MethodSpec("cbf_projection", "CBF projection per sample", "per-sample CBF projection",
                _cbf_projection, marker="P", options=CBFProjectionConfig,
                options_key="cbf_projection",
