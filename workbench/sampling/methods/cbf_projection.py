@@ -25,6 +25,7 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma, discrete_cbf
+from workbench.sampling.feedback.effect import differs
 from workbench.sampling.kernels.safe import projection_function
 from workbench.sampling.methods.sampler import (
     SafeMPPIController,
@@ -57,11 +58,15 @@ class CBFProjectionConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class CBFProjectionInfo:
-    """One step. ``projected``/``infeasible``: the last batch's share of sample-steps
-    (out of N T) where the projection acted / where the projected control still violated a
-    constraint (box clip); ``applied_projected``: the applied control was moved at the
-    measured state; ``applied_c_min``: min_i c_i at the measured state and the applied control
-    (nan without ``project_applied``)."""
+    """One step. ``projected``: the last batch's share of sample-steps (out of N T) whose
+    control the projection moved (by more than
+    :data:`~workbench.sampling.feedback.effect.EFFECT_RTOL`: a violated constraint whose
+    projection the box clips back, or whose gradient in u is 0, moves nothing and does not
+    count); ``infeasible``: the share where the linearised constraint was violated and the
+    projected control still violated a constraint (box clip), an event;
+    ``applied_projected``: the applied control was moved at the measured state;
+    ``applied_c_min``: min_i c_i at the measured state and the applied control (nan without
+    ``project_applied``)."""
 
     free_energy: float
     ess: float
@@ -101,12 +106,13 @@ class CBFProjectionMPPI(RecordsSamples, SafeMPPIController):
         self._project = FastFunction(projection_function(self.dcbf))
 
     def project(self, xb, u) -> tuple[np.ndarray, bool, float]:
-        """(v_hat, acted, min_i c_i(xb, v_hat)): the closed-form projection of clip(u) at the
-        full state xb in the current scene."""
+        """(v_hat, moved, min_i c_i(xb, v_hat)): the closed-form projection of clip(u) at the
+        full state xb in the current scene; ``moved``: v_hat differs from clip(u)
+        (:func:`~workbench.sampling.feedback.effect.differs`)."""
         lo, hi = self.sp.model.u_min, self.sp.model.u_max
-        v, acted, cmin = self._project(xb, np.clip(u, lo, hi), self.ccfg.gamma, self.scene,
-                                       lo, hi)
-        return v, bool(acted[0] > 0), float(cmin[0])
+        u0 = np.clip(u, lo, hi)
+        v, _, cmin = self._project(xb, u0, self.ccfg.gamma, self.scene, lo, hi)
+        return v, bool(differs(v, u0)), float(cmin[0])
 
     def step(self, state: SafeMPPIState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
@@ -124,7 +130,7 @@ class CBFProjectionMPPI(RecordsSamples, SafeMPPIController):
         info = CBFProjectionInfo(
             free_energy=W.free_energy, ess=W.ess, n_crashed=int(b.crashed.sum()),
             n_samples=self.cfg.n_samples, valid_weights=W.valid, time_s=dt,
-            projected=float(b.projected.sum() / steps),
+            projected=float(b.moved.sum() / steps),
             infeasible=float(b.infeasible.sum() / steps), applied_projected=acted,
             applied_c_min=cmin, samples=samples)
         return SafeMPPIState(U=shift_plan(U, 1, self.cfg.tail)), u, info

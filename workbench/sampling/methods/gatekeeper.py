@@ -43,6 +43,7 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
+from workbench.sampling.feedback.effect import differs
 from workbench.sampling.planning import physical_model
 from workbench.sampling.samples import Keep, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
@@ -293,13 +294,14 @@ class GatekeeperState:
 @dataclass(frozen=True, kw_only=True)
 class GatekeeperInfo:
     inner: object  # the inner controller's step info
-    backup_used: bool
+    backup_used: bool  # the check refused the proposal and the backup's control was sent
     # the proposal's backup stayed safe but did not end at rest, so it was refused for that
     # alone (a step the shield would have committed to without the rest check)
     not_at_rest: bool
     backup_min_margin: float  # min margin over x1 = f(x, u_proposed) and its backup rollout
     backup_rest_rate: float  # the final rate of that rollout (GatekeeperConfig.rest_tol)
     proposed: np.ndarray  # the inner controller's control, clipped to the box
+    applied: np.ndarray  # the control sent: the proposal, or the backup's
     time_s: float  # the whole step, the inner controller's included
 
     @property
@@ -309,10 +311,13 @@ class GatekeeperInfo:
 
     @property
     def stats(self) -> StepStats:
-        """The inner controller's stats with activity plus ``backup_used`` and
-        ``backup_not_at_rest`` (0/1: the proposal was refused only because its backup did not
-        end at rest)."""
-        act = {"backup_used": float(self.backup_used),
+        """The inner controller's stats with activity plus ``backup_used`` (an effect,
+        :mod:`workbench.sampling.feedback.effect`: 1 when the backup's control was sent and
+        differs from the proposal, 0 when it equals it, e.g. both braking at the box limit)
+        and ``backup_not_at_rest`` (an event, 0/1: the proposal was refused only because its
+        backup did not end at rest)."""
+        changed = self.backup_used and bool(differs(self.applied, self.proposed))
+        act = {"backup_used": float(changed),
                "backup_not_at_rest": float(self.not_at_rest)}
         s = getattr(self.inner, "stats", None)
         if s is None:
@@ -488,7 +493,7 @@ class Gatekeeper:
         applied = np.clip(self.backup(xp), lo, hi) if use_backup else proposed
         ginfo = GatekeeperInfo(inner=info, backup_used=bool(use_backup),
                                not_at_rest=bool(safe and not at_rest), backup_min_margin=m,
-                               backup_rest_rate=rate, proposed=proposed,
+                               backup_rest_rate=rate, proposed=proposed, applied=applied,
                                time_s=time.perf_counter() - t0)
         return GatekeeperState(inner=inner_state, rest_checked=True), applied, ginfo
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma
+from workbench.sampling.feedback.effect import differs
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import safe_library
 from workbench.sampling.methods.twin import safe_twin
@@ -61,7 +62,10 @@ class SafeBatch:
     S: np.ndarray  # (N,) sample costs
     crashed: np.ndarray  # (N,) bool
     v: np.ndarray  # (T, nu, N) applied sample controls (clipped, projected)
-    projected: np.ndarray  # (N,) int: steps where the projection acted
+    projected: np.ndarray  # (N,) int: steps where the linearised constraint was violated
+    # (N,) int: steps where the projection moved the sample's control (effect.differs from
+    # clip(u + sigma z)); zeros without projection
+    moved: np.ndarray
     infeasible: np.ndarray  # (N,) int: projected steps still violating a constraint
     dcbf: np.ndarray  # (N,) DCBF violation sum (without the weight)
 
@@ -99,16 +103,31 @@ class SafeSampler:
                                                    **options.kernel_consts()},
                     time_in={"u": U}, seed=seed)
             r = k.result.unpack(out.result)
-            return SafeBatch(S=r["S"].copy(), crashed=r["crashed"] > 0, v=out.lane_out[0],
+            v = out.lane_out[0]
+            return SafeBatch(S=r["S"].copy(), crashed=r["crashed"] > 0, v=v,
                              projected=np.rint(r["projected"]).astype(int),
+                             moved=self._moved(v, U, consts, options, seed),
                              infeasible=np.rint(r["infeasible"]).astype(int),
                              dcbf=r["dcbf"].copy())
         ref = safe_twin(sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), consts,
                         options.project, options.w_dcbf, options.gamma)
-        return SafeBatch(S=ref["S"], crashed=ref["crashed"],
-                         v=np.ascontiguousarray(lane_major(ref["v"])),
-                         projected=ref["projected"], infeasible=ref["infeasible"],
-                         dcbf=ref["dcbf"])
+        v = np.ascontiguousarray(lane_major(ref["v"]))
+        return SafeBatch(S=ref["S"], crashed=ref["crashed"], v=v, projected=ref["projected"],
+                         moved=self._moved(v, U, consts, options, seed),
+                         infeasible=ref["infeasible"], dcbf=ref["dcbf"])
+
+    def _moved(self, v: np.ndarray, U: np.ndarray, consts: SamplerConstants,
+               options: SafeOptions, seed: int) -> np.ndarray:
+        """(N,) the steps where the projection moved each sample's control v (T, nu, N) away
+        from its sampled control clip(u + sigma z) (the same seed's normals z)."""
+        T, nu, N = v.shape
+        if not options.project:
+            return np.zeros(N, int)
+        Z = (self.lib.normals(N, T, nu, seed) if self.lib is not None
+             else self._noise(N, T, seed).transpose(1, 2, 0))
+        v0 = np.clip(U[:, :, None] + consts.sigma[None, :, None] * Z,
+                     consts.u_min[None, :, None], consts.u_max[None, :, None])
+        return differs(v, v0, axis=1).sum(axis=0)
 
 
 @dataclass(frozen=True)

@@ -37,6 +37,7 @@ import numpy as np
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.barrier import min_margin
 from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma, discrete_cbf
+from workbench.sampling.feedback.effect import differs
 from workbench.sampling.kernels.safe import INFEASIBLE_TOL, projection_function
 from workbench.sampling.methods.sampler import (
     SafeMPPIController,
@@ -83,10 +84,16 @@ class ShieldConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class ShieldInfo:
-    """One step. ``proposed``: MPPI's first control (clipped); ``repair_iterations`` repair
-    steps taken; ``c_min_before``/``c_min_after``: min_i c_i(x0, .) at the proposed and the
-    applied control; ``dcbf_active``: share of the last batch's samples with a positive DCBF
-    violation."""
+    """One step. ``proposed``: MPPI's first control (clipped); ``applied``: the control the
+    shield sent (the repaired one); ``repair_iterations`` repair steps taken;
+    ``c_min_before``/``c_min_after``: min_i c_i(x0, .) at the proposed and the applied control;
+    ``dcbf_active``: share of the last batch's samples whose cost the DCBF term changed (by
+    more than :data:`~workbench.sampling.feedback.effect.EFFECT_RTOL`; none when ``w_dcbf``
+    is 0).
+
+    Activity (effects, :mod:`workbench.sampling.feedback.effect`): ``shield_acted`` when the
+    applied control differs from the proposal (repair steps that the box clips back move
+    nothing and do not count), ``dcbf_active``; event: ``shield_failed``."""
 
     free_energy: float
     ess: float
@@ -95,6 +102,7 @@ class ShieldInfo:
     valid_weights: bool
     time_s: float
     proposed: np.ndarray
+    applied: np.ndarray
     repair_iterations: int
     c_min_before: float
     c_min_after: float
@@ -103,7 +111,7 @@ class ShieldInfo:
 
     @property
     def shield_acted(self) -> bool:
-        return self.repair_iterations > 0
+        return bool(differs(self.applied, self.proposed))
 
     @property
     def shield_failed(self) -> bool:
@@ -176,8 +184,10 @@ class ShieldMPPI(RecordsSamples, SafeMPPIController):
         info = ShieldInfo(
             free_energy=W.free_energy, ess=W.ess, n_crashed=int(b.crashed.sum()),
             n_samples=self.cfg.n_samples, valid_weights=W.valid, time_s=dt, proposed=proposed,
-            repair_iterations=r.iterations, c_min_before=r.c_min_before,
-            c_min_after=r.c_min_after, dcbf_active=float(np.mean(b.dcbf > 0)),
+            applied=r.u, repair_iterations=r.iterations, c_min_before=r.c_min_before,
+            c_min_after=r.c_min_after,
+            dcbf_active=float(np.mean(differs(b.S, b.S - self.scfg.w_dcbf * b.dcbf,
+                                              axis=()))),
             samples=samples)
         return SafeMPPIState(U=shift_plan(U, 1, self.cfg.tail)), r.u, info
 
