@@ -357,7 +357,12 @@ def report(finished, summ) -> Path:
                 if s.scenes else []),
               f"- The share of discordant pairs assumed when sizing the rounds: "
               f"{100 * cfg['decision']['discordance']:.0f} %.", "",
-              "## Every cell", "", *cells_table(s), ""]
+              "## Every cell", "", *cells_table(s), "",
+              "Mechanism activity: the mean over steps of each key a method reports. It counts "
+              "effects, not calls: a step counts only when the mechanism changed the applied "
+              "control, or the samples' controls, costs or gains behind it, by more than 1e-9 "
+              "relative; fallbacks and nominal resets are events (how often that path was "
+              "taken).", ""]
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path

@@ -212,8 +212,14 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         "ESS: effective sample size of the update's weights.", "",
         "## What each mechanism did", "",
         "How often each method's safety mechanism acted, as a share of control steps (or of "
-        "sample-steps for the per-sample projection). A mechanism at 0 % did nothing in this "
-        "run.", "", *activity_table(s), "",
+        "sample-steps for the per-sample projection, of horizon steps for the AL and ECBF "
+        "feedback laws). Activity counts effects, not calls: a step counts only when the "
+        "mechanism changed the applied control, or the samples' controls, costs or gains behind "
+        "it, by more than 1e-9 relative (a feedback law counts only on steps where the nominal "
+        "state differs from the measured one: otherwise its gains multiply zero); a mechanism "
+        "at 0 % changed nothing in this run. Fallbacks (feedback_fallback, selection_fallback, "
+        "shield_failed, infeasible, ecbf_infeasible, backup_not_at_rest) and nominal_reset "
+        "are events: how often that path was taken.", "", *activity_table(s), "",
         *report_lines(s.health),
         "## Paired against BaS-MPPI", "", *paired_table(s, "bas_mppi"), "",
         "## Paired against SA-RMPPI", "", *paired_table(s, "sa_rmppi"), "",

@@ -4,13 +4,16 @@ reports (:attr:`~workbench.scenarios.methods.MethodSpec.activity`, a key of
 it wraps (:attr:`~workbench.scenarios.methods.MethodSpec.wraps`).
 
 Activity values are per-step numbers in [0, 1]: a flag (a shield repair, a backup control, a
-nominal reset) or a share (of samples, sample-steps or horizon steps). A mechanism
+tracked nominal) or a share (of samples, sample-steps or horizon steps). They count effects,
+not calls: a step counts only when the mechanism changed the applied control, or the samples'
+controls, costs or gains that determine it (:mod:`workbench.sampling.feedback.effect`). A
+mechanism
 
 - **never acted** when its activity is 0 on every step: the method ran as if without it;
 - **acted on every step** when its activity is 1 on every step: a flag raised on every step, or
   a share at its largest (every sample or horizon step) on every step. It then no longer
-  responds to the state (a tube that resets its nominal on every step is plain MPPI). A share
-  that is positive on every step but below 1 is a mechanism at work, not a finding.
+  responds to the state (a backup that overrides every proposal). A share that is positive on
+  every step but below 1 is a mechanism at work, not a finding.
 
 The same two rules decide a study cell from the per-episode means of its episodes (a mean is 0,
 or 1, exactly when every step's value is). Neither is judged on fewer than :data:`MIN_STEPS`
@@ -40,6 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from workbench.sampling.feedback.effect import EFFECT_RTOL
 from workbench.scenarios.methods.spec import MethodSpec, method, names
 from workbench.study.report import md_table
 from workbench.study.stats import paired_counts, paired_difference_interval
@@ -458,7 +462,10 @@ def report_lines(h: StudyHealth) -> list[str]:
         f"Each method with a safety mechanism is checked in each cell ({cells}), over all its "
         "episodes there: whether the mechanism never acted (activity 0 on every step) or acted "
         "on every step (activity 1 on every step: a flag raised on every step, or a share at "
-        f"its largest). A cell of fewer than {MIN_STEPS} steps in all is not judged. Each "
+        "its largest). Activity counts effects: a step counts only when the mechanism changed "
+        "the applied control, or the samples' controls, costs or gains behind it, by more "
+        f"than {EFFECT_RTOL:g} relative. A cell of fewer than {MIN_STEPS} steps in all is not "
+        "judged. Each "
         "method that adds its mechanism to another is paired with that method on the same "
         f"disturbances ({' and '.join(h.pair)}) and flagged as less safe when the other is the "
         "safer one and a one-sided exact McNemar test rejects equal safety at level "
