@@ -397,7 +397,9 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
 
     ``scene``: None (the plant's own obstacles), one scene (circles or a flat scene vector, see
     :meth:`~workbench.problem.Model.scene_vector`), or a callable ``k -> scene`` giving the
-    scene at step k = 0..steps (:func:`scene_sequence` makes one from a list). Before step k
+    scene at step k = 0..steps (:func:`scene_sequence` makes one from a list); a callable must
+    return a scene at every step (None, a bare Circle or a malformed scene is a ValueError
+    naming the step). Before step k
     the controller gets scene k through its ``set_scene`` (when it has one); the state after
     step k is checked against scene k + 1: obstacles move while the plant does. Step k draws
     the disturbance of step k (``disturbance.sample(..., k=k)``).
@@ -442,10 +444,17 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     def scene_at(k: int) -> np.ndarray:
         if not callable(scene):  # a static scene
             return plant.scene_value if static is None else static
+        got = scene(k)
+        if got is None:  # never the plant's own obstacles in place of the moving scene
+            raise fail(f"scene({k})", None, "a moving scene must return the scene of every "
+                       "step (circles or a scene vector); return plant.scene_value for the "
+                       "plant's own obstacles")
         try:
-            return plant.scene_vector(scene(k))
-        except ValueError as exc:
-            raise fail(f"scene({k})", "returned", str(exc)) from exc
+            return plant.scene_vector(got)
+        except ValueError as exc:  # name the step: scene(k)[i] = ... is invalid: ...
+            text = str(exc)
+            raise ValueError(f"scene({k}){text[5:]}" if text.startswith("scene")
+                             else f"scene({k}): {text}") from exc
 
     f = FastFunction(ca.Function("plant", [plant.x, plant.u], [plant.x_next]))
     disturbed = disturbance.indices(plant)

@@ -25,7 +25,7 @@ def test_scene_vector_fills_inert_slots_and_rejects_what_does_not_fit():
     np.testing.assert_array_equal(wb.scene_vector([(1.0, 1.2, 0.4)], 1), [1.0, 1.2, 0.4])
     with pytest.raises(ValueError, match=r"scene.*at most 1 \(scene_capacity\)"):
         wb.scene_vector(MAP, 1)
-    with pytest.raises(ValueError, match=r"radii.*>= 0"):
+    with pytest.raises(ValueError, match=r"slot 0.*negative radius"):
         wb.scene_vector(np.array([0.0, 0.0, -1.0]), 1)
     with pytest.raises(ValueError, match=r"scene\[0\]"):
         wb.scene_vector(["circle"], 2)

@@ -27,12 +27,14 @@ from workbench.codegen.fastcall import FastFunction
 if TYPE_CHECKING:
     from workbench.problem.barrier import BarrierSpec
 from workbench.problem.obstacles import (
+    INERT_SLOT,
     Circle,
     HForm,
     circle_margins,
     scene_symbol,
     scene_vector,
     slot_margins,
+    slots_valid,
 )
 from workbench.validation import (
     as_array,
@@ -106,7 +108,8 @@ class Model:
     def scene_vector(self, scene=None) -> np.ndarray:
         """The scene input for ``scene``: None (the model's own), circles (a sequence of
         :class:`Circle` or (x, y, radius) triples, or an (n, 3) array, n <= scene_capacity; the
-        other slots inert), or a flat array of size ``n_scene``."""
+        other slots inert), or a flat array of size ``n_scene`` (with circle slots: each a
+        circle of radius > 0 or exactly the unused slot ``INERT_SLOT``)."""
         if scene is None:
             return self.scene_value
         if self.scene_capacity:
@@ -116,13 +119,14 @@ class Model:
 
     def _scene_input(self, scene) -> np.ndarray:
         """:meth:`scene_vector` for read-only use (no copy). A float64 vector of the right
-        size, finite, radii >= 0 (what :meth:`scene_vector` returns) takes a fast path: the
+        size, finite, every circle slot valid (what :meth:`scene_vector` returns) takes a fast
+        path: the
         controllers pass their validated scene on every step."""
         if scene is None:
             return self.scene_value
         if (isinstance(scene, np.ndarray) and scene.dtype == np.float64
                 and scene.shape == (self.n_scene,) and np.isfinite(scene).all()
-                and (not self.scene_capacity or (scene[2::3] >= 0).all())):
+                and (not self.scene_capacity or slots_valid(scene))):
             return scene
         return self.scene_vector(scene)
 
@@ -150,8 +154,9 @@ class Model:
         """Validate and wrap user CasADi expressions into a Model (the user-model entry point).
 
         ``h`` may depend on x and a ``scene`` symbol (run-time obstacle data, given as
-        ``scene_value`` by default and changed per call by the controllers); build a circle
-        scene with :func:`~workbench.problem.obstacles.scene_symbol` and
+        ``scene_value`` by default and changed per call by the controllers; with
+        ``scene_capacity`` slots the default has every slot unused); build a circle scene
+        with :func:`~workbench.problem.obstacles.scene_symbol` and
         :func:`~workbench.problem.obstacles.slot_margins` (``scene_capacity`` = its slots).
         ``state_units``: one string per state ("" for a state without a unit), used to label
         plots; None (default) labels them by name alone."""
@@ -169,12 +174,16 @@ class Model:
         scene = ca.SX(0, 1) if scene is None else scene
         if scene.numel() and (not scene.is_valid_input() or scene.size2() != 1):
             raise fail("scene", str(scene), "must be a column vector of CasADi SX symbols")
-        sv = (np.zeros(scene.numel()) if scene_value is None
-              else as_array("scene_value", scene_value, (scene.numel(),)))
         integer("scene_capacity", scene_capacity, 0)
         if scene_capacity and 3 * scene_capacity != scene.numel():
             raise fail("scene_capacity", scene_capacity,
                        f"a circle scene has 3 entries per slot; the scene has {scene.numel()}")
+        if scene_capacity:  # circles, or every slot unused (never a point at the origin)
+            sv = (np.tile(INERT_SLOT, scene_capacity) if scene_value is None
+                  else _circle_scene_value(scene_value, scene_capacity))
+        else:
+            sv = (np.zeros(scene.numel()) if scene_value is None
+                  else as_array("scene_value", scene_value, (scene.numel(),)))
         known = {s.name() for s in ca.symvar(ca.vertcat(x, u))}
         known_x = {s.name() for s in ca.symvar(ca.vertcat(x, scene))}
         for fname, expr, allowed in (("x_next", x_next, known), ("h", h, known_x)):
@@ -377,6 +386,15 @@ def circle_scene(p, obstacles, h_form: HForm = "squared", inflation: float = 0.0
     s = scene_symbol(cap)
     return {"h": slot_margins(p, s, h_form, inflation), "obstacles": obstacles, "scene": s,
             "scene_value": scene_vector(obstacles, cap), "scene_capacity": cap}
+
+
+def _circle_scene_value(value, capacity: int) -> np.ndarray:
+    """``scene_value`` of a circle scene (circles or a flat vector, see :func:`scene_vector`),
+    its errors named ``scene_value``."""
+    try:
+        return scene_vector(value, capacity)
+    except ValueError as exc:
+        raise fail("scene_value", value, f"must be a circle scene ({exc})") from exc
 
 
 def _box(u_limit, nu: int) -> tuple[np.ndarray, np.ndarray]:

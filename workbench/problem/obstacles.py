@@ -57,11 +57,16 @@ def circles_from_arrays(centers, radii) -> tuple[Circle, ...]:
 
 
 # Run-time scenes: circles as kernel inputs (3 numbers per slot: centre x, centre y, radius).
-# An unused slot is inert: centre (INERT_CENTER, INERT_CENTER), radius 0. Its margin is then
-# about 2e16 (squared form) or 1.4e8 (signed distance), so its inverse barrier term is below
-# 1e-8 and it never registers a crash anywhere a model can reach.
+# An unused slot is inert: exactly INERT_SLOT, centre (INERT_CENTER, INERT_CENTER), radius 0.
+# Its margin is then about 2e16 (squared form) or 1.4e8 (signed distance), so its inverse
+# barrier term is below 1e-8 and it never registers a crash anywhere a model can reach. Radius 0
+# anywhere else would be a point obstacle at that centre (the margin expressions do not skip
+# it), so a scene vector refuses it: every slot is a circle of radius > 0 or INERT_SLOT.
 INERT_CENTER = 1e8
 SLOT = 3
+INERT_SLOT = (INERT_CENTER, INERT_CENTER, 0.0)
+SCENE_FORMS = ("a sequence of Circle or (x, y, radius) triples, an (n, 3) array of such rows, "
+               "or a flat NumPy scene vector of 3 x scene_capacity entries")
 
 
 def scene_symbol(capacity: int) -> ca.SX:
@@ -84,34 +89,74 @@ def slot_margins(p, scene: ca.SX, h_form: HForm = "squared", inflation: float = 
     return ca.vertcat(*out) if out else ca.SX(0, 1)
 
 
+def slots_valid(v: np.ndarray) -> bool:
+    """Whether every slot of a finite flat scene vector is a circle (radius > 0) or exactly
+    :data:`INERT_SLOT` (a fast check, no message)."""
+    r, cx, cy = v[2::SLOT], v[0::SLOT], v[1::SLOT]
+    return bool(((r > 0) | ((r == 0) & (cx == INERT_CENTER) & (cy == INERT_CENTER))).all())
+
+
+def check_slots(field: str, v: np.ndarray) -> None:
+    """Refuse a finite flat scene vector with a slot that is neither a circle (radius > 0) nor
+    the unused slot :data:`INERT_SLOT`, naming the first such slot."""
+    if slots_valid(v):
+        return
+    s = v.reshape(-1, SLOT)
+    r, cx, cy = s[:, 2], s[:, 0], s[:, 1]
+    i = int(np.flatnonzero(~((r > 0) | ((r == 0) & (cx == INERT_CENTER)
+                                         & (cy == INERT_CENTER))))[0])
+    what = ("a negative radius" if r[i] < 0 else
+            f"radius 0 at centre ({cx[i]:g}, {cy[i]:g}) would be a point obstacle there")
+    raise fail(f"{field}[{SLOT * i}:{SLOT * i + SLOT}] (slot {i})", s[i],
+               f"{what}; every slot must be a circle with radius > 0 or an unused slot, "
+               f"exactly ({INERT_CENTER:g}, {INERT_CENTER:g}, 0) (INERT_SLOT; scene_vector "
+               "fills the unused slots when given fewer circles than slots)")
+
+
+def _triple(field: str, c) -> Circle:
+    if isinstance(c, Circle):
+        return c
+    if isinstance(c, str | bytes) or np.shape(c) != (SLOT,):
+        raise fail(field, c, "expected a Circle or an (x, y, radius) triple")
+    x, y, r = as_array(field, c, (SLOT,))
+    if not r > 0:
+        raise fail(field, c, "the radius (third entry) must be > 0; leave unused slots out "
+                   "(scene_vector fills them)")
+    return Circle(center=(x, y), radius=r)
+
+
 def _as_circles(scene) -> tuple[Circle, ...]:
-    if isinstance(scene, np.ndarray) and scene.ndim == 2:
-        return circles_from_arrays(scene[:, :2], scene[:, 2])
-    out = []
-    for i, c in enumerate(scene):
-        if isinstance(c, Circle):
-            out.append(c)
-        elif np.shape(c) == (3,):
-            out.append(Circle(center=(c[0], c[1]), radius=c[2]))
-        else:
-            raise fail(f"scene[{i}]", c, "expected a Circle or an (x, y, radius) triple")
-    return tuple(out)
+    if scene is None:
+        raise fail("scene", None, f"no scene given; expected {SCENE_FORMS}")
+    if isinstance(scene, Circle):
+        raise fail("scene", scene, "one Circle is not a scene: give a sequence of circles, "
+                   "e.g. [circle]")
+    if isinstance(scene, np.ndarray):
+        if scene.ndim != 2 or scene.shape[1] != SLOT:
+            raise fail("scene", f"an array of shape {scene.shape}", "an array scene has "
+                       "shape (n, 3), one row (x, y, radius) per circle (or is a flat scene "
+                       "vector)")
+        return tuple(_triple(f"scene[{i}]", row) for i, row in enumerate(scene))
+    if isinstance(scene, str | bytes | dict) or not hasattr(scene, "__iter__"):
+        raise fail("scene", scene, f"expected {SCENE_FORMS}")
+    return tuple(_triple(f"scene[{i}]", c) for i, c in enumerate(scene))
 
 
 def scene_vector(scene, capacity: int) -> np.ndarray:
     """The flat scene input (3 capacity,) of a set of circles: a sequence of
-    :class:`Circle` or ``(x, y, radius)`` triples, or an (n, 3) array, with n <= capacity;
-    the remaining slots are inert. A flat array of the right size is validated and copied."""
+    :class:`Circle` or ``(x, y, radius)`` triples (radius > 0), or an (n, 3) array, with
+    n <= capacity; the remaining slots are inert (:data:`INERT_SLOT`). A flat NumPy array of
+    the right size is validated (finite; each slot a circle or :data:`INERT_SLOT`) and
+    copied. Anything else is a ValueError naming the value."""
     if isinstance(scene, np.ndarray) and scene.ndim == 1:
         v = as_array("scene", scene, (SLOT * capacity,))
-        if np.any(v[2::SLOT] < 0):
-            raise fail("scene", v, "radii (every third entry) must be >= 0 (0: unused slot)")
+        check_slots("scene", v)
         return v.copy()
     circles = _as_circles(scene)
     if len(circles) > capacity:
         raise fail("scene", f"{len(circles)} circles",
                    f"this model was built with room for at most {capacity} (scene_capacity)")
-    v = np.tile([INERT_CENTER, INERT_CENTER, 0.0], capacity)
+    v = np.tile(INERT_SLOT, capacity)
     for i, c in enumerate(circles):
         v[SLOT * i: SLOT * i + SLOT] = (*c.center, c.radius)
     return v

@@ -42,6 +42,7 @@ from typing import Literal
 
 import numpy as np
 
+from workbench.problem.obstacles import check_slots
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.diagnostics import diagnostics_library
 from workbench.sampling.kernels.flags import PRECISIONS
@@ -306,4 +307,9 @@ def check_batch(sp: SamplingProblem, N: int, U,
     elif np.shape(c.scene) != (ns,):
         raise fail("SamplerConstants.scene", np.shape(c.scene),
                    f"expected ({ns},) (the model's scene size) or empty (its own scene)")
+    elif ns and not c.__dict__.get("_scene_ok"):  # checked once per (immutable) instance
+        s = as_array("SamplerConstants.scene", c.scene, (ns,))
+        if sp.model.scene_capacity:
+            check_slots("SamplerConstants.scene", s)
+        c.__dict__["_scene_ok"] = True
     return U, c
