@@ -65,12 +65,15 @@ class DisturbanceSpec:
     ``level`` on ``states`` (empty: the system's default disturbed states). ``level`` is in the
     double integrator's units; each system scales it by its own ``level_scale`` (see
     :class:`~workbench.scenarios.systems.System`). The time-dependent types take
-    ``start_step``, ``duration`` and ``frequency``; for them (and "uniform") ``level`` is an
-    acceleration on the disturbed states [m/s^2 on the double integrator's velocities]."""
+    ``start_step`` (impulse, step), ``duration`` (impulse) and ``frequency`` (periodic); a type
+    that does not read one of these refuses a value for it. For them (and "uniform") ``level``
+    is an acceleration on the disturbed states [m/s^2 on the double integrator's velocities].
+    ``states`` (names or indices) must exist on every system of the run (checked by
+    :class:`ArenaConfig`)."""
 
     model: str = "velocity_variance"
     level: float = 50.0
-    states: tuple[str, ...] = ()
+    states: tuple[str | int, ...] = ()
     start_step: int = 100
     duration: int = 20
     frequency: float = 0.5
@@ -80,23 +83,50 @@ class DisturbanceSpec:
             raise fail("disturbances.model", self.model,
                        f"unknown disturbance type; allowed values are {DISTURBANCE_MODELS}")
         real("disturbances.level", self.level, 0.0)
-        if isinstance(self.states, str):
-            object.__setattr__(self, "states", (self.states,))
+        st = (self.states,) if isinstance(self.states, str | int) else self.states
+        allowed = ("must be a list of distinct state names or indices >= 0 (empty: each "
+                   "system's own disturbed states)")
+        if not isinstance(st, tuple | list) or len(set(st)) != len(st):
+            raise fail("disturbances.states", self.states, allowed)
+        for x in st:
+            if not (isinstance(x, str) and x) and not (
+                    isinstance(x, int) and not isinstance(x, bool) and x >= 0):
+                raise fail("disturbances.states", self.states, allowed)
+        object.__setattr__(self, "states", tuple(st))
         integer("disturbances.start_step", self.start_step, 0, MAX_STEPS)
         integer("disturbances.duration", self.duration, 1, MAX_STEPS)
         real("disturbances.frequency", self.frequency, 0.0, strict=True)
+        defaults = type(self).__dataclass_fields__
+        for name, readers in _READ_BY.items():  # a value no row would use is refused
+            if self.model not in readers and getattr(self, name) != defaults[name].default:
+                raise fail(f"disturbances.{name}", getattr(self, name),
+                           f"is not read by the disturbance type {self.model!r} (only by "
+                           f"{' and '.join(readers)}); leave it out")
 
     @property
     def label(self) -> str:
         return self.disturbance(1.0, self.states or None).label
 
     def disturbance(self, scale: float, states: tuple[str, ...] | None) -> Disturbance:
-        kw = {}
-        if self.model in ("impulse", "step"):
-            kw = {"start_step": self.start_step, "duration": self.duration}
-        elif self.model == "periodic":
-            kw = {"frequency": self.frequency}
+        kw = {name: getattr(self, name) for name, readers in _READ_BY.items()
+              if self.model in readers}
         return Disturbance(self.level * scale, self.model, states=self.states or states, **kw)
+
+    def check_states(self, field_name: str, system: System) -> None:
+        """Refuse states that ``system`` does not have, naming ``field_name`` and its states."""
+        names = system.state_names
+        for x in self.states:
+            if (x not in names) if isinstance(x, str) else x >= len(names):
+                raise fail(f"{field_name}.states", self.states,
+                           f"the system {system.name!r} has no state {x!r}; its states are "
+                           + ", ".join(f"{i}: {n!r}" for i, n in enumerate(names))
+                           + " (a disturbance runs on every system of the run: name states "
+                           "each has, or leave states out for each system's own)")
+
+
+# the fields of a DisturbanceSpec beside model, level and states, and the types that read them
+_READ_BY: dict[str, tuple[str, ...]] = {"start_step": ("impulse", "step"),
+                                        "duration": ("impulse",), "frequency": ("periodic",)}
 
 
 METRICS = ("safety", "success")  # paired binary outcomes a comparison may decide on
@@ -261,6 +291,11 @@ class ArenaConfig:
                            ("tuning_disturbance", DisturbanceSpec)):
             if not isinstance(getattr(self, name), kind):
                 raise fail(name, getattr(self, name), f"must be a {kind.__name__}")
+        for sname in self.systems:  # every disturbance's states exist on every system
+            sysm = arena_system(sname)
+            for i, d in enumerate(self.disturbances):
+                d.check_states(f"disturbances[{i}]", sysm)
+            self.tuning_disturbance.check_states("tuning_disturbance", sysm)
         default = MPPIConfig()
         for name in ("sigma", "lam"):  # each system's own (hand) or its tuned value runs
             if getattr(self.sampler, name) != getattr(default, name):

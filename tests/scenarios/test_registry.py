@@ -74,7 +74,7 @@ def stop(plant, gain):
 
 SYSTEM = wb.System(name="toy_single", label="toy single integrator", model=model, state_at=at,
                    Q=(1.0, 1.0), S=(10.0, 10.0), sigma=(1.0, 1.0), lam=1.0, q_beta=0.01,
-                   disturbed=("px", "py"), backup=stop,
+                   disturbed=("px", "py"), state_names=("px", "py"), backup=stop,
                    feedback_weights=FeedbackWeights(Q=(500.0, 500.0), R=(1.0, 1.0)))
 '''
 # one registry line each

@@ -306,6 +306,7 @@ def system_from_model(model: Model, start, goal, *, name: str | None = None,
     return System(name=sysm_name, label=label or sysm_name.replace("_", " "),
                   model=_Own(model), state_at=_AtState(n), Q=tuple(Qv), S=tuple(Sv),
                   sigma=tuple(sig), lam=lam_v, q_beta=qb, disturbed=dist, level_scale=ls,
+                  state_names=tuple(model.state_names),
                   backup=backup_law, feedback_weights=fw, horizon=T, goal_radius=gr,
                   scene=scene, state_scale=tuple(s), origins=tuple(origins), entry=entry)
 

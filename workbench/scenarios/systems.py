@@ -104,6 +104,8 @@ class System:
     weights (:func:`~workbench.sampling.problem.goal_costs`: Q per physical state, S per
     physical state with barrier states weighted 1). ``sigma`` (one per control), ``lam``,
     ``q_beta``: the sampler's defaults. ``disturbed``: default disturbed state names.
+    ``state_names``: the plant's state names (those of the built model, checked by a test),
+    so a study config can check the states a disturbance names without building the plant.
     ``sigma`` entries in [1.5e-154, 6.7e153] and ``lam`` in [2.2e-308, 4.5e307], as
     :class:`~workbench.sampling.mppi.MPPIConfig` (:func:`~workbench.validation.scale`).
     ``scale``: map length scale. ``level_scale``: multiplies a disturbance level given in the
@@ -132,6 +134,7 @@ class System:
     lam: float
     q_beta: float
     disturbed: tuple[str, ...]
+    state_names: tuple[str, ...]
     scale: float = 1.0
     level_scale: float = 1.0
     backup: BackupFactory = field(default=lambda plant, gain: braking_backup(plant, gain=gain))
@@ -167,6 +170,15 @@ class System:
         if not isinstance(self.disturbed, tuple) or not all(
                 isinstance(s, str) for s in self.disturbed):
             raise fail("System.disturbed", self.disturbed, "must be a tuple of state names")
+        names = self.state_names
+        if (not isinstance(names, tuple) or not names or len(set(names)) != len(names)
+                or not all(isinstance(n, str) and n for n in names)):
+            raise fail("System.state_names", names, "must be a non-empty tuple of distinct "
+                       "state names (the plant's Model.state_names)")
+        for d in self.disturbed:
+            if d not in names:
+                raise fail("System.disturbed", self.disturbed, f"{d!r} is not a state of "
+                           f"{self.name!r}; its states are {names}")
         if not isinstance(self.feedback_weights, FeedbackWeights):
             raise fail("System.feedback_weights", self.feedback_weights,
                        "must be a FeedbackWeights")
@@ -356,6 +368,7 @@ _BUILTIN_SYSTEMS: dict[str, System] = {
         name="double_integrator", label="double integrator", model=_di_model,
         state_at=_planar_at, Q=(1.0, 1.0, 0.1, 0.1), S=(10.0, 10.0, 1.0, 1.0),
         sigma=TUNED_SIGMA, lam=TUNED_LAMBDA, q_beta=TUNED_Q_BETA, disturbed=("vx", "vy"),
+        state_names=("px", "py", "vx", "vy"),
         cost_form="navigation"),
     # [A] unicycle. Undisturbed BaS-MPPI (N = 1024, T = 100) on NavigationScene(), 1000 steps,
     # first with Q = (1, 1, 0.01), S = (10, 10, 0.1): 22 points of sigma (v, omega) in {0.25,
@@ -377,6 +390,7 @@ _BUILTIN_SYSTEMS: dict[str, System] = {
         name="unicycle", label="unicycle", model=_unicycle_model, state_at=_unicycle_at,
         Q=(10.0, 10.0, 0.1), S=(100.0, 100.0, 1.0),
         sigma=(0.5, 1.0), lam=0.3, q_beta=0.1, disturbed=("theta",), backup=_stop_backup,
+        state_names=("px", "py", "theta"),
         level_scale=UNICYCLE_LEVEL_SCALE,
         feedback_weights=FeedbackWeights(Q=(500.0, 500.0, 50.0), R=(16.0, 6.25))),
     # [A] bicycle. As above with Q = (1, 1, 0.01, 0.1), S = (10, 10, 0.1, 1): 10 points of
@@ -397,6 +411,7 @@ _BUILTIN_SYSTEMS: dict[str, System] = {
         name="bicycle", label="kinematic bicycle", model=_bicycle_model, state_at=_bicycle_at,
         Q=(10.0, 10.0, 0.1, 1.0), S=(100.0, 100.0, 1.0, 10.0),
         sigma=(1.0, 0.5), lam=1.0, q_beta=0.1, disturbed=("theta",),
+        state_names=("px", "py", "theta", "v"),
         backup=_bicycle_backup, level_scale=BICYCLE_LEVEL_SCALE,
         feedback_weights=FeedbackWeights(Q=(500.0, 500.0, 50.0, 100.0), R=(3.0, 100.0))),
     # [A] quadrotor (hover-offset inputs; weights scaled by 1/scale^2, q_beta by scale^4, from
@@ -417,7 +432,9 @@ _BUILTIN_SYSTEMS: dict[str, System] = {
         name="planar_quadrotor", label="planar quadrotor", model=_quadrotor_model,
         state_at=_quadrotor_at, Q=(300.0, 3.0, 300.0, 3.0, 10.0, 1.0),
         S=(3000.0, 30.0, 3000.0, 30.0, 100.0, 10.0), sigma=(5e-4, 5e-4), lam=1.0, q_beta=1e-3,
-        disturbed=("x_dot", "z_dot"), scale=QUAD_SCALE, level_scale=QUAD_SCALE**2,
+        disturbed=("x_dot", "z_dot"),
+        state_names=("x", "x_dot", "z", "z_dot", "theta", "theta_dot"), scale=QUAD_SCALE,
+        level_scale=QUAD_SCALE**2,
         goal_radius=QUAD_SCALE,
         backup=_quadrotor_backup,
         feedback_weights=FeedbackWeights(Q=(500.0, 100.0, 500.0, 100.0, 10.0, 1.0),
