@@ -131,6 +131,11 @@ class StudyConfig:
         object.__setattr__(self, "goal_radius",
                            real("goal_radius", self.goal_radius, 0.0, strict=True))
         object.__setattr__(self, "illustration", flag("illustration", self.illustration))
+        default_steps = type(self).__dataclass_fields__["illustration_steps"].default
+        if not self.illustration and self.illustration_steps != default_steps:
+            raise fail("illustration_steps", self.illustration_steps, "is read only by the "
+                       "illustration task, and illustration = false; leave it out (default "
+                       f"{default_steps}) or set illustration = true")
         if not isinstance(self.scene, MapSpec):
             raise fail("scene", self.scene, "must be a MapSpec")
         self.scene.check()  # start / goal inside an obstacle -> names scene.start / scene.goal

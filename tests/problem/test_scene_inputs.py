@@ -163,3 +163,11 @@ def test_a_user_circle_scene_without_a_value_starts_with_every_slot_unused():
     np.testing.assert_array_equal(m2.scene_value, [2.0, 2.0, 0.5, *INERT_SLOT])
     with pytest.raises(ValueError, match=r"scene_value = .*\(slot 0\).*point obstacle"):
         wb.Model.from_expressions("mine", x, u, x + 0.1 * u, scene_value=ZEROS, **kw)
+
+
+@pytest.mark.parametrize("circle", [(1.0, 1.0, 0.0), (1.0, 1.0, -1.0)])
+def test_a_circle_scene_names_the_triple_whose_radius_is_not_positive(circle):
+    """Before: the error named Circle.radius, not which entry of the scene held it."""
+    with pytest.raises(ValueError, match=r"^CircleScene\.circles\[1\] = .*radius \(third entry\) "
+                                         r"must be > 0"):
+        wb.CircleScene((A, circle), start=(0.0, 0.0), goal=(4.0, 0.0))

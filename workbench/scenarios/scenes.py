@@ -258,6 +258,9 @@ class CircleScene:
         for i, c in enumerate(self.circles):
             if not isinstance(c, Circle):
                 xyr = as_array(f"CircleScene.circles[{i}]", c, (3,))
+                if not xyr[2] > 0:
+                    raise fail(f"CircleScene.circles[{i}]", c, "the radius (third entry) "
+                               "must be > 0")
                 c = Circle((xyr[0], xyr[1]), xyr[2])
             circles.append(c)
         object.__setattr__(self, "circles", tuple(circles))

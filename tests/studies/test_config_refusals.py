@@ -1,6 +1,6 @@
 """Study configs refuse, when they are built, a disturbance on a state a system does not have
-and a disturbance field its type does not read (before: the config passed, and every task
-failed at run time or the value was recorded and ignored)."""
+and a value nothing in the run would read (before: the config passed, and every task failed at
+run time or the value was recorded and ignored)."""
 
 from __future__ import annotations
 
@@ -76,3 +76,15 @@ def test_each_system_names_the_states_of_its_plant():
         replace(wb.system("unicycle"), disturbed=("omega",))
     with pytest.raises(ValueError, match=r"^System\.state_names"):
         replace(wb.system("unicycle"), state_names=())
+
+
+def test_navigation_refuses_illustration_steps_without_the_illustration():
+    """Before: illustration_steps = 30 with illustration = false was accepted and nothing read
+    it."""
+    from studies.navigation.config import StudyConfig
+
+    with pytest.raises(ValueError, match=r"^illustration_steps = 30 is invalid: .*illustration "
+                                         r"= false"):
+        StudyConfig(illustration=False, illustration_steps=30)
+    assert StudyConfig(illustration=True, illustration_steps=30).illustration_steps == 30
+    assert not StudyConfig(illustration=False).illustration
