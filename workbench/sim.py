@@ -373,6 +373,8 @@ SceneInput = Callable[[int], object] | object
 def scene_sequence(scenes: Sequence) -> Callable[[int], object]:
     """A moving scene for :func:`closed_loop` from a list of scenes, one per step (step k uses
     ``scenes[k]``; the last is held)."""
+    if isinstance(scenes, str | bytes) or not hasattr(scenes, "__iter__"):
+        raise fail("scenes", scenes, "must be a list of scenes, one per step")
     items = list(scenes)
     if not items:
         raise fail("scenes", scenes, "need at least one scene")

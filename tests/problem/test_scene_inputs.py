@@ -171,3 +171,10 @@ def test_a_circle_scene_names_the_triple_whose_radius_is_not_positive(circle):
     with pytest.raises(ValueError, match=r"^CircleScene\.circles\[1\] = .*radius \(third entry\) "
                                          r"must be > 0"):
         wb.CircleScene((A, circle), start=(0.0, 0.0), goal=(4.0, 0.0))
+
+
+@pytest.mark.parametrize("scenes", [None, 5, "abc"])
+def test_scene_sequence_refuses_what_is_not_a_list_of_scenes(scenes):
+    """Before: None and 5 raised a bare TypeError."""
+    with pytest.raises(ValueError, match=r"^scenes = .*must be a list of scenes"):
+        wb.scene_sequence(scenes)
