@@ -226,7 +226,7 @@ def test_refuses_non_circle_margins():
     h = ca.vertcat(h[0], h[1] + 0.1 * x[0])  # slot 1 is not the same expression as slot 0
     m = Model.from_expressions("odd", x, u, x + 0.02 * u, dt=0.02, u_min=[-1, -1],
                                u_max=[1, 1], h=h, scene=s, scene_capacity=2,
-                               scene_value=np.zeros(6), position=(0, 1))
+                               position=(0, 1))
     sp = goal_costs(embed_barrier(m), Q=[1.0, 1.0], S=[1.0, 1.0])
     with pytest.raises(slots.SlotLoopUnsupported, match="margin 1"):
         slots.mppi_slot_spec(sp)
