@@ -28,6 +28,16 @@ results are returned as float64 and weighted in float64. Where float32 is unsafe
   (SAIS) crashed, the weights compare crashed costs of order beta_max^2, which float32 cannot
   resolve: the whole batch is recomputed in float64 (the same batch a float64 sampler draws).
   Candidate batches skip this (their free energies are only compared with the threshold).
+* **large coordinates** — float32 spacing grows with magnitude (0.008 m at 1e5 m, 0.25 m at
+  4e6 m). The rollouts run in a local frame whose origin is the start state's position
+  (:mod:`workbench.sampling.frame`): positions, the goal's position and the circle centres are
+  translated before the float32 kernel runs, so crash decisions do not depend on where the map
+  lies. A problem that is not translation invariant has no such frame; its float32 batches are
+  refused when a start position or circle centre exceeds
+  :data:`~workbench.sampling.frame.COORDINATE_LIMIT32` (100 m).
+* **overflow** — a float32 cost beyond float32's range (a goal some 1e19 m away) is inf;
+  every sample with a non-finite float32 result is recomputed by the float64 kernel on its own
+  noise (counted in :attr:`GuardCounts.overflowed`), as for the guard band.
 * **constants** — sigma^2, lambda and lambda (1 - nu_mix) must be normal float32 numbers and
   every other constant finite in float32 (:meth:`SamplerConstants.check_float32`).
 
@@ -43,6 +53,7 @@ from typing import Literal
 import numpy as np
 
 from workbench.problem.obstacles import check_slots
+from workbench.sampling.frame import LocalFrame, check_coordinates, local_frame
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.diagnostics import diagnostics_library
 from workbench.sampling.kernels.flags import PRECISIONS
@@ -59,16 +70,22 @@ Precision = Literal["float64", "float32"]
 class GuardCounts:
     """How often the float32 guards acted (all zero for float64): ``batches`` and ``samples``
     computed by float32 kernels, ``rechecked`` samples recomputed in float64 (near the crash
-    margin), ``reruns`` whole batches recomputed in float64 (no crash-free sample)."""
+    margin), ``overflowed`` samples recomputed in float64 because a float32 result was not
+    finite (a cost beyond float32's range; a sample can count in both), ``reruns`` whole
+    batches recomputed in float64 (no crash-free sample)."""
 
     batches: int = 0
     samples: int = 0
     rechecked: int = 0
     reruns: int = 0
+    overflowed: int = 0
 
     def fractions(self) -> dict[str, float]:
-        """rechecked / samples and reruns / batches (0 when nothing ran)."""
-        return {"rechecked": self.rechecked / self.samples if self.samples else 0.0,
+        """rechecked / samples, overflowed / samples and reruns / batches (0 when nothing
+        ran)."""
+        n = self.samples
+        return {"rechecked": self.rechecked / n if n else 0.0,
+                "overflowed": self.overflowed / n if n else 0.0,
                 "reruns": self.reruns / self.batches if self.batches else 0.0}
 
 
@@ -132,6 +149,7 @@ class Sampler:
             else None)
         self.precision: Precision = "float32" if self.lib32 is not None else "float64"
         self.guard = GuardCounts()
+        self.frame: LocalFrame | None = local_frame(sp) if self.lib32 is not None else None
         self._filled: tuple[SamplerConstants, SamplerConstants] | None = None
 
     def _noise(self, N: int, T: int, seed: int) -> np.ndarray:
@@ -150,8 +168,9 @@ class Sampler:
 
     def _run(self, name: str, N: int, carry: dict, rows: tuple[str, ...], time_in: dict,
              c: SamplerConstants, seed: int, float32: bool):
-        """(results by field, lane outputs) of kernel ``name``: float64, or float32 with the
-        samples near the crash margin recomputed in float64 on their own noise. ``rows``: the
+        """(results by field, lane outputs) of kernel ``name``: float64, or float32 in the
+        local frame with the samples near the crash margin or with a non-finite result
+        recomputed in float64 (original frame) on their own noise. ``rows``: the
         carry fields given per sample (N rows; none: every sample starts from the same carry).
         Results are contiguous copies; lane outputs are the kernel's (:class:`~workbench.
         sampling.kernels.compiled.KernelOutput`: never overwritten while referenced)."""
@@ -160,16 +179,30 @@ class Sampler:
             raise RuntimeError(f"kernel {name} run on the numpy backend (no sampler library)")
         k = getattr(lib, name)
         consts = c.kernel_consts()
-        k = k if not float32 else getattr(self.lib32, name)
-        out = k(k.carry.pack(N if rows else 1, **carry), n=N, consts=consts, time_in=time_in,
-                seed=seed)
-        r = {f: np.array(v) for f, v in k.result.unpack(out.result).items()}
         if not float32:
-            return r, out.lane_out
-        k = getattr(lib, name)
-        idx = np.flatnonzero(r["guard"] > 0)
+            out = k(k.carry.pack(N if rows else 1, **carry), n=N, consts=consts,
+                    time_in=time_in, seed=seed)
+            return {f: np.array(v) for f, v in k.result.unpack(out.result).items()}, out.lane_out
+        k32 = getattr(self.lib32, name)
+        frame = self.frame
+        if frame is None:
+            check_coordinates(self.sp, carry, consts["scene"])
+            carry32, consts32 = carry, consts
+        else:
+            o = frame.origin(carry)
+            carry32, consts32 = frame.carry(carry, o), frame.consts(consts, o)
+        out = k32(k32.carry.pack(N if rows else 1, **carry32), n=N, consts=consts32,
+                  time_in=time_in, seed=seed)
+        r = {f: np.array(v) for f, v in k32.result.unpack(out.result).items()}
+        bad = np.zeros(N, dtype=bool)
+        for v in r.values():
+            bad |= ~np.isfinite(v)
+        near = r["guard"] > 0
+        idx = np.flatnonzero(near | bad)
         g = self.guard
-        g.batches, g.samples, g.rechecked = g.batches + 1, g.samples + N, g.rechecked + idx.size
+        g.batches, g.samples = g.batches + 1, g.samples + N
+        g.rechecked += int(near.sum())
+        g.overflowed += int(bad.sum())
         if idx.size:
             T = next(iter(time_in.values())).shape[0]
             z = lib.normals_at(idx, T, k.spec.n_noise, seed)

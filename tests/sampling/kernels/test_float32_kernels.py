@@ -88,13 +88,22 @@ def sais_case(setup):
     Sh = np.sort(free["S_hat"][~free["crashed_real"] & ~free["crashed_nom"]])
     c = replace(c, alpha=float(0.5 * (Sh[Sh.size // 2 - 1] + Sh[Sh.size // 2])))
     k = s32.lib32.sais
-    raw = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
-            time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed, keep_noise=True)
+    carry, consts = local(s32, {"x": x0, "x_nom": xs0}, c)
+    raw = k(k.carry.pack(N, **carry), consts=consts, time_in={"u": U, "K": K.reshape(T, -1)},
+            seed=seed, keep_noise=True)
     ref = twin(sp, x0, xs0, U, K, Z, c)
     h = np.minimum(_min_margin_before_crash(sp, ref["X"], ref["crashed_real"]),
                    _min_margin_before_crash(sp, ref["X_nom"], ref["crashed_nom"]))
     return {"x0": x0, "xs0": xs0, "U": U, "K": K, "seed": seed, "Z": Z, "raw": raw, "c": c,
             "r": k.result.unpack(raw.result), "ref": ref, "h_min": h}
+
+
+def local(s32, carry: dict, c) -> tuple[dict, dict]:
+    """A float32 kernel call's carry and constants in the sampler's local frame (the
+    frame's origin the first start's position), as the sampler passes them."""
+    fr, consts = s32.frame, c.kernel_consts()
+    o = fr.origin(carry)
+    return fr.carry(carry, o), fr.consts(consts, o)
 
 
 def twin(sp, x0, xs0, U, K, Z, c, drop: str | None = None):
@@ -198,8 +207,8 @@ def test_mppi_and_candidates_equal_the_twin(setup, sais_case):
     assert rel(S32, ref["S"])[ok].max() <= RTOL32
     assert 0 < rel(S32, S64)[ok].max()  # float32 ran
     k = s32.lib32.candidates  # the samples the guard sent to float64: exactly float64's
-    raw = k(k.carry.pack(N, x=starts, delay=stride, stride=stride), consts=c.kernel_consts(),
-            time_in={"u": U, "u_next": Un}, seed=seed)
+    carry, consts = local(s32, {"x": starts, "delay": stride, "stride": stride}, c)
+    raw = k(k.carry.pack(N, **carry), consts=consts, time_in={"u": U, "u_next": Un}, seed=seed)
     guard = k.result.unpack(raw.result)["guard"] > 0
     assert guard.sum() > 0
     assert np.array_equal(S32[guard], S64[guard])
