@@ -208,3 +208,16 @@ def test_float32_far_from_the_origin_is_refused_without_a_local_frame():
         s32.mppi(far, U, 64, c, 1)
     with pytest.raises(ValueError, match=r"x \(position entries\).*float32"):
         s32.candidates(np.tile(far, (8, 1)), U, np.zeros(8), c, 1)
+
+
+def test_circles_far_from_the_origin_are_refused_without_a_local_frame(setup):
+    """The circle check of a problem without a frame: a used circle beyond 100 m is refused,
+    an inert slot (radius 0, far away by design) is not."""
+    from workbench.sampling.frame import check_coordinates
+
+    model, sp = setup[0], setup[1]
+    near, far = case(model, 0.0), case(model, 1e5)
+    check_coordinates(sp, {"x": near["x0"]}, near["scene"])  # two inert slots at 1e8
+    with pytest.raises(ValueError, match=r"scene \(circle centres\) = 100003\.5 is invalid: "
+                                         r"must be at most 100 m from the origin"):
+        check_coordinates(sp, {"x": near["x0"]}, far["scene"])

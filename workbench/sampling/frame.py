@@ -156,7 +156,7 @@ def check_coordinates(sp: SamplingProblem, carry: dict, scene: np.ndarray) -> No
 
 def _limit_text(allowed: str) -> str:
     return (f"must be {allowed} for precision 'float32': this problem is not translation "
-            "invariant (obstacles compiled in, costs of absolute positions, or no declared "
-            "position), so its float32 kernels cannot run relative to the current state, and "
-            "float32 cannot resolve crash decisions at this magnitude; use precision "
-            "'float64' or move the map near the origin")
+            "invariant (obstacles compiled in, costs or margins of absolute positions, or no "
+            "declared position), so its float32 kernels cannot run relative to the current "
+            "state, and float32 cannot resolve crash decisions at this magnitude; use "
+            "precision 'float64' or move the map near the origin")

@@ -194,9 +194,7 @@ class Sampler:
         out = k32(k32.carry.pack(N if rows else 1, **carry32), n=N, consts=consts32,
                   time_in=time_in, seed=seed)
         r = {f: np.array(v) for f, v in k32.result.unpack(out.result).items()}
-        bad = np.zeros(N, dtype=bool)
-        for v in r.values():
-            bad |= ~np.isfinite(v)
+        bad = ~np.isfinite(out.result).all(axis=1)
         near = r["guard"] > 0
         idx = np.flatnonzero(near | bad)
         g = self.guard
