@@ -131,7 +131,9 @@ class Sampler:
 
     ``precision`` ``"float64"`` (default) or ``"float32"`` (module docstring): ``lib`` is the
     float64 library (noise, thread count, guard recomputations), ``lib32`` the float32 one
-    (None unless float32 kernels run), ``precision`` the precision that runs."""
+    (None unless float32 kernels run), ``precision`` the precision that runs, ``frame`` the
+    float32 kernels' :class:`~workbench.sampling.frame.LocalFrame` (None for float64, or for a
+    problem that is not translation invariant)."""
 
     def __init__(self, sp: SamplingProblem, backend: Backend = "auto",
                  precision: Precision = "float64"):

@@ -14,7 +14,8 @@ from workbench.validation import fail, real, scale
 # random controls, positions up to ~20 m) drift from float64 by at most 2.2e-5 m^2 in the
 # smallest margin (1.1e-5 near the obstacles); 2.5e-4 leaves a factor 11. The share of samples
 # recomputed grows with the band: in closed loop on the navigation map about 1% (3.7% at 1e-3).
-# Scale it with the square of the workspace size for much larger maps or horizons.
+# Scale it with the square of the workspace size for much longer horizons (the float32
+# kernels run relative to the start state, so the map's own size and place do not count).
 GUARD_BAND = 2.5e-4
 _TINY32 = float(np.finfo(np.float32).tiny)  # 1.18e-38
 _MAX32 = float(np.finfo(np.float32).max)  # 3.40e38
