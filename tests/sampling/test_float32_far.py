@@ -1,7 +1,8 @@
 """Float32 sampling far from the origin and towards a far goal: per-sample crash decisions and
 the applied control equal float64's with the map shifted by 0, 1e5 and 4e6 m (UTM-sized
-coordinates); a cost beyond float32's range is recomputed in float64 and counted; a problem
-float32 cannot run relative to the current state is refused there, naming the value.
+coordinates); a cost beyond float32's range is recomputed in float64 and counted; a goal too
+far for float32 to resolve, and a problem float32 cannot run relative to the current state far
+from the origin, are refused, naming the value.
 
 Without the local frame (a broken copy that leaves the coordinates as given) float32 loses
 46 of 1001 crash decisions at 1e5 m and all 121 at 4e6 m on this case, and its applied control
@@ -12,6 +13,8 @@ measured 6e-6 at every shift, RTOL = 1e-4.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import casadi as ca
 import numpy as np
@@ -143,6 +146,7 @@ def test_without_the_local_frame_crash_decisions_differ(setup, monkeypatch):
     from workbench.sampling.frame import LocalFrame
 
     monkeypatch.setattr(LocalFrame, "origin", lambda self, carry: np.zeros(len(self.state)))
+    monkeypatch.setattr("workbench.sampling.sampler.check_goal", lambda frame, consts: None)
     for shift in SHIFTS[1:]:
         got = sais_mismatches(setup, shift)
         assert got["crashed_real"] + got["crashed_mppi"] > 0 and got["u"] > RTOL, got
@@ -156,15 +160,25 @@ def test_the_navigation_problem_runs_in_a_local_frame(setup):
     assert s64.frame is None  # float64 runs as given
 
 
+def overflow_case(model, vg: float = 1e20):
+    """A goal velocity of 1e20 m/s: the terminal cost S (v - v_g)^2 ~ 1e40 is beyond float32's
+    range (3.4e38), within float64's. (Not a position: the goal-distance check does not
+    apply.)"""
+    k = case(model, 0.0)
+    g = np.array([4.0, 4.0, vg, 0.0])
+    k["goal"], k["c"] = g, replace(k["c"], p=model.lift(g, k["scene"]))
+    return k
+
+
 def test_a_cost_beyond_float32_range_is_recomputed_in_float64(setup):
-    """A goal 1e19 m away: every float32 cost overflows (q ~ 1e39 > 3.4e38). The samples are
-    recomputed in float64 (their results exactly float64's), and the controller moves as the
-    float64 one does instead of keeping its plan (no valid weight)."""
+    """Every float32 cost overflows; the samples are recomputed in float64 (their results
+    exactly float64's), and the controller moves as the float64 one does instead of keeping
+    its plan (no valid weight)."""
     model, sp, s32, s64 = setup
-    k = case(model, 0.0, goal=(1e19, 1e19))
+    k = overflow_case(model)
     U, _ = plan()
     b32, b64 = s32.mppi(k["x0"], U, N, k["c"], 3), s64.mppi(k["x0"], U, N, k["c"], 3)
-    assert np.isfinite(b64.S).all()
+    assert np.isfinite(b64.S).all() and b64.S.min() > 3.4e38
     assert np.array_equal(b32.S, b64.S) and np.array_equal(b32.v, b64.v)
     u = {}
     for p in ("float32", "float64"):
@@ -178,13 +192,33 @@ def test_a_cost_beyond_float32_range_is_recomputed_in_float64(setup):
 def test_overflowed_samples_are_counted(setup):
     model, _, s32, _ = setup
     U, _ = plan()
-    far, near = case(model, 0.0, goal=(1e19, 1e19)), case(model, 0.0)
     g0 = s32.guard.overflowed
-    s32.mppi(near["x0"], U, N, near["c"], 3)
+    k = overflow_case(model, 1e10)  # 1e20: finite in float32
+    s32.mppi(k["x0"], U, N, k["c"], 3)
     assert s32.guard.overflowed == g0
-    s32.mppi(far["x0"], U, N, far["c"], 3)
+    k = overflow_case(model)
+    s32.mppi(k["x0"], U, N, k["c"], 3)
     assert s32.guard.overflowed - g0 == N
     assert s32.guard.fractions()["overflowed"] > 0
+
+
+@pytest.mark.parametrize("shift", SHIFTS)
+def test_a_goal_float32_cannot_resolve_is_refused(setup, shift):
+    """A goal 1e4 m from the start runs and matches float64; one 1e6 m away (float32 spacing
+    0.06 m there; the applied control measured off by 1.4 at 1e7 m) is refused, naming the
+    value and the limit, wherever the map lies."""
+    model, _, s32, s64 = setup
+    U, _ = plan()
+    near = case(model, shift, goal=(1e4, 4.0))
+    a, b = s32.mppi(near["x0"], U, N, near["c"], 4), s64.mppi(near["x0"], U, N, near["c"], 4)
+    assert np.array_equal(a.crashed, b.crashed)
+    assert rel(applied(a.v, a.S), applied(b.v, b.S)).max() <= RTOL
+    far = case(model, shift, goal=(4.0, 1e6))
+    s64.mppi(far["x0"], U, N, far["c"], 4)
+    with pytest.raises(ValueError, match=r"goal \(position relative to the state\) = "
+                                         r"99999\d\.\d+ is invalid: must be at most 100000 m "
+                                         r"per axis for precision 'float32'.*0\.062 m"):
+        s32.mppi(far["x0"], U, N, far["c"], 4)
 
 
 def test_a_problem_that_is_not_translation_invariant_has_no_local_frame():
@@ -233,3 +267,16 @@ def test_circles_far_from_the_origin_are_refused_without_a_local_frame(setup):
     with pytest.raises(ValueError, match=r"scene \(circle centres\) = 100003\.5 is invalid: "
                                          r"must be at most 100 m from the origin"):
         check_coordinates(sp, {"x": near["x0"]}, far["scene"])
+
+
+def test_cost_weights_beyond_float32_range_are_refused_at_load():
+    """Goal weights 1e37 (a cost of 4e39 at the load check's points): the float32 library is
+    refused, the error saying that float32's range is the reason."""
+    from workbench.sampling.kernels.verify import KernelMismatch
+
+    sp = goal_costs(single_integrator(obstacles=(Circle((2.0, 2.0), 0.5),)), Q=(1e37, 1e37),
+                    S=(1e37, 1e37))
+    with pytest.warns(RuntimeWarning, match="rebuilding"), pytest.raises(
+            KernelMismatch, match=r"beyond float32's range 3\.4e38.*use 'float64'"):
+        if Sampler(sp, "compiled", "float32").precision != "float32":
+            pytest.skip("no C compiler")

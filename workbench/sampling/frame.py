@@ -10,6 +10,9 @@ controls do not change under that translation when the problem is translation in
 which :func:`local_frame` checks on the problem's own functions (dynamics, margins, q, phi)
 before the frame is used.
 
+The goal stays where it is: a goal beyond :data:`GOAL_LIMIT32` from the start leaves float32
+too coarse to tell the samples' costs apart, and :func:`check_goal` refuses the batch.
+
 A problem that is not translation invariant (obstacles compiled into the model, costs of
 absolute positions, no declared position) runs float32 only where its coordinates are small:
 :func:`check_coordinates` refuses start states and circles beyond :data:`COORDINATE_LIMIT32`.
@@ -30,6 +33,13 @@ from workbench.validation import fail
 # 11 to spare; the drift grows with the coordinates' magnitude (their float32 spacing, 7.6e-6 m
 # at 100 m), so 100 m keeps the band's assumption with a factor 2.
 COORDINATE_LIMIT32 = 100.0
+
+# Largest distance (m, per axis) from the start to the goal a float32 batch accepts. Costs of
+# a far goal grow with its distance squared, and float32 resolves positions there only to its
+# spacing (7.8e-3 m at 1e5 m, 1 m at 1e7 m). Measured on the navigation map (N 1024, T 100):
+# the float32 applied control is float64's to 2e-7 (relative) with the goal up to 1e6 m away,
+# and off by 1.4 at 1e7 m; 1e5 m leaves a factor 10.
+GOAL_LIMIT32 = 1e5
 
 _CARRY_STATES = ("x", "x_nom")  # carry fields holding a state, shifted with the frame
 _SHIFT = 40.0  # m: shifts tried by the invariance check
@@ -73,6 +83,20 @@ class LocalFrame:
             s[:, :2] -= o[:2]
             out["scene"] = s.reshape(-1)
         return out
+
+
+def check_goal(frame: LocalFrame, consts: dict[str, np.ndarray]) -> None:
+    """Refuse a float32 batch whose goal position (in the frame's translated constants) lies
+    beyond :data:`GOAL_LIMIT32` from the start on some axis."""
+    if not frame.param:
+        return
+    far = float(np.max(np.abs(consts["p"][list(frame.param)])))
+    if far > GOAL_LIMIT32:
+        raise fail("goal (position relative to the state)", far,
+                   f"must be at most {GOAL_LIMIT32:g} m per axis for precision 'float32': "
+                   "float32 resolves positions that far only to "
+                   f"{float(np.spacing(np.float32(far))):.2g} m, too coarse to tell the "
+                   "samples' costs apart; use precision 'float64' or a nearer waypoint")
 
 
 def _close(a, b, shift: float) -> bool:

@@ -32,10 +32,12 @@ results are returned as float64 and weighted in float64. Where float32 is unsafe
   4e6 m). The rollouts run in a local frame whose origin is the start state's position
   (:mod:`workbench.sampling.frame`): positions, the goal's position and the circle centres are
   translated before the float32 kernel runs, so crash decisions do not depend on where the map
-  lies. A problem that is not translation invariant has no such frame; its float32 batches are
-  refused when a start position or circle centre exceeds
-  :data:`~workbench.sampling.frame.COORDINATE_LIMIT32` (100 m).
-* **overflow** — a float32 cost beyond float32's range (a goal some 1e19 m away) is inf;
+  lies. A goal beyond :data:`~workbench.sampling.frame.GOAL_LIMIT32` (1e5 m) from the start
+  is refused (float32 cannot tell the samples' costs apart there). A problem that is not
+  translation invariant has no such frame; its float32 batches are refused when a start
+  position or circle centre exceeds :data:`~workbench.sampling.frame.COORDINATE_LIMIT32`
+  (100 m).
+* **overflow** — a float32 cost beyond float32's range (3.4e38: large cost weights) is inf;
   every sample with a non-finite float32 result is recomputed by the float64 kernel on its own
   noise (counted in :attr:`GuardCounts.overflowed`), as for the guard band.
 * **constants** — sigma^2, lambda and lambda (1 - nu_mix) must be normal float32 numbers and
@@ -53,7 +55,7 @@ from typing import Literal
 import numpy as np
 
 from workbench.problem.obstacles import check_slots
-from workbench.sampling.frame import LocalFrame, check_coordinates, local_frame
+from workbench.sampling.frame import LocalFrame, check_coordinates, check_goal, local_frame
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.diagnostics import diagnostics_library
 from workbench.sampling.kernels.flags import PRECISIONS
@@ -193,6 +195,7 @@ class Sampler:
         else:
             o = frame.origin(carry)
             carry32, consts32 = frame.carry(carry, o), frame.consts(consts, o)
+            check_goal(frame, consts32)
         out = k32(k32.carry.pack(N if rows else 1, **carry32), n=N, consts=consts32,
                   time_in=time_in, seed=seed)
         r = {f: np.array(v) for f, v in k32.result.unpack(out.result).items()}

@@ -167,4 +167,15 @@ def verify_kernel(kernel, seed: int = 20261123) -> None:
     for what, ref, g in pairs:
         if np.shape(ref) != np.shape(g) or not agree(np.asarray(ref), np.asarray(g)):
             raise KernelMismatch(f"compiled kernel {spec.name}: {what} differs from CasADi's "
-                                 "evaluation of its step")
+                                 f"evaluation of its step{_range_hint(spec, ref)}")
+
+
+def _range_hint(spec, ref) -> str:
+    """Why a float32 kernel differs when CasADi's values exceed float32's range."""
+    a = np.abs(np.asarray(ref, dtype=float))
+    big = float(np.max(a[np.isfinite(a)], initial=0.0))
+    if spec.precision != "float32" or big <= float(np.finfo(np.float32).max):
+        return ""
+    return (f" (CasADi's values reach {big:.3g} at the verification points, beyond float32's "
+            "range 3.4e38: the model's or the costs' constants are too large for precision "
+            "'float32'; use 'float64')")
