@@ -280,3 +280,28 @@ def test_cost_weights_beyond_float32_range_are_refused_at_load():
             KernelMismatch, match=r"beyond float32's range 3\.4e38.*use 'float64'"):
         if Sampler(sp, "compiled", "float32").precision != "float32":
             pytest.skip("no C compiler")
+
+
+def test_reused_frame_constants_follow_the_origin(setup):
+    """The buffers the sampler reuses hold what LocalFrame.consts computes afresh, for every
+    origin in turn, and another thread gets buffers of its own."""
+    import threading
+
+    from workbench.sampling.frame import FrameConsts
+
+    model, s32 = setup[0], setup[2]
+    fr, kc = s32.frame, case(model, 4e6)["c"].kernel_consts()
+    fc = FrameConsts(fr)
+    rng = np.random.default_rng(8)
+    mine = None
+    for o in 4e6 + rng.normal(0.0, 3.0, (4, 2)):
+        got, want = fc(kc, o), fr.consts(kc, o)
+        assert got.keys() == want.keys()
+        assert all(np.array_equal(got[k], want[k]) for k in want)
+        assert mine is None or got["p"] is mine  # the same buffer, rewritten
+        mine = got["p"]
+    other: list = []
+    t = threading.Thread(target=lambda: other.append(fc(kc, np.zeros(2))["p"]))
+    t.start()
+    t.join()
+    assert other[0] is not mine and np.array_equal(fc(kc, o)["p"], fr.consts(kc, o)["p"])

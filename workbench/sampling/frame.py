@@ -20,7 +20,9 @@ absolute positions, no declared position) runs float32 only where its coordinate
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 
@@ -55,11 +57,18 @@ class LocalFrame:
     state: tuple[int, ...]
     param: tuple[int, ...]
     scene: bool
+    # the state's position entries as a slice when they are adjacent (faster than a list)
+    _sel: slice | list[int] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        st = self.state
+        adjacent = all(b == a + 1 for a, b in pairwise(st))
+        object.__setattr__(self, "_sel", slice(st[0], st[-1] + 1) if adjacent else list(st))
 
     def origin(self, carry: dict) -> np.ndarray:
         """The frame's origin: the position of the first start state of a batch."""
         x = np.asarray(carry["x"], dtype=float)
-        return (x if x.ndim == 1 else x[0])[list(self.state)].copy()
+        return (x if x.ndim == 1 else x[0])[self._sel].copy()
 
     def carry(self, carry: dict, o: np.ndarray) -> dict:
         """The start states with the origin subtracted from their positions (copies)."""
@@ -67,7 +76,7 @@ class LocalFrame:
         for name in _CARRY_STATES:
             if name in carry:
                 x = np.array(carry[name], dtype=float)
-                x[..., list(self.state)] -= o
+                x[..., self._sel] -= o
                 out[name] = x
         return out
 
@@ -85,12 +94,48 @@ class LocalFrame:
         return out
 
 
+class FrameConsts:
+    """:meth:`LocalFrame.consts` into buffers reused from call to call (one set per calling
+    thread and constants): a kernel then sees the same arrays as last time and skips checking
+    them again, which keeps the frame's cost per batch to a few microseconds."""
+
+    _KEEP = 8  # buffer sets kept (threads x constants)
+
+    def __init__(self, frame: LocalFrame):
+        self.frame = frame
+        self._sets: dict[int, tuple] = {}
+
+    def __call__(self, consts: dict[str, np.ndarray], o: np.ndarray) -> dict[str, np.ndarray]:
+        """The constants with the origin ``o`` subtracted (valid until the next call from
+        this thread)."""
+        tid = threading.get_ident()
+        got = self._sets.get(tid)
+        p0, s0 = consts["p"], consts["scene"]
+        if got is None or got[0] is not p0 or got[1] is not s0:
+            if len(self._sets) >= self._KEEP:
+                self._sets.pop(next(iter(self._sets)))
+            out = self.frame.consts(consts, o)
+            # (source, destination) views of the entries that move
+            moves = []
+            if self.frame.param:
+                moves.append((p0[list(self.frame.param)], out["p"], list(self.frame.param)))
+            self._sets[tid] = (p0, s0, out, moves,
+                               (s0.reshape(-1, SLOT)[:, :2], out["scene"].reshape(-1, SLOT)[:, :2])
+                               if self.frame.scene else None)
+            return out
+        _, _, out, moves, scene = got
+        for src, dst, idx in moves:
+            dst[idx] = src - o
+        if scene is not None:
+            np.subtract(scene[0], o[:2], out=scene[1])
+        return out
+
+
 def check_goal(frame: LocalFrame, consts: dict[str, np.ndarray]) -> None:
     """Refuse a float32 batch whose goal position (in the frame's translated constants) lies
     beyond :data:`GOAL_LIMIT32` from the start on some axis."""
-    if not frame.param:
-        return
-    far = float(np.max(np.abs(consts["p"][list(frame.param)])))
+    p = consts["p"]
+    far = max((abs(float(p[i])) for i in frame.param), default=0.0)
     if far > GOAL_LIMIT32:
         raise fail("goal (position relative to the state)", far,
                    f"must be at most {GOAL_LIMIT32:g} m per axis for precision 'float32': "
@@ -155,10 +200,11 @@ def local_frame(sp: SamplingProblem) -> LocalFrame | None:
     return None
 
 
-def check_coordinates(sp: SamplingProblem, carry: dict, scene: np.ndarray) -> None:
+def check_coordinates(sp: SamplingProblem, carry: dict, scene: np.ndarray | None) -> None:
     """Refuse a float32 batch of a problem without a local frame whose start positions (all
     physical states when the model declares no position) or circle centres exceed
-    :data:`COORDINATE_LIMIT32` in magnitude: float32 cannot resolve its crash decisions."""
+    :data:`COORDINATE_LIMIT32` in magnitude: float32 cannot resolve its crash decisions.
+    ``scene`` None: the circles were checked before."""
     m = sp.model
     idx = list(m.position) if m.position is not None else list(range(m.n_physical))
     for name in _CARRY_STATES:
@@ -169,7 +215,7 @@ def check_coordinates(sp: SamplingProblem, carry: dict, scene: np.ndarray) -> No
                 which = "position" if m.position is not None else "physical state"
                 raise fail(f"{name} ({which} entries)", big, _limit_text(
                     f"at most {COORDINATE_LIMIT32:g} in magnitude"))
-    if m.scene_capacity:
+    if m.scene_capacity and scene is not None:
         s = np.asarray(scene, dtype=float).reshape(-1, SLOT)
         used = s[s[:, 2] > 0, :2]
         big = float(np.max(np.abs(used))) if used.size else 0.0

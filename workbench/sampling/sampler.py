@@ -55,7 +55,13 @@ from typing import Literal
 import numpy as np
 
 from workbench.problem.obstacles import check_slots
-from workbench.sampling.frame import LocalFrame, check_coordinates, check_goal, local_frame
+from workbench.sampling.frame import (
+    FrameConsts,
+    LocalFrame,
+    check_coordinates,
+    check_goal,
+    local_frame,
+)
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.diagnostics import diagnostics_library
 from workbench.sampling.kernels.flags import PRECISIONS
@@ -154,6 +160,8 @@ class Sampler:
         self.precision: Precision = "float32" if self.lib32 is not None else "float64"
         self.guard = GuardCounts()
         self.frame: LocalFrame | None = local_frame(sp) if self.lib32 is not None else None
+        self._frame_consts = FrameConsts(self.frame) if self.frame is not None else None
+        self._scene_checked: np.ndarray | None = None  # the last scene check_coordinates passed
         self._filled: tuple[SamplerConstants, SamplerConstants] | None = None
 
     def _noise(self, N: int, T: int, seed: int) -> np.ndarray:
@@ -188,18 +196,21 @@ class Sampler:
                     time_in=time_in, seed=seed)
             return {f: np.array(v) for f, v in k.result.unpack(out.result).items()}, out.lane_out
         k32 = getattr(self.lib32, name)
-        frame = self.frame
-        if frame is None:
-            check_coordinates(self.sp, carry, consts["scene"])
+        frame, shift = self.frame, self._frame_consts
+        if frame is None or shift is None:
+            scene = consts["scene"]  # (the same array for the same constants: checked once)
+            check_coordinates(self.sp, carry, None if scene is self._scene_checked else scene)
+            self._scene_checked = scene
             carry32, consts32 = carry, consts
         else:
             o = frame.origin(carry)
-            carry32, consts32 = frame.carry(carry, o), frame.consts(consts, o)
+            carry32, consts32 = frame.carry(carry, o), shift(consts, o)
             check_goal(frame, consts32)
         out = k32(k32.carry.pack(N if rows else 1, **carry32), n=N, consts=consts32,
                   time_in=time_in, seed=seed)
         r = {f: np.array(v) for f, v in k32.result.unpack(out.result).items()}
-        bad = ~np.isfinite(out.result).all(axis=1)
+        bad = (np.zeros(N, dtype=bool) if np.isfinite(out.result).all()
+               else ~np.isfinite(out.result).all(axis=1))
         near = r["guard"] > 0
         idx = np.flatnonzero(near | bad)
         g = self.guard
