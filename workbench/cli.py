@@ -25,6 +25,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import workbench.environment as environment
+from workbench.environment import EnvironmentVariableError
 from workbench.study import config_io
 from workbench.study.checkout import StudiesLocationError
 from workbench.study.config_io import ConfigError
@@ -443,8 +445,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     with terminal_logging(getattr(args, "quiet", False)):
         try:
+            environment.check()  # a bad WORKBENCH_* value stops here, named
             return args.fn(args)
-        except (ConfigError, StudiesLocationError) as exc:
+        except (ConfigError, StudiesLocationError, EnvironmentVariableError) as exc:
             print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
             return 2
         except StorageError as exc:  # disk full, file-size limit, read-only: names the file

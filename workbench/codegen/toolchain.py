@@ -1,28 +1,28 @@
 """Compiler discovery and the flags that enter the cache key.
 
-Environment: ``WORKBENCH_CC`` (compiler; when it cannot be run, a warning names it and the
-compiler used instead), ``WORKBENCH_CFLAGS`` (extra flags, appended to the required and default
-ones; flags that change floating-point semantics are refused), ``WORKBENCH_COMPILE_TIMEOUT``
-(seconds one compile may take before the compiler is killed; default 600),
-``WORKBENCH_NO_CODEGEN=1`` (force the CasADi virtual machine / NumPy fallbacks).
+Environment (parsed by :mod:`workbench.environment`): ``WORKBENCH_CC`` (compiler; when it cannot
+be run, a warning names it and the compiler used instead), ``WORKBENCH_CFLAGS`` (extra flags,
+appended to the required and default ones; what :func:`check_flags` refuses is an error),
+``WORKBENCH_COMPILE_TIMEOUT`` (seconds one compile may take before the compiler is killed;
+default 600), ``WORKBENCH_NO_CODEGEN`` (a switch: on forces the CasADi virtual machine / NumPy
+fallbacks).
 """
 
 from __future__ import annotations
 
 import functools
-import math
 import os
-import shlex
 import shutil
 import subprocess
 import warnings
 from dataclasses import dataclass
 
+import workbench.environment as env
+from workbench.environment import DEFAULT_COMPILE_TIMEOUT
 from workbench.validation import fail, real
 
-# Seconds one compile may take (WORKBENCH_COMPILE_TIMEOUT overrides it): a hung compiler is
-# killed instead of hanging the build forever.
-DEFAULT_COMPILE_TIMEOUT = 600.0
+__all__ = ["DEFAULT_COMPILE_TIMEOUT", "DEFAULT_FLAGS", "FORBIDDEN_FLAGS", "REQUIRED_FLAGS",
+           "Toolchain", "build_flags", "check_flags", "compile_timeout", "find_toolchain"]
 
 # Needed to build a loadable shared library at all; never removed by WORKBENCH_CFLAGS.
 REQUIRED_FLAGS = ("-fPIC", "-shared")
@@ -32,6 +32,8 @@ DEFAULT_FLAGS = (
     "-fno-semantic-interposition",
 )
 # Flags that change floating-point results or semantics, with the reason they are refused.
+_FP_MODE = ("it sets flush-to-zero and denormals-are-zero for the whole process when the "
+            "library loads, changing every later floating-point result")
 _INF_NAN = "barrier values and crash tests rely on inf/NaN, which it assumes away"
 _REORDER = "it reorders or rewrites arithmetic, so results no longer equal CasADi's evaluation"
 FORBIDDEN_FLAGS = {
@@ -51,7 +53,17 @@ FORBIDDEN_FLAGS = {
     "-ffp-model=fast": _INF_NAN + "; " + _REORDER,
     "-ffp-model=aggressive": _INF_NAN + "; " + _REORDER,
     "-mfpmath=387": "x87 extended precision changes rounding: " + _REORDER,
+    "-mdaz-ftz": _FP_MODE,
 }
+# Words that would put code or flags into every library that the checks above cannot see: an
+# object file or archive (crtfastmath.o, which -ffast-math links, sets flush-to-zero when the
+# library loads), a library, a response file, a linker pass-through, another start-up file set.
+_INPUT = ("it adds code or flags these checks cannot see to every library (an object file such "
+          "as crtfastmath.o changes the floating-point mode of the whole process when the "
+          "library loads)")
+_INPUT_PREFIXES = ("@", "-Wl,", "-Xlinker", "-Xassembler", "-Xpreprocessor", "-l", "-L", "-B",
+                   "-specs", "--specs", "-nostartfiles", "-nostdlib", "-include", "-imacros",
+                   "-x", "-fplugin")
 
 
 @dataclass(frozen=True)
@@ -65,6 +77,7 @@ class Toolchain:
     timeout: float | None = None
 
     def __post_init__(self) -> None:
+        check_flags("Toolchain.flags", tuple(self.flags))
         if self.timeout is not None:
             object.__setattr__(self, "timeout", real("Toolchain.timeout", self.timeout, 0.0,
                                                      strict=True))
@@ -85,39 +98,49 @@ def _version(cc: str) -> str | None:
     return out.stdout.splitlines()[0].strip() if out.returncode == 0 and out.stdout else None
 
 
-def build_flags(extra: str | None) -> tuple[str, ...]:
-    """The default flags followed by ``extra`` (WORKBENCH_CFLAGS); refuses flags that change
-    floating-point semantics, naming the flag and the reason."""
-    if not extra:
-        return DEFAULT_FLAGS
-    try:
-        words = tuple(shlex.split(extra))
-    except ValueError as exc:
-        raise fail("WORKBENCH_CFLAGS", extra, f"cannot be split into flags ({exc})") from exc
-    for w in words:
-        reason = FORBIDDEN_FLAGS.get(w)
-        if reason is None and w.startswith("-ffp-contract=") and w != "-ffp-contract=off":
-            reason = "fused multiply-adds change rounding: " + _REORDER
+def _refusal(word: str) -> str | None:
+    """Why ``word`` may not be passed to the compiler, or None."""
+    reason = FORBIDDEN_FLAGS.get(word)
+    if reason is None and word.startswith("-ffp-contract=") and word != "-ffp-contract=off":
+        reason = "fused multiply-adds change rounding: " + _REORDER
+    if reason is None and ("fastmath" in word.lower() or word.startswith(_INPUT_PREFIXES)
+                           or not word.startswith("-")):
+        reason = _INPUT
+    return reason
+
+
+def check_flags(field: str, flags: tuple[str, ...], shown: object = None) -> tuple[str, ...]:
+    """``flags`` unchanged; else an error naming ``field`` (with the value ``shown``, default
+    ``flags``), the first refused flag and why: flags that change floating-point semantics
+    (:data:`FORBIDDEN_FLAGS`, any ``-ffp-contract`` but ``off``) or the process's floating-point
+    mode (``-mdaz-ftz``), and words that add inputs (object files, archives, libraries,
+    response files ``@FILE``, ``-Wl,``/``-Xlinker`` pass-throughs, ``-l``, ``-L``, ``-B``,
+    ``-specs``, ``-include``, ``-x``, ``-fplugin``, anything naming crtfastmath)."""
+    for w in flags:
+        reason = _refusal(w)
         if reason is not None:
-            raise fail("WORKBENCH_CFLAGS", extra,
+            raise fail(field, flags if shown is None else shown,
                        f"{w} changes floating-point semantics and is refused: {reason}")
+    return flags
+
+
+def build_flags(extra: str | None = None) -> tuple[str, ...]:
+    """The default flags followed by ``extra`` (default: ``$WORKBENCH_CFLAGS``, split like a
+    shell would); refuses what :func:`check_flags` refuses with an
+    :class:`~workbench.environment.EnvironmentVariableError` naming the variable and flag."""
+    text = env.raw(env.CFLAGS) if extra is None else extra
+    words = env.split(env.CFLAGS, text) if text else ()
+    try:
+        check_flags(env.CFLAGS, words, text)
+    except ValueError as exc:
+        raise env.EnvironmentVariableError(str(exc)) from None
     return DEFAULT_FLAGS + words
 
 
 def compile_timeout() -> float:
     """``WORKBENCH_COMPILE_TIMEOUT`` (seconds, a finite number > 0) or
     :data:`DEFAULT_COMPILE_TIMEOUT`."""
-    text = os.environ.get("WORKBENCH_COMPILE_TIMEOUT", "").strip()
-    if not text:
-        return DEFAULT_COMPILE_TIMEOUT
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise fail("WORKBENCH_COMPILE_TIMEOUT", text, "must be a finite number of seconds > 0 "
-                   f"(unset: {DEFAULT_COMPILE_TIMEOUT:g} s)")
-    return value
+    return env.seconds(env.COMPILE_TIMEOUT, DEFAULT_COMPILE_TIMEOUT)
 
 
 _WARNED: set[tuple[str, str]] = set()
@@ -125,11 +148,11 @@ _WARNED: set[tuple[str, str]] = set()
 
 def find_toolchain() -> Toolchain | None:
     """The compiler to use, or None when codegen is disabled or no compiler is found."""
-    if os.environ.get("WORKBENCH_NO_CODEGEN", "") not in ("", "0"):
+    if env.switch(env.NO_CODEGEN, False):
         return None
-    flags = build_flags(os.environ.get("WORKBENCH_CFLAGS"))
+    flags = build_flags()
     timeout = compile_timeout()
-    wanted = os.environ.get("WORKBENCH_CC")
+    wanted = env.command(env.CC)
     names = [wanted] if wanted else []
     names += [n for n in (os.environ.get("CC"), "cc", "gcc", "clang") if n]
     for name in names:

@@ -7,17 +7,20 @@ inherit the variable, so a study runs a plugin's methods with any number of work
 from __future__ import annotations
 
 import importlib
-import os
 
+import workbench.environment as environment
 from workbench.study.config_io import ConfigError
 from workbench.validation import fail
 
-ENV = "WORKBENCH_PLUGINS"
+ENV = environment.PLUGINS
 
 
 def plugin_modules() -> tuple[str, ...]:
     """The module names in ``$WORKBENCH_PLUGINS`` (empty entries skipped)."""
-    return tuple(p.strip() for p in os.environ.get(ENV, "").split(",") if p.strip())
+    try:
+        return environment.modules(ENV)
+    except environment.EnvironmentVariableError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def load_plugins() -> tuple[str, ...]:

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+import workbench.environment as environment
 from workbench.study.checkout import use_checkout_studies
 from workbench.validation import fail
 
@@ -156,7 +156,7 @@ class StudySpec:
 
 
 REGISTRY_MODULE = "studies.registry"
-ENVIRONMENT = "WORKBENCH_STUDIES"
+ENVIRONMENT = environment.STUDIES
 
 
 def registry(modules: list[str] | None = None) -> dict[str, StudySpec]:
@@ -166,7 +166,7 @@ def registry(modules: list[str] | None = None) -> dict[str, StudySpec]:
     if modules is None:
         use_checkout_studies()
         modules = list(importlib.import_module(REGISTRY_MODULE).STUDIES)
-        modules += [m.strip() for m in os.environ.get(ENVIRONMENT, "").split(",") if m.strip()]
+        modules += list(environment.modules(ENVIRONMENT))
     out: dict[str, StudySpec] = {}
     for name in modules:
         spec = getattr(importlib.import_module(name), "STUDY", None)

@@ -15,13 +15,14 @@ import functools
 import os
 import subprocess
 
+import workbench.environment as environment
 from workbench.codegen.toolchain import find_toolchain
 from workbench.validation import fail
 
 LANES = 4  # samples per block of a float64 kernel on 256-bit vectors (the narrowest block)
 PRECISIONS = ("float64", "float32")
 _BITS = {"float64": 64, "float32": 32}
-VECTOR_BITS_ENV = "WORKBENCH_VECTOR_BITS"
+VECTOR_BITS_ENV = environment.VECTOR_BITS
 VECTOR_BITS = (256, 512)
 
 # -fsched-pressure -fschedule-insns: register-pressure-aware scheduling of the long
@@ -66,11 +67,9 @@ def vector_bits() -> int:
     (256 or 512) when set, else 512 when the kernels' compile target (their ``-march`` flag and
     ``WORKBENCH_CFLAGS``) has AVX-512F, else 256. Eight doubles per block on AVX-512 measured
     1.15x faster than four on the navigation SAIS rollout (AMD Zen 4)."""
-    v = os.environ.get(VECTOR_BITS_ENV, "").strip()
-    if v:
-        if v not in ("256", "512"):
-            raise ValueError(f"{VECTOR_BITS_ENV} = {v!r} is invalid: allowed values are 256 "
-                             "and 512 (unset: 512 when the compile target has AVX-512)")
+    v = environment.choice(VECTOR_BITS_ENV, environment.VECTOR_BITS_ALLOWED,
+                           environment.VECTOR_BITS_UNSET)
+    if v is not None:
         return int(v)
     march = tuple(f for f in KERNEL_FLAGS if f.startswith("-m"))
     return 512 if _target_has_avx512(march) else 256

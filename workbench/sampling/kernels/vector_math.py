@@ -24,7 +24,6 @@ rounded to float (``precision="float32"`` below).
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Iterable
 from functools import cache
@@ -32,13 +31,13 @@ from functools import cache
 import casadi as ca
 import numpy as np
 
+import workbench.environment as environment
 from workbench.codegen import CompileError, build_library
 from workbench.sampling.kernels.compiled import CompiledKernel
 from workbench.sampling.kernels.emit import KernelSpec, emit_kernel, rng_source
-from workbench.validation import fail
 
 MAX_ULP = 4
-ENV = "WORKBENCH_VECTOR_MATH"
+ENV = environment.VECTOR_MATH
 # CasADi operation -> (libm name, arity)
 VECTOR_FUNCTIONS = {
     ca.OP_SIN: ("sin", 1), ca.OP_COS: ("cos", 1), ca.OP_TAN: ("tan", 1),
@@ -57,12 +56,10 @@ def _ctype(precision: str) -> str:
 
 
 def enabled() -> bool:
-    """False when ``WORKBENCH_VECTOR_MATH=0``; True when unset, empty or 1."""
-    v = os.environ.get(ENV, "").strip()
-    if v not in ("", "0", "1"):
-        raise fail(ENV, v, "must be 0 (scalar libm calls, bitwise equal to CasADi) or 1 "
-                   "(libmvec where the probe passes; the default)")
-    return v != "0"
+    """``WORKBENCH_VECTOR_MATH``, a switch (:func:`workbench.environment.switch`): off for
+    scalar libm calls, bitwise equal to CasADi; on (the default) for libmvec where the probe
+    passes."""
+    return environment.switch(ENV, True)
 
 
 def declarations(names: Iterable[str], precision: str = "float64") -> str:
