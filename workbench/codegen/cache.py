@@ -57,7 +57,9 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from workbench.codegen.toolchain import Toolchain, find_toolchain
+import workbench.codegen.fpmode as fpmode
+import workbench.environment as env
+from workbench.codegen.toolchain import Toolchain, check_flags, find_toolchain
 from workbench.codegen.toolchain import compile_timeout as _env_timeout
 from workbench.validation import as_array, fail, real
 
@@ -97,12 +99,13 @@ class Library:
 
 def cache_dir() -> Path:
     """``$WORKBENCH_CACHE_DIR`` or ``~/.cache/sais-workbench/codegen`` (resolved; not created)."""
-    env = os.environ.get("WORKBENCH_CACHE_DIR")
-    root = Path(env) if env else Path.home() / ".cache" / "sais-workbench" / "codegen"
-    root = root.expanduser().resolve()
+    root = env.path(env.CACHE_DIR)
+    if root is not None:
+        return root
+    root = (Path.home() / ".cache" / "sais-workbench" / "codegen").resolve()
     if root.exists() and not root.is_dir():
-        raise fail("WORKBENCH_CACHE_DIR" if env else "cache directory", str(root),
-                   "is an existing file, not a directory (point WORKBENCH_CACHE_DIR elsewhere)")
+        raise fail("cache directory", str(root), "is an existing file, not a directory (point "
+                   "WORKBENCH_CACHE_DIR elsewhere)")
     return root
 
 
@@ -326,45 +329,78 @@ def _run_compiler(tc: Toolchain, src: Path, out: Path, extra_flags: tuple[str, .
 # loading: only bytes whose identity is established
 
 
-_LOADED: dict[str, str] = {}  # path -> sha256 of the file this process dlopened there
+def _image(data: bytes, digest: str, lib: Path) -> tuple[Path, os.stat_result]:
+    """A private copy of ``data`` (which hash to ``digest``) for the dynamic loader: a file
+    created exclusively (never an existing file or link), mode 0500, in the entry folder (which
+    is private), named after this process and the digest, and its status (device, inode). The
+    loader reuses a handle by name, so one name stands for one digest."""
+    path = lib.parent / f".load-{os.getpid()}-{digest}{lib.suffix}"
+    try:
+        path.unlink()  # left by this process id before: never reused
+    except FileNotFoundError:
+        pass
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
+                 0o500)
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        return path, os.fstat(fh.fileno())
+
+
+_IMAGES: dict[str, list[tuple[int, int]]] = {}  # digest -> (device, inode) of its copies
+
+
+def _mapped(files: list[tuple[int, int]]) -> bool | None:
+    """Whether this process maps one of ``files`` (device, inode), from ``/proc/self/maps``;
+    None where that list cannot be read."""
+    try:
+        lines = Path("/proc/self/maps").read_text().splitlines()
+    except OSError:
+        return None
+    want = {(f"{os.major(d):02x}:{os.minor(d):02x}", str(i)) for d, i in files}
+    for ln in lines:
+        parts = ln.split(maxsplit=5)
+        if len(parts) >= 5 and (parts[3].lower(), parts[4]) in want:
+            return True
+    return False
 
 
 def _load_now(lib: Path, digest: str) -> tuple[ctypes.CDLL, Path]:
-    """dlopen ``lib`` if its bytes hash to ``digest`` (else :class:`_Altered`, nothing loaded),
-    with every symbol resolved now (ctypes uses RTLD_NOW): a library with undefined symbols
-    raises OSError here instead of aborting the process on its first call (CasADi's external()
-    binds lazily). Returns the handle and the path it was loaded from.
+    """dlopen the bytes of ``lib`` if they hash to ``digest`` (else :class:`_Altered`, nothing
+    loaded), with every symbol resolved now (ctypes uses RTLD_NOW): a library with undefined
+    symbols raises OSError here instead of aborting the process on its first call (CasADi's
+    external() binds lazily). Returns the handle and the private copy it was loaded from
+    (removed by :func:`_release_image` once every handle is open).
 
-    The dynamic loader returns the handle it already has for a path it has loaded before, even
-    when the file was replaced since (a rebuilt library would silently stay the old one). A
-    path this process has loaded with other contents is therefore loaded through a private copy
-    of the checked bytes (unlinked by :func:`_release_private` once every handle is open).
+    The bytes are read once and hashed, and those bytes are what the loader maps: they are
+    written to a fresh private copy (:func:`_image`), and after the load the copy's inode must
+    be among the process's mappings, so a file put in ``lib``'s place after the check never
+    runs. The process's floating-point mode is checked around the load (:func:`fpmode.guard`).
     """
     data = lib.read_bytes()
     if hashlib.sha256(data).hexdigest() != digest:
         raise _Altered(f"{lib} changed after its identity was checked; not loaded")
-    known = _LOADED.get(str(lib))
-    path = lib
-    if known is not None and known != digest:
-        fd, tmp = tempfile.mkstemp(dir=lib.parent, prefix=f".{lib.stem}.load-", suffix=lib.suffix)
-        path = Path(tmp)
-        with os.fdopen(fd, "wb") as fh:  # mode 0600
-            fh.write(data)
+    path, st = _image(data, digest, lib)
+    # the loader returns the handle it has for this name (the same digest) when there is one
+    copies = _IMAGES.setdefault(digest, [])
+    copies.append((st.st_dev, st.st_ino))
     try:
-        cdll = ctypes.CDLL(str(path))
-    except OSError:
-        _release_private(lib, path)
+        with fpmode.guard(lib):
+            cdll = ctypes.CDLL(str(path))
+        if _mapped(copies) is False:
+            raise _Altered(f"{path} (the private copy of {lib}) was replaced before it was "
+                           "loaded; its replacement was loaded and is not used")
+    except BaseException:
+        _release_image(path)
         raise
-    _LOADED[str(path)] = digest
     return cdll, path
 
 
-def _release_private(lib: Path, path: Path) -> None:
-    if path != lib:
-        try:
-            path.unlink()
-        except FileNotFoundError:
-            pass
+def _release_image(path: Path) -> None:
+    try:
+        path.unlink()
+    except FileNotFoundError:
+        pass
 
 
 # ---------------------------------------------------------------------------------------------
@@ -557,6 +593,7 @@ def build_library(
         compile_timeout = real("build_library.compile_timeout", compile_timeout, 0.0,
                                strict=True)
     checks = make_checks(functions, check_ranges, operating_points)
+    extra_flags = check_flags("build_library.extra_flags", tuple(extra_flags))
     name = safe_stem(stem)
     tc = toolchain or find_toolchain()
     if tc is None:
@@ -585,6 +622,9 @@ def build_library(
         digest = _compile_and_publish(tc, source, folder, name, extra_flags, full_key)
     try:
         cdll, loaded = _load_and_verify(lib, digest, functions, checks)
+    except fpmode.FloatingPointModeError:
+        _unpublish(lib, manifest)  # a rebuild would do the same: never loaded again
+        raise
     except (RuntimeError, OSError) as exc:
         if not hit:
             _unpublish(lib, manifest)
@@ -599,7 +639,11 @@ def build_library(
         _unpublish(lib, manifest)
         digest = _compile_and_publish(tc, source, folder, name, extra_flags, full_key)
         hit = False
-        cdll, loaded = _load_and_verify(lib, digest, functions, checks)
+        try:
+            cdll, loaded = _load_and_verify(lib, digest, functions, checks)
+        except fpmode.FloatingPointModeError:
+            _unpublish(lib, manifest)
+            raise
     return Library(path=lib, key=key, cdll=cdll, functions=loaded, cache_hit=hit)
 
 
@@ -616,9 +660,10 @@ def _cache_root(root: Path | None) -> tuple[Path, str]:
 def _load_and_verify(lib: Path, digest: str, functions: list[ca.Function], checks: Checks):
     cdll, path = _load_now(lib, digest)
     try:
-        return cdll, _verify(path, functions, checks)
+        with fpmode.guard(lib):
+            return cdll, _verify(path, functions, checks)
     finally:
-        _release_private(lib, path)
+        _release_image(path)
 
 
 def _unpublish(lib: Path, manifest: Path) -> None:
