@@ -26,10 +26,10 @@ replaced) and the task is recorded as an error ``task timed out after N s``
 the limit is checked when it returns: a task that took longer is recorded as the same error and
 its result is not kept, so that every back end keeps the same tasks.
 
-Provenance: each task is stored with the evaluator and code hash of the process that computed it
-(:mod:`workbench.study.provenance`). Continuing a run whose stored tasks were computed by other
-code or another evaluator than this process would use is refused (:class:`MixedResultsError`)
-unless ``allow_mixed=True``.
+Provenance: each task is stored with the evaluator, its result-changing settings and code hash
+of the process that computed it (:mod:`workbench.study.provenance`). Continuing a run whose
+stored tasks were computed by other code, another evaluator or other settings than this process
+would use is refused (:class:`MixedResultsError`) unless ``allow_mixed=True``.
 
 Status lines go to the ``workbench.study`` logger (errors and interrupts as ERROR/WARNING).
 """
@@ -375,22 +375,29 @@ def scheduler_client(scheduler: Any) -> Iterator[tuple[Any, str | None]]:
             client.close()
 
 
+def _origin(p: dict) -> str:
+    """A task's provenance in words: evaluator, its settings (when any), code hash."""
+    sets = p.get("settings")
+    shown = "" if not sets else ", settings " + ", ".join(
+        f"{k}={v!r}" for k, v in sorted(sets.items()))
+    return f"evaluator {p.get('evaluator')!r}{shown}, code {str(p.get('code_sha256'))[:12]}"
+
+
 def _mixed(store: RunStore, headers: dict, current: dict) -> MixedResultsError | None:
     """The error for stored tasks computed by other code or another evaluator, or None."""
     other: Counter[str] = Counter()
     for h in headers.values():
         p = h.get("provenance")
         if p != current:
-            other["no record (stored by an earlier version)" if not p else
-                  f"evaluator {p.get('evaluator')!r}, code {str(p.get('code_sha256'))[:12]}"] += 1
+            other["no record (stored by an earlier version)" if not p else _origin(p)] += 1
     if not other:
         return None
     n = sum(other.values())
     groups = "; ".join(f"{k}: {v}" for k, v in sorted(other.items()))
     return MixedResultsError(
         f"{n} of {len(headers)} stored tasks in {store.root} were computed by other code or "
-        f"another evaluator than this run would use (evaluator {current['evaluator']!r}, code "
-        f"{current['code_sha256'][:12]}; stored: {groups}). Reusing them would mix results "
+        f"another evaluator or evaluator setting than this run would use ({_origin(current)}; "
+        f"stored: {groups}). Reusing them would mix results "
         "(another evaluator draws other noise, so common random numbers would break). To "
         "recompute everything, choose a fresh folder with --out or delete this one; to reuse "
         "them anyway, pass allow_mixed=True (command line: --allow-mixed)")

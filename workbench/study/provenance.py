@@ -1,12 +1,18 @@
-"""What computed a task: the evaluator and a hash of the code.
+"""What computed a task: the evaluator, its result-changing settings and a hash of the code.
 
-Two things change a task's numbers without changing its config:
+Three things change a task's numbers without changing its config:
 
 - the evaluator: ``"compiled"`` when the process can build C kernels (a C compiler is found,
   :func:`workbench.codegen.toolchain.find_toolchain`), ``"fallback"`` when it cannot (no
-  compiler, or ``WORKBENCH_NO_CODEGEN=1``) and the samplers use the NumPy/CasADi evaluation,
+  compiler, or ``WORKBENCH_NO_CODEGEN`` on) and the samplers use the NumPy/CasADi evaluation,
   which draws its noise from NumPy instead of the kernels' generator: the same seed gives other
   episodes, so the two must not share one table (common random numbers would silently break);
+- the compiled evaluator's settings (:func:`settings`): ``WORKBENCH_VECTOR_MATH`` (libmvec
+  results differ from scalar libm by up to 4 ulp) and the extra compiler flags of
+  ``WORKBENCH_CFLAGS``. The kernels' block width (``WORKBENCH_VECTOR_BITS``) and the compiler
+  are recorded in the manifest (:func:`describe`) but not compared: results do not depend on
+  the block width, and the refused flags keep every compiler's results equal to CasADi's
+  evaluation;
 - the code: :func:`code_hash` is a SHA-256 over the contents of every ``.py``, ``.c``, ``.h``,
   ``.json`` and ``.toml`` file of the installed ``workbench`` package and of the top-level
   package (or module) that defines the study's task function (``studies`` for the registered
@@ -14,9 +20,10 @@ Two things change a task's numbers without changing its config:
   their path inside the package; ``__pycache__`` and hidden folders are skipped; the hash does
   not depend on where the packages are installed. It is computed once per process and package.
 
-:func:`current` (``{"evaluator", "code_sha256"}``) is stored with every task, computed in the
-process that ran it; :func:`describe` adds details for the manifest (compiler and flags, the
-vector-math switch, the packages hashed). Limit: ``"compiled"`` says the process *can* compile;
+:func:`current` (``{"evaluator", "settings", "code_sha256"}``) is stored with every task,
+computed in the process that ran it, and a continued run compares it whole; :func:`describe`
+adds details for the manifest (compiler and flags, the environment variables as set, the
+packages hashed). Limit: ``"compiled"`` says the process *can* compile;
 a model whose operations the C emitter cannot translate falls back for that problem alone (with
 a warning); that choice is a function of the code, so the code hash covers it on the same
 machine.
@@ -32,6 +39,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import workbench.environment as environment
+
 SUFFIXES = (".py", ".c", ".h", ".json", ".toml")
 _HASHES: dict[str, str] = {}
 
@@ -43,14 +52,25 @@ def evaluator() -> str:
     return "compiled" if find_toolchain() is not None else "fallback"
 
 
+def settings() -> dict[str, Any]:
+    """The settings that change a compiled task's numbers: ``vector_math`` (bool) and
+    ``cflags`` (the extra flags of ``WORKBENCH_CFLAGS``, a list); empty for the fallback
+    evaluator, which none of them affects."""
+    if evaluator() != "compiled":
+        return {}
+    return {"vector_math": environment.switch(environment.VECTOR_MATH, True),
+            "cflags": list(environment.words(environment.CFLAGS))}
+
+
 def evaluator_detail() -> dict[str, Any]:
-    """The compiler and flags (or why there is none) and the environment switches that choose
-    how kernels are built."""
+    """The compiler and flags (or why there is none) and the environment variables that choose
+    how kernels are built, as set."""
     from workbench.codegen.toolchain import find_toolchain
 
     tc = find_toolchain()
-    env = {k: os.environ.get(k) for k in ("WORKBENCH_NO_CODEGEN", "WORKBENCH_CC",
-                                           "WORKBENCH_CFLAGS", "WORKBENCH_VECTOR_MATH")}
+    names = (environment.NO_CODEGEN, environment.CC, environment.CFLAGS,
+             environment.VECTOR_MATH, environment.VECTOR_BITS)
+    env = {k: os.environ.get(k) for k in names}
     return {"toolchain": tc.describe() if tc is not None else None,
             "environment": {k: v for k, v in env.items() if v is not None}}
 
@@ -118,9 +138,10 @@ def clear_cache() -> None:
     _HASHES.clear()
 
 
-def current(fn: Callable | None = None) -> dict[str, str]:
-    """What this process would record for a task of ``fn``: evaluator and code hash."""
-    return {"evaluator": evaluator(), "code_sha256": code_hash(fn)}
+def current(fn: Callable | None = None) -> dict[str, Any]:
+    """What this process would record for a task of ``fn``: evaluator, its :func:`settings`
+    and code hash."""
+    return {"evaluator": evaluator(), "settings": settings(), "code_sha256": code_hash(fn)}
 
 
 def describe(fn: Callable | None = None) -> dict[str, Any]:
