@@ -1,9 +1,9 @@
 """The library's layers, lowest first, the rule that nothing imports upward, and no import cycle.
 
-validation, environment < study (infrastructure: configs, runner, store, statistics) and codegen < problem
-< ilqg, filters < sim < sampling.problem < sampling.kernels < sampling.feedback < sampling
-< scenarios < bound < cli. The library never imports ``benchmarks`` or ``studies`` (except the
-command line, which reads the study registry).
+validation, environment < study (infrastructure: configs, runner, store, statistics) and
+codegen < problem < ilqg, filters < sim < sampling.problem < sampling.kernels
+< sampling.feedback < sampling < scenarios < bound < cli. The library never imports
+``benchmarks`` or ``studies`` (except the command line, which reads the study registry).
 
 No cycle: the import graph of ``workbench``, ``studies`` and ``benchmarks``, read with the imports
 inside functions (a function-local import still runs, so it cannot hide a cycle), has no cycle.

@@ -25,7 +25,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-import workbench.environment as environment
+from workbench.codegen.toolchain import check_environment
 from workbench.environment import EnvironmentVariableError
 from workbench.study import config_io
 from workbench.study.checkout import StudiesLocationError
@@ -445,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     with terminal_logging(getattr(args, "quiet", False)):
         try:
-            environment.check()  # a bad WORKBENCH_* value stops here, named
+            check_environment()  # a bad WORKBENCH_* value stops here, named
             return args.fn(args)
         except (ConfigError, StudiesLocationError, EnvironmentVariableError) as exc:
             print(f"workbench {args.command}: error: {exc}", file=sys.stderr)

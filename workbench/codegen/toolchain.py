@@ -22,7 +22,8 @@ from workbench.environment import DEFAULT_COMPILE_TIMEOUT
 from workbench.validation import fail, real
 
 __all__ = ["DEFAULT_COMPILE_TIMEOUT", "DEFAULT_FLAGS", "FORBIDDEN_FLAGS", "REQUIRED_FLAGS",
-           "Toolchain", "build_flags", "check_flags", "compile_timeout", "find_toolchain"]
+           "Toolchain", "build_flags", "check_environment", "check_flags", "compile_timeout",
+           "find_toolchain"]
 
 # Needed to build a loadable shared library at all; never removed by WORKBENCH_CFLAGS.
 REQUIRED_FLAGS = ("-fPIC", "-shared")
@@ -99,14 +100,15 @@ def _version(cc: str) -> str | None:
 
 
 def _refusal(word: str) -> str | None:
-    """Why ``word`` may not be passed to the compiler, or None."""
+    """Why ``word`` may not be passed to the compiler (after the word), or None."""
     reason = FORBIDDEN_FLAGS.get(word)
     if reason is None and word.startswith("-ffp-contract=") and word != "-ffp-contract=off":
         reason = "fused multiply-adds change rounding: " + _REORDER
-    if reason is None and ("fastmath" in word.lower() or word.startswith(_INPUT_PREFIXES)
-                           or not word.startswith("-")):
-        reason = _INPUT
-    return reason
+    if reason is not None:
+        return f"changes floating-point semantics and is refused: {reason}"
+    if "fastmath" in word.lower() or word.startswith(_INPUT_PREFIXES) or not word.startswith("-"):
+        return f"is refused: {_INPUT}"
+    return None
 
 
 def check_flags(field: str, flags: tuple[str, ...], shown: object = None) -> tuple[str, ...]:
@@ -119,8 +121,7 @@ def check_flags(field: str, flags: tuple[str, ...], shown: object = None) -> tup
     for w in flags:
         reason = _refusal(w)
         if reason is not None:
-            raise fail(field, flags if shown is None else shown,
-                       f"{w} changes floating-point semantics and is refused: {reason}")
+            raise fail(field, flags if shown is None else shown, f"{w} {reason}")
     return flags
 
 
@@ -141,6 +142,13 @@ def compile_timeout() -> float:
     """``WORKBENCH_COMPILE_TIMEOUT`` (seconds, a finite number > 0) or
     :data:`DEFAULT_COMPILE_TIMEOUT`."""
     return env.seconds(env.COMPILE_TIMEOUT, DEFAULT_COMPILE_TIMEOUT)
+
+
+def check_environment() -> None:
+    """Read every ``WORKBENCH_*`` variable (:func:`workbench.environment.check`) and refuse the
+    flags of ``WORKBENCH_CFLAGS`` that :func:`check_flags` refuses, without running anything."""
+    env.check()
+    build_flags()
 
 
 _WARNED: set[tuple[str, str]] = set()
