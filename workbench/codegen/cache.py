@@ -16,16 +16,25 @@ others; a directory of ours that others may only read (0755, as made by earlier 
 tightened to 0700 with a log line; anything else is refused with an error naming the path. A
 cached library is loaded only after its identity is established: the manifest must name this
 build's cache key, the library's bytes must hash to the manifest's sha256, and both must be
-regular files (no symbolic links) owned by the user and not writable by others; the bytes
-hashed are the bytes loaded. A stale or altered library is rebuilt without being loaded. The
-manifest is no signature: whoever can write into the cache directory can replace a library and
-its manifest together, which is why the directory itself must be private.
+regular files (no symbolic links) owned by the user and not writable by others. The bytes
+hashed are the bytes loaded: they are read once and written to a new private copy that the
+loader opens, whose inode must then be among the process's mappings (a library file replaced
+after the check never runs; a replaced copy is not used). A stale or altered library is rebuilt
+without being loaded. The manifest is no signature: whoever can write into the cache directory
+can replace a library and its manifest together, which is why the directory itself must be
+private.
+
+Floating-point mode. Flags that change floating-point semantics or the process's
+floating-point mode, and extra inputs, are refused by name
+(:func:`workbench.codegen.toolchain.check_flags`, for ``WORKBENCH_CFLAGS`` and ``extra_flags``
+alike); every load runs under :func:`workbench.codegen.fpmode.guard`, so a library whose
+start-up code changes flush-to-zero, denormals-are-zero or the rounding direction is undone,
+removed from the cache and refused (:class:`~workbench.codegen.fpmode.FloatingPointModeError`).
 
 After loading, every exported Function is compared with CasADi's own evaluation (relative
 tolerance per element; non-finite entries must match) at points covering magnitudes 1e-3 to 1e3
 with both signs and zero, plus the caller's ``check_ranges`` and ``operating_points``; a mismatch
-rebuilds the library and loads the rebuilt file (through a private copy when this process
-already has the old one open at that path). Generated code without Functions (the sampler
+rebuilds the library and loads the rebuilt bytes. Generated code without Functions (the sampler
 kernels) is checked by its caller (:mod:`workbench.sampling.kernels.verify`), which asks for a
 rebuild. Libraries are linked with every symbol resolved (``-Wl,--no-undefined``) and loaded
 with RTLD_NOW.
@@ -38,6 +47,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import itertools
 import json
 import logging
 import os
@@ -329,16 +339,19 @@ def _run_compiler(tc: Toolchain, src: Path, out: Path, extra_flags: tuple[str, .
 # loading: only bytes whose identity is established
 
 
-def _image(data: bytes, digest: str, lib: Path) -> tuple[Path, os.stat_result]:
-    """A private copy of ``data`` (which hash to ``digest``) for the dynamic loader: a file
-    created exclusively (never an existing file or link), mode 0500, in the entry folder (which
-    is private), named after this process and the digest, and its status (device, inode). The
-    loader reuses a handle by name, so one name stands for one digest."""
-    path = lib.parent / f".load-{os.getpid()}-{digest}{lib.suffix}"
-    try:
-        path.unlink()  # left by this process id before: never reused
-    except FileNotFoundError:
-        pass
+_COPIES = itertools.count()
+# digest -> (name, device, inode) of the private copy the loader mapped for it; the loader
+# returns the handle it has for a name without opening the file again, so a digest loaded once
+# is loaded again by that name (no file), and every other load gets a name never used before
+_IMAGES: dict[str, tuple[str, int, int]] = {}
+
+
+def _image(data: bytes, lib: Path) -> tuple[Path, os.stat_result]:
+    """A private copy of ``data`` for the dynamic loader: a file with a name this process has
+    never used, created exclusively (never an existing file or link), mode 0500, in the entry
+    folder (which is private), and its status (device, inode)."""
+    digest = hashlib.sha256(data).hexdigest()
+    path = lib.parent / f".load-{os.getpid()}-{next(_COPIES)}-{digest[:16]}{lib.suffix}"
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
                  0o500)
     with os.fdopen(fd, "wb") as fh:
@@ -347,60 +360,59 @@ def _image(data: bytes, digest: str, lib: Path) -> tuple[Path, os.stat_result]:
         return path, os.fstat(fh.fileno())
 
 
-_IMAGES: dict[str, list[tuple[int, int]]] = {}  # digest -> (device, inode) of its copies
-
-
-def _mapped(files: list[tuple[int, int]]) -> bool | None:
-    """Whether this process maps one of ``files`` (device, inode), from ``/proc/self/maps``;
-    None where that list cannot be read."""
+def _mapped(dev: int, ino: int) -> bool | None:
+    """Whether this process maps the file (device, inode), from ``/proc/self/maps``; None where
+    that list cannot be read."""
     try:
         lines = Path("/proc/self/maps").read_text().splitlines()
     except OSError:
         return None
-    want = {(f"{os.major(d):02x}:{os.minor(d):02x}", str(i)) for d, i in files}
-    for ln in lines:
-        parts = ln.split(maxsplit=5)
-        if len(parts) >= 5 and (parts[3].lower(), parts[4]) in want:
-            return True
-    return False
+    want = (f"{os.major(dev):02x}:{os.minor(dev):02x}", str(ino))
+    return any(tuple(ln.split(maxsplit=5)[3:5]) == want for ln in lines)
 
 
-def _load_now(lib: Path, digest: str) -> tuple[ctypes.CDLL, Path]:
+def _load_now(lib: Path, digest: str) -> tuple[ctypes.CDLL, str, Path | None]:
     """dlopen the bytes of ``lib`` if they hash to ``digest`` (else :class:`_Altered`, nothing
     loaded), with every symbol resolved now (ctypes uses RTLD_NOW): a library with undefined
     symbols raises OSError here instead of aborting the process on its first call (CasADi's
-    external() binds lazily). Returns the handle and the private copy it was loaded from
-    (removed by :func:`_release_image` once every handle is open).
+    external() binds lazily). Returns the handle, the name it was loaded by, and the private
+    copy to remove once every handle is open (:func:`_release_image`; None when none was made).
 
     The bytes are read once and hashed, and those bytes are what the loader maps: they are
-    written to a fresh private copy (:func:`_image`), and after the load the copy's inode must
-    be among the process's mappings, so a file put in ``lib``'s place after the check never
-    runs. The process's floating-point mode is checked around the load (:func:`fpmode.guard`).
+    written to a fresh private copy (:func:`_image`), and after the load that copy's inode must
+    be among the process's mappings (else :class:`_Altered`), so a file put in ``lib``'s place
+    after the check never runs and a replaced copy is never used. Bytes this process has loaded
+    before are loaded again by the same name (the loader returns its handle). The process's
+    floating-point mode is checked around the load (:func:`fpmode.guard`).
     """
     data = lib.read_bytes()
     if hashlib.sha256(data).hexdigest() != digest:
         raise _Altered(f"{lib} changed after its identity was checked; not loaded")
-    path, st = _image(data, digest, lib)
-    # the loader returns the handle it has for this name (the same digest) when there is one
-    copies = _IMAGES.setdefault(digest, [])
-    copies.append((st.st_dev, st.st_ino))
+    copy: Path | None = None
+    if digest in _IMAGES:
+        name, dev, ino = _IMAGES[digest]
+    else:
+        copy, st = _image(data, lib)
+        name, dev, ino = str(copy), st.st_dev, st.st_ino
     try:
         with fpmode.guard(lib):
-            cdll = ctypes.CDLL(str(path))
-        if _mapped(copies) is False:
-            raise _Altered(f"{path} (the private copy of {lib}) was replaced before it was "
-                           "loaded; its replacement was loaded and is not used")
+            cdll = ctypes.CDLL(name)
+        if _mapped(dev, ino) is False:
+            raise _Altered(f"{name} (the private copy of {lib}) was replaced before it was "
+                           "loaded; what was loaded instead is not used")
     except BaseException:
-        _release_image(path)
+        _release_image(copy)
         raise
-    return cdll, path
+    _IMAGES[digest] = (name, dev, ino)
+    return cdll, name, copy
 
 
-def _release_image(path: Path) -> None:
-    try:
-        path.unlink()
-    except FileNotFoundError:
-        pass
+def _release_image(copy: Path | None) -> None:
+    if copy is not None:
+        try:
+            copy.unlink()
+        except FileNotFoundError:
+            pass
 
 
 # ---------------------------------------------------------------------------------------------
@@ -533,7 +545,7 @@ def _show(a: np.ndarray) -> str:
     return np.array2string(np.ravel(a, order="F"), precision=4, threshold=8)
 
 
-def _verify(lib_path: Path, functions: list[ca.Function],
+def _verify(lib_path: str, functions: list[ca.Function],
             checks: Checks | None = None) -> dict[str, ca.Function]:
     """Load each Function from the library and compare it with the symbolic one at
     :func:`check_points`; RuntimeError naming the Function, output and point on a mismatch."""
@@ -597,7 +609,7 @@ def build_library(
     name = safe_stem(stem)
     tc = toolchain or find_toolchain()
     if tc is None:
-        warnings.warn("workbench: no C compiler found (or WORKBENCH_NO_CODEGEN set); "
+        warnings.warn("workbench: no C compiler found (or WORKBENCH_NO_CODEGEN on); "
                       "using the CasADi virtual machine", RuntimeWarning, stacklevel=2)
         return None
     if compile_timeout is not None or tc.timeout is None:
@@ -658,12 +670,12 @@ def _cache_root(root: Path | None) -> tuple[Path, str]:
 
 
 def _load_and_verify(lib: Path, digest: str, functions: list[ca.Function], checks: Checks):
-    cdll, path = _load_now(lib, digest)
+    cdll, name, copy = _load_now(lib, digest)
     try:
         with fpmode.guard(lib):
-            return cdll, _verify(path, functions, checks)
+            return cdll, _verify(name, functions, checks)
     finally:
-        _release_image(path)
+        _release_image(copy)
 
 
 def _unpublish(lib: Path, manifest: Path) -> None:
