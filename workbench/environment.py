@@ -1,10 +1,12 @@
 """The ``WORKBENCH_*`` environment variables, each read strictly in one place.
 
 Every variable is parsed here; a value that is not allowed raises :class:`EnvironmentVariableError`
-(a ValueError) naming the variable, the value and what is allowed, and nothing falls back to a
-default. Unset and empty (or only blanks) mean the default. Switches accept, case-insensitively,
-``1 true yes on`` for on and ``0 false no off`` for off (:data:`TRUE`, :data:`FALSE`).
-:func:`check` reads them all, so a command fails before any work with the variable named.
+(a ValueError) naming the variable, the value and what is allowed; a bad value never turns into
+the default. Unset and empty (or only blanks) mean the default. Switches accept,
+case-insensitively, ``1 true yes on`` for on and ``0 false no off`` for off (:data:`TRUE`,
+:data:`FALSE`). :func:`check` reads them all, so a command fails before any work with the
+variable named. Checks that need the variable's meaning are made where it is used and raise the
+same error (the refused flags of ``WORKBENCH_CFLAGS``: :mod:`workbench.codegen.toolchain`).
 """
 
 from __future__ import annotations

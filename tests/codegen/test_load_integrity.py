@@ -108,10 +108,11 @@ def test_the_private_copy_is_checked_after_the_load(cached, monkeypatch):
     monkeypatch.setattr(cg.ctypes, "CDLL", swap_copy_then_load)
     got = build_library("wbload", [], _GOOD, root=root)
     assert swaps and _answer(got) == 42 and not got.cache_hit  # refused, rebuilt
-    assert not list(lib.parent.glob(".load-*"))  # no private copy left behind
+    copies = list(lib.parent.glob(".load-*"))  # the refused copy removed, the loaded one kept
+    assert len(copies) == 1 and str(copies[0]) != swaps[0]
 
 
-def test_the_loaded_copy_holds_the_checked_bytes_and_is_removed(cached, monkeypatch):
+def test_the_loaded_copy_holds_the_checked_bytes_and_stays_while_loaded(cached, monkeypatch):
     root, lib, _, _ = cached
     real = ctypes.CDLL
     seen = []
@@ -126,10 +127,22 @@ def test_the_loaded_copy_holds_the_checked_bytes_and_is_removed(cached, monkeypa
     build_library("wbload", [], _GOOD, root=root)
     digest = hashlib.sha256(lib.read_bytes()).hexdigest()
     assert [d for _, d in seen] == [digest] and seen[0][0] != str(lib)
-    assert not Path(seen[0][0]).exists()
-    first = seen.pop()[0]  # the same bytes again: the loader's handle by that name, no copy
+    copy = Path(seen[0][0])
+    assert copy.exists() and (copy.stat().st_mode & 0o777) == 0o500
+    seen.clear()  # the same bytes again: the loader's handle by that name, no new copy
     again = build_library("wbload", [], _GOOD, root=root)
-    assert seen == [(first, None)] and _answer(again) == 42
+    assert seen == [(str(copy), digest)] and _answer(again) == 42
+    assert sorted(lib.parent.glob(".load-*")) == [copy]
+    cg._release_all()  # what happens at exit
+    assert not copy.exists()
+
+
+def test_copies_left_by_ended_processes_are_removed(cached, monkeypatch):
+    root, lib, _, _ = cached
+    stale = lib.parent / f".load-{2**22 + 17}-0-{'0' * 16}.so"  # beyond any pid in use
+    stale.write_bytes(b"left over")
+    build_library("wbload", [], _GOOD, root=root)
+    assert not stale.exists()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,10 +19,10 @@ build's cache key, the library's bytes must hash to the manifest's sha256, and b
 regular files (no symbolic links) owned by the user and not writable by others. The bytes
 hashed are the bytes loaded: they are read once and written to a new private copy that the
 loader opens, whose inode must then be among the process's mappings (a library file replaced
-after the check never runs; a replaced copy is not used). A stale or altered library is rebuilt
-without being loaded. The manifest is no signature: whoever can write into the cache directory
-can replace a library and its manifest together, which is why the directory itself must be
-private.
+after the check never runs; a replaced copy is not used). Copies stay until the process exits.
+A stale or altered library is rebuilt without being loaded. The manifest is no signature:
+whoever can write into the cache directory can replace a library and its manifest together,
+which is why the directory itself must be private.
 
 Floating-point mode. Flags that change floating-point semantics or the process's
 floating-point mode, and extra inputs, are refused by name
@@ -45,6 +45,7 @@ Library names (often model names) are reduced to ``[A-Za-z0-9_-]``, at most
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import hashlib
 import itertools
@@ -342,14 +343,44 @@ def _run_compiler(tc: Toolchain, src: Path, out: Path, extra_flags: tuple[str, .
 _COPIES = itertools.count()
 # digest -> (name, device, inode) of the private copy the loader mapped for it; the loader
 # returns the handle it has for a name without opening the file again, so a digest loaded once
-# is loaded again by that name (no file), and every other load gets a name never used before
+# is loaded again by that name, and every other load gets a name never used before
 _IMAGES: dict[str, tuple[str, int, int]] = {}
+_COPY = re.compile(r"\.load-(\d+)-\d+-[0-9a-f]{16}\.so")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # someone else's process
+        return True
+    return True
+
+
+def _sweep(folder: Path) -> None:
+    """Remove the private copies in ``folder`` left by processes that have ended."""
+    for p in folder.glob(".load-*"):
+        m = _COPY.fullmatch(p.name)
+        if m and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
+            _release_image(p)
+
+
+def _release_all() -> None:
+    for name, _, _ in _IMAGES.values():
+        _release_image(Path(name))
+
+
+atexit.register(_release_all)
 
 
 def _image(data: bytes, lib: Path) -> tuple[Path, os.stat_result]:
     """A private copy of ``data`` for the dynamic loader: a file with a name this process has
     never used, created exclusively (never an existing file or link), mode 0500, in the entry
-    folder (which is private), and its status (device, inode)."""
+    folder (which is private), and its status (device, inode). Copies stay while this process
+    runs (the loaded file can be inspected); they are removed at exit, or by a later load in
+    the folder when the process ended without doing so."""
+    _sweep(lib.parent)
     digest = hashlib.sha256(data).hexdigest()
     path = lib.parent / f".load-{os.getpid()}-{next(_COPIES)}-{digest[:16]}{lib.suffix}"
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
@@ -371,48 +402,48 @@ def _mapped(dev: int, ino: int) -> bool | None:
     return any(tuple(ln.split(maxsplit=5)[3:5]) == want for ln in lines)
 
 
-def _load_now(lib: Path, digest: str) -> tuple[ctypes.CDLL, str, Path | None]:
+def _load_now(lib: Path, digest: str) -> tuple[ctypes.CDLL, str]:
     """dlopen the bytes of ``lib`` if they hash to ``digest`` (else :class:`_Altered`, nothing
     loaded), with every symbol resolved now (ctypes uses RTLD_NOW): a library with undefined
     symbols raises OSError here instead of aborting the process on its first call (CasADi's
-    external() binds lazily). Returns the handle, the name it was loaded by, and the private
-    copy to remove once every handle is open (:func:`_release_image`; None when none was made).
+    external() binds lazily). Returns the handle and the name it was loaded by.
 
     The bytes are read once and hashed, and those bytes are what the loader maps: they are
     written to a fresh private copy (:func:`_image`), and after the load that copy's inode must
-    be among the process's mappings (else :class:`_Altered`), so a file put in ``lib``'s place
-    after the check never runs and a replaced copy is never used. Bytes this process has loaded
-    before are loaded again by the same name (the loader returns its handle). The process's
-    floating-point mode is checked around the load (:func:`fpmode.guard`).
+    be among the process's mappings (else :class:`_Altered`, the copy removed), so a file put in
+    ``lib``'s place after the check never runs and a replaced copy is never used. Bytes this
+    process has loaded before are loaded again by the same name (the loader returns its
+    handle). The process's floating-point mode is checked around the load
+    (:func:`fpmode.guard`).
     """
     data = lib.read_bytes()
     if hashlib.sha256(data).hexdigest() != digest:
         raise _Altered(f"{lib} changed after its identity was checked; not loaded")
-    copy: Path | None = None
-    if digest in _IMAGES:
-        name, dev, ino = _IMAGES[digest]
+    known = _IMAGES.get(digest)
+    if known is not None:
+        copy, dev, ino = Path(known[0]), known[1], known[2]
     else:
         copy, st = _image(data, lib)
-        name, dev, ino = str(copy), st.st_dev, st.st_ino
+        dev, ino = st.st_dev, st.st_ino
     try:
         with fpmode.guard(lib):
-            cdll = ctypes.CDLL(name)
+            cdll = ctypes.CDLL(str(copy))
         if _mapped(dev, ino) is False:
-            raise _Altered(f"{name} (the private copy of {lib}) was replaced before it was "
+            raise _Altered(f"{copy} (the private copy of {lib}) was replaced before it was "
                            "loaded; what was loaded instead is not used")
     except BaseException:
-        _release_image(copy)
+        if known is None:
+            _release_image(copy)
         raise
-    _IMAGES[digest] = (name, dev, ino)
-    return cdll, name, copy
+    _IMAGES[digest] = (str(copy), dev, ino)
+    return cdll, str(copy)
 
 
-def _release_image(copy: Path | None) -> None:
-    if copy is not None:
-        try:
-            copy.unlink()
-        except FileNotFoundError:
-            pass
+def _release_image(copy: Path) -> None:
+    try:
+        copy.unlink()
+    except FileNotFoundError:
+        pass
 
 
 # ---------------------------------------------------------------------------------------------
@@ -670,12 +701,13 @@ def _cache_root(root: Path | None) -> tuple[Path, str]:
 
 
 def _load_and_verify(lib: Path, digest: str, functions: list[ca.Function], checks: Checks):
-    cdll, name, copy = _load_now(lib, digest)
+    cdll, name = _load_now(lib, digest)
     try:
         with fpmode.guard(lib):
             return cdll, _verify(name, functions, checks)
-    finally:
-        _release_image(copy)
+    except BaseException:
+        _release_image(Path(name))  # loaded but never used: nothing of it stays on disk
+        raise
 
 
 def _unpublish(lib: Path, manifest: Path) -> None:
