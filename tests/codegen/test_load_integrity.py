@@ -131,7 +131,7 @@ def test_the_loaded_copy_holds_the_checked_bytes_and_stays_while_loaded(cached, 
     assert copy.exists() and (copy.stat().st_mode & 0o777) == 0o500
     seen.clear()  # the same bytes again: the loader's handle by that name, no new copy
     again = build_library("wbload", [], _GOOD, root=root)
-    assert seen == [(str(copy), digest)] and _answer(again) == 42
+    assert seen == [(str(copy), digest)] and _answer(again) == 42 and again.image == copy
     assert sorted(lib.parent.glob(".load-*")) == [copy]
     cg._release_all()  # what happens at exit
     assert not copy.exists()

@@ -107,6 +107,12 @@ class Library:
     functions: dict[str, ca.Function] = field(repr=False)
     cache_hit: bool
 
+    @property
+    def image(self) -> Path:
+        """The file the loader mapped: the private copy of the checked bytes (kept until the
+        process exits); read this, not :attr:`path`, to inspect what runs."""
+        return Path(self.cdll._name)
+
 
 def cache_dir() -> Path:
     """``$WORKBENCH_CACHE_DIR`` or ``~/.cache/sais-workbench/codegen`` (resolved; not created)."""

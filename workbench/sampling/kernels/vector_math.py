@@ -179,7 +179,7 @@ def unavailable(flags: tuple[str, ...], lanes: int, precision: str = "float64") 
         return f"the probe does not build: {str(exc).splitlines()[0]}"
     if lib is None:
         return "no C compiler"
-    scalar = sorted(set(names) - simd_variants(lib.path.read_bytes(), precision))
+    scalar = sorted(set(names) - simd_variants(lib.image.read_bytes(), precision))
     if scalar:
         return f"the compiler kept scalar calls for {', '.join(scalar)}"
     inp = probe_inputs()
