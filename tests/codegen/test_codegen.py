@@ -4,6 +4,7 @@ compiler overrides, unlinkable operations, swapped libraries."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import warnings
@@ -157,14 +158,23 @@ def test_class6_flags_changing_floating_point_semantics_are_refused(monkeypatch,
         find_toolchain()
 
 
-def test_class6_missing_workbench_cc_is_named_with_the_compiler_used(monkeypatch):
+@pytest.mark.parametrize("cc", ["/nonexistent/wbrel-cc", "false"])
+def test_a_workbench_cc_that_is_not_a_working_compiler_is_refused_naming_it(monkeypatch, cc):
     from workbench.codegen import find_toolchain
+    from workbench.codegen.toolchain import check_environment
 
     monkeypatch.delenv("WORKBENCH_CFLAGS", raising=False)
-    monkeypatch.setenv("WORKBENCH_CC", "/nonexistent/wbrel-cc")
-    with pytest.warns(RuntimeWarning, match=r"WORKBENCH_CC = '/nonexistent/wbrel-cc'.*using /"):
-        tc = find_toolchain()
-    assert tc is not None and tc.cc != "/nonexistent/wbrel-cc"
+    monkeypatch.delenv("WORKBENCH_NO_CODEGEN", raising=False)
+    monkeypatch.setenv("WORKBENCH_CC", cc)
+    why = "not found on PATH" if cc.startswith("/") else "--version' failed"
+    for call in (find_toolchain, check_environment):
+        with pytest.raises(ValueError, match=rf"^WORKBENCH_CC = '{cc}' is invalid: must name a "
+                                             rf"working C compiler \(.*{why}"):
+            call()
+    monkeypatch.setenv("WORKBENCH_CC", "cc")
+    tc = find_toolchain()
+    assert tc is not None and tc.cc == shutil.which("cc")
+
 
 # ---------------------------------------------------------------------------------------------
 # operations the C back ends cannot compile: a clear error or a correct fallback

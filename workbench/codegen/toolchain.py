@@ -1,7 +1,7 @@
 """Compiler discovery and the flags that enter the cache key.
 
-Environment (parsed by :mod:`workbench.environment`): ``WORKBENCH_CC`` (compiler; when it cannot
-be run, a warning names it and the compiler used instead), ``WORKBENCH_CFLAGS`` (extra flags,
+Environment (parsed by :mod:`workbench.environment`): ``WORKBENCH_CC`` (compiler; one that cannot
+be run is refused, naming it), ``WORKBENCH_CFLAGS`` (extra flags,
 appended to the required and default ones; what :func:`check_flags` refuses is an error),
 ``WORKBENCH_COMPILE_TIMEOUT`` (seconds one compile may take before the compiler is killed;
 default 600), ``WORKBENCH_NO_CODEGEN`` (a switch: on forces the CasADi virtual machine / NumPy
@@ -14,7 +14,6 @@ import functools
 import os
 import shutil
 import subprocess
-import warnings
 from dataclasses import dataclass
 
 import workbench.environment as env
@@ -146,35 +145,34 @@ def compile_timeout() -> float:
 
 def check_environment() -> None:
     """Read every ``WORKBENCH_*`` variable (:func:`workbench.environment.check`) and refuse the
-    flags of ``WORKBENCH_CFLAGS`` that :func:`check_flags` refuses, without running anything."""
+    flags of ``WORKBENCH_CFLAGS`` that :func:`check_flags` refuses, and a ``WORKBENCH_CC`` that
+    is not a working compiler (its ``--version`` is the only thing run)."""
     env.check()
     build_flags()
-
-
-_WARNED: set[tuple[str, str]] = set()
+    if env.command(env.CC):
+        find_toolchain()
 
 
 def find_toolchain() -> Toolchain | None:
-    """The compiler to use, or None when codegen is disabled or no compiler is found."""
+    """The compiler to use, or None when codegen is disabled or no compiler is found.
+
+    A ``WORKBENCH_CC`` that is not a working compiler is refused (it is never replaced by
+    another compiler)."""
     if env.switch(env.NO_CODEGEN, False):
         return None
     flags = build_flags()
     timeout = compile_timeout()
     wanted = env.command(env.CC)
-    names = [wanted] if wanted else []
-    names += [n for n in (os.environ.get("CC"), "cc", "gcc", "clang") if n]
-    for name in names:
-        path = shutil.which(name)
+    if wanted:
+        path = shutil.which(wanted)
+        version = _version(path) if path else None
+        if not path or not version:
+            raise env.invalid(env.CC, wanted, "must name a working C compiler ("
+                              + ("not found on PATH" if not path else f"'{path} --version' failed")
+                              + "); unset it to use the first of $CC, cc, gcc, clang")
+        return Toolchain(cc=path, version=version, flags=flags, timeout=timeout)
+    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        path = shutil.which(name) if name else None
         if path and (version := _version(path)):
-            tc = Toolchain(cc=path, version=version, flags=flags, timeout=timeout)
-            if wanted and name != wanted and (wanted, path) not in _WARNED:
-                _WARNED.add((wanted, path))
-                warnings.warn(f"WORKBENCH_CC = {wanted!r} is not a working C compiler (not found "
-                              f"on PATH or '{wanted} --version' failed); using {tc.describe()}",
-                              RuntimeWarning, stacklevel=2)
-            return tc
-    if wanted and (wanted, "") not in _WARNED:
-        _WARNED.add((wanted, ""))
-        warnings.warn(f"WORKBENCH_CC = {wanted!r} is not a working C compiler and no other "
-                      "compiler was found", RuntimeWarning, stacklevel=2)
+            return Toolchain(cc=path, version=version, flags=flags, timeout=timeout)
     return None
