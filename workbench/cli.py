@@ -30,7 +30,9 @@ from workbench.environment import EnvironmentVariableError
 from workbench.study import config_io
 from workbench.study.checkout import StudiesLocationError
 from workbench.study.config_io import ConfigError
+from workbench.study.execute import TasksFailed
 from workbench.study.io import StorageError
+from workbench.validation import UserError
 
 DESCRIPTION = """\
 SAIS Workbench: run the studies, show their configs, build the report site.
@@ -56,6 +58,10 @@ examples:
   workbench run navigation --profile paper --dry-run  # task count and estimated time
   workbench report                                    # reports/index.html
   workbench report /tmp/bas5                          # /tmp/bas5/report.html (any run folder)
+
+exit status: 0 done; 1 the run could not finish (tasks that raised or timed out are recorded in
+OUT/errors.json and retried by a rerun; a file that cannot be written); 2 an input that is not
+allowed (config, argument, study registration, environment variable, compiler); 130 interrupted
 """
 
 def registry() -> dict:
@@ -440,19 +446,36 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _compile_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is the code cache's CompileError (a compiler that failed or ran past
+    WORKBENCH_COMPILE_TIMEOUT); its module is not imported just to ask."""
+    cache = sys.modules.get("workbench.codegen.cache")
+    return cache is not None and isinstance(exc, cache.CompileError)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; its exit code: 0 done, 1 the run could not finish (tasks that raised
+    or timed out, recorded in errors.json and retried by a rerun; a file that cannot be
+    written), 2 an input that is not allowed (a config value, an argument, a study's
+    registration, an environment variable, the compiler), 130 interrupted. Each failure is a
+    message on stderr naming the problem, not a traceback."""
     ap = parser()
     args = ap.parse_args(argv)
     with terminal_logging(getattr(args, "quiet", False)):
         try:
             check_environment()  # a bad WORKBENCH_* value stops here, named
             return args.fn(args)
-        except (ConfigError, StudiesLocationError, EnvironmentVariableError) as exc:
+        except (UserError, StudiesLocationError, EnvironmentVariableError) as exc:
             print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
             return 2
-        except StorageError as exc:  # disk full, file-size limit, read-only: names the file
+        except (StorageError, TasksFailed) as exc:  # StorageError names the file
             print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
             return 1
+        except Exception as exc:
+            if not _compile_error(exc):
+                raise
+            print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

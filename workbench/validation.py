@@ -22,6 +22,12 @@ MAX_BATCH = 2**31  # entries n_samples * horizon * nu of one sampled batch
 _TINY = float(np.finfo(np.float64).tiny)  # the smallest normal float64, 2.2e-308
 
 
+class UserError(ValueError):
+    """An input or setting the user gave that is not allowed (a config value, a command-line
+    argument, an environment variable, a study's registration); the message names it, the
+    value and what is allowed. The ``workbench`` command prints the message and exits 2."""
+
+
 def _show(value: object) -> str:
     if isinstance(value, str) or (isinstance(value, tuple | list) and any(
             isinstance(v, bool | np.bool_) for v in value)):

@@ -28,15 +28,18 @@ from typing import Any
 
 import tomli_w
 
-__all__ = ["MAX_CONFIG_BYTES", "ConfigError", "dump", "keys", "load", "merge", "parse_sets",
-           "read_toml", "to_dict"]
+from workbench.validation import UserError
+
+__all__ = ["MAX_CONFIG_BYTES", "MAX_NESTING", "ConfigError", "dump", "keys", "load", "merge",
+           "parse_sets", "read_toml", "to_dict"]
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError):
     """A config key, type or value that is not allowed (the message says which and why)."""
 
 
 MAX_CONFIG_BYTES = 1 << 20  # a config file is a few kB; anything above 1 MiB is not one
+MAX_NESTING = 32  # tables and arrays inside one another (a config nests a few levels at most)
 _KINDS = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
           (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
 
@@ -47,7 +50,8 @@ def read_toml(path: Path | str) -> dict[str, Any]:
     socket: refused before opening, so reading never blocks), is larger than
     :data:`MAX_CONFIG_BYTES`, is not UTF-8 text (the first bad byte and its offset), holds a
     NUL byte (a binary file), or is not valid TOML (the line and column). A UTF-8 byte-order
-    mark at the start is skipped."""
+    mark at the start is skipped. Tables and arrays nested more than :data:`MAX_NESTING`
+    levels deep are refused."""
     path = Path(path)
     data = _read_capped(path)
     try:
@@ -61,12 +65,34 @@ def read_toml(path: Path | str) -> dict[str, Any]:
         raise ConfigError(f"config file {path} is not text: it holds a NUL byte at offset "
                           f"{data.find(0)} (a binary file?); give a TOML file")
     try:
-        return tomllib.loads(text)
+        parsed = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
     except RecursionError:
-        raise ConfigError(f"{path}: not valid TOML (arrays or inline tables nest too deeply)"
-                          ) from None
+        raise ConfigError(f"{path}: arrays or inline tables nest too deeply for the TOML "
+                          f"reader; a config nests at most {MAX_NESTING} levels") from None
+    _check_nesting(parsed, str(path))
+    return parsed
+
+
+def _depth(value: Any) -> int:
+    """How many tables and arrays ``value`` holds inside one another (0 for a scalar)."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:  # iterative: a deeply nested value cannot exhaust the call stack here
+        node, level = stack.pop()
+        if isinstance(node, Mapping):
+            node = list(node.values())
+        if isinstance(node, list | tuple):
+            deepest = max(deepest, level + 1)
+            if level < MAX_NESTING:  # deeper than the limit: the answer is known already
+                stack.extend((v, level + 1) for v in node)
+    return deepest
+
+
+def _check_nesting(data: Any, where: str) -> None:
+    if _depth(data) > MAX_NESTING:
+        raise ConfigError(f"{where}: tables and arrays nest more than {MAX_NESTING} levels "
+                          f"deep; a config nests at most {MAX_NESTING} levels")
 
 
 def _read_capped(path: Path) -> bytes:
@@ -133,7 +159,8 @@ def parse_sets(items: Iterable[str], aliases: Mapping[str, str] | None = None) -
     ``key=value`` on one line: a control character (newline, carriage return, tab, ...) is an
     error, so that ``$'a=1\nb=2'`` is not read as a=1 with b=2 dropped. Values are TOML
     literals; a value that is not one (a bare word) is taken as a string. ``aliases`` maps
-    short keys to dotted paths (e.g. ``noise_std`` -> ``base.noise_std``)."""
+    short keys to dotted paths (e.g. ``noise_std`` -> ``base.noise_std``). A key of more than
+    :data:`MAX_NESTING` dotted parts, or a value nested deeper, is an error."""
     out: dict[str, Any] = {}
     for item in items:
         if not isinstance(item, str):
@@ -148,15 +175,26 @@ def parse_sets(items: Iterable[str], aliases: Mapping[str, str] | None = None) -
             value = tomllib.loads(f"v = {text.strip()}")["v"]
         except tomllib.TOMLDecodeError:
             value = text.strip()
+        except RecursionError:
+            raise _too_deep(item) from None
         key = (aliases or {}).get(key, key)
-        node = out
         *parents, last = key.split(".")
+        if len(parents) + 1 > MAX_NESTING or len(parents) + _depth(value) > MAX_NESTING:
+            raise _too_deep(item)
+        node = out
         for p in parents:
             node = node.setdefault(p, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"--set {item!r}: {p} is set twice, as a value and a table")
         node[last] = value
     return out
+
+
+def _too_deep(item: str) -> ConfigError:
+    shown = item if len(item) <= 60 else item[:57] + "..."
+    return ConfigError(f"--set {shown!r} ({len(item)} characters) nests more than {MAX_NESTING} "
+                       "levels deep (dotted key parts, tables and arrays together); a config "
+                       f"nests at most {MAX_NESTING} levels")
 
 
 def _one_line(item: str) -> None:

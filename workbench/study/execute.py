@@ -74,6 +74,11 @@ class StudyInterrupted(KeyboardInterrupt):
     """The run was stopped by SIGINT/SIGTERM; finished tasks are stored, rerun to continue."""
 
 
+class TasksFailed(RuntimeError):
+    """Some tasks raised (a timeout is one): each is recorded in ``errors.json`` with its
+    traceback and retried on the next run; the message lists them, one line each."""
+
+
 class MixedResultsError(RunFolderError):
     """Stored tasks were computed by other code or another evaluator than this run would use."""
 
@@ -94,11 +99,15 @@ class RunResult:
     def complete(self) -> bool:
         return not self.errors
 
-    def raise_for_errors(self) -> None:
+    def raise_for_errors(self, shown: int = 10) -> None:
+        """:class:`TasksFailed` listing the first ``shown`` tasks that raised, one line each."""
         if self.errors:
-            lines = "\n".join(f"  {e.headline()}" for e in self.errors)
-            raise RuntimeError(f"{len(self.errors)} of {self.n_tasks} tasks raised (tracebacks "
-                               f"in {self.root / 'errors.json'}):\n{lines}")
+            lines = [f"  {e.headline()}" for e in self.errors[:shown]]
+            if len(self.errors) > shown:
+                lines.append(f"  ... and {len(self.errors) - shown} more")
+            raise TasksFailed(f"{len(self.errors)} of {self.n_tasks} tasks raised (tracebacks "
+                              f"in {self.root / 'errors.json'}; a rerun retries them):\n"
+                              + "\n".join(lines))
 
 
 def check_workers(workers: Any) -> int:

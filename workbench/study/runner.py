@@ -51,7 +51,7 @@ from workbench.study.execute import (
 from workbench.study.folder import MANIFEST, RunFolderError, claim, locked
 from workbench.study.io import atomic_write_json, atomic_write_text
 from workbench.study.report import tasks_phrase
-from workbench.study.spec import Finished, StudySpec, Summary
+from workbench.study.spec import Declaration, Finished, RegistrationError, StudySpec, Summary
 from workbench.study.store import RunStore, study_manifest
 from workbench.study.summary import to_jsonable
 from workbench.study.tasks import Study
@@ -137,8 +137,18 @@ def profile_config(spec: StudySpec, profile: str, **overrides: Any) -> Any:
 
 def declare(spec: StudySpec, config: Any, prepared: Any = None) -> tuple[Study, Any]:
     """The framework's :class:`~workbench.study.Study` for ``config`` and the study's plan.
-    ``prepared`` is bound into the task function when the study prepares something."""
-    d = spec.fn("tasks")(config)
+    ``prepared`` is bound into the task function when the study prepares something. A value
+    the study's ``tasks`` refuses (a ValueError, e.g. a tuned pair that is not shipped) is a
+    :class:`ConfigError` naming the study; so is a ``tasks`` that returns no Declaration."""
+    try:
+        d = spec.fn("tasks")(config)
+    except ConfigError:
+        raise
+    except ValueError as exc:  # the study's own checks of the config (validation.fail)
+        raise ConfigError(f"study {spec.name!r}: {exc}") from exc
+    if not isinstance(d, Declaration):
+        raise RegistrationError(f"study {spec.name!r}: tasks returned {type(d).__name__}, "
+                                "expected a workbench.study.spec.Declaration")
     if len(d.tasks) > MAX_TASKS:
         raise ConfigError(f"study {spec.name!r}: the config gives {len(d.tasks)} tasks, above "
                           f"the limit {MAX_TASKS}; lower its counts (realisations, seeds, "
@@ -223,8 +233,9 @@ def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers:
     Raises :class:`~workbench.study.config_io.ConfigError` (a
     :class:`~workbench.study.folder.RunFolderError` for a folder of another run, of someone
     else's files or in use; a :class:`~workbench.study.scheduler.SchedulerError`) before
-    anything is written; RuntimeError listing the tasks that raised (tracebacks in
-    errors.json); :class:`~workbench.study.StudyInterrupted` on Ctrl-C (rerun to continue);
+    anything is written; :class:`~workbench.study.execute.TasksFailed` listing the tasks that
+    raised (a timed-out task is one; tracebacks in errors.json);
+    :class:`~workbench.study.StudyInterrupted` on Ctrl-C (rerun to continue);
     :class:`~workbench.study.io.StorageError` when a file cannot be written."""
     if not isinstance(config, spec.config_type):
         raise ConfigError(f"config = {type(config).__name__} is invalid: study {spec.name!r} "

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import traceback
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,10 +21,17 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import workbench.environment as environment
 from workbench.study.checkout import use_checkout_studies
+from workbench.study.config_io import ConfigError
 from workbench.validation import fail
 
 if TYPE_CHECKING:
     from workbench.study.store import RunStore
+
+
+class RegistrationError(ConfigError):
+    """A study's registration that cannot be used: its module cannot be imported, defines no
+    ``STUDY`` or a wrong one, or one of its ``"module:function"`` entry points is missing; the
+    message names the study (or module) and what is wrong."""
 
 
 class PaperRow(NamedTuple):
@@ -140,13 +148,21 @@ class StudySpec:
     def fn(self, name: str) -> Callable[..., Any]:
         """The study's function ``name`` (tasks, summarise, report, prepare, paper), imported
         if it was given as ``"module:function"``; ValueError for an optional one (prepare,
-        paper) that the study does not declare."""
+        paper) that the study does not declare; :class:`RegistrationError` naming the study
+        and the entry point when its module cannot be imported or has no such function."""
         value = getattr(self, name)
         if value is None:
             raise fail(f"StudySpec.{name}", None, f"is not declared by study {self.name!r}")
         if isinstance(value, str):
             module, attr = value.split(":")
-            value = getattr(importlib.import_module(module), attr)
+            where = f"study {self.name!r}: {name} = {value!r}"
+            loaded = _import(module, f"{where}: module {module!r}",
+                             "fix the entry point in the study's StudySpec")
+            value = getattr(loaded, attr, None)
+            if not callable(value):
+                found = "is not a function" if value is not None else "does not exist"
+                raise RegistrationError(f"{where}: {module}.{attr} {found}; the entry point "
+                                        "must name a function, as 'module:function'")
         return value
 
     @property
@@ -168,11 +184,49 @@ def registry(modules: list[str] | None = None) -> dict[str, StudySpec]:
         modules = list(importlib.import_module(REGISTRY_MODULE).STUDIES)
         modules += list(environment.modules(ENVIRONMENT))
     out: dict[str, StudySpec] = {}
+    where: dict[str, str] = {}
     for name in modules:
-        spec = getattr(importlib.import_module(name), "STUDY", None)
+        spec = getattr(_import(name, f"study module {name!r} (registered in {REGISTRY_MODULE} "
+                               f"or ${ENVIRONMENT})", "fix or remove the registration"),
+                       "STUDY", None)
         if not isinstance(spec, StudySpec):
-            raise TypeError(f"{name}.STUDY must be a workbench.study.StudySpec")
+            found = "defines no STUDY" if spec is None else f"has STUDY = {type(spec).__name__}"
+            raise RegistrationError(f"study module {name!r} {found}; a registered study "
+                                    "module defines STUDY = workbench.study.StudySpec(...)")
         if spec.name in out:
-            raise ValueError(f"two studies are named {spec.name!r}")
-        out[spec.name] = spec
+            raise RegistrationError(f"two studies are named {spec.name!r} (modules "
+                                    f"{where[spec.name]!r} and {name!r}); each registered "
+                                    "study needs its own name")
+        out[spec.name], where[spec.name] = spec, name
     return out
+
+
+def _missing(exc: ImportError, module: str) -> bool:
+    """Whether ``exc`` says that ``module`` itself (or a package above it) does not exist."""
+    missing = getattr(exc, "name", None)
+    return isinstance(exc, ModuleNotFoundError) and missing is not None and (
+        module == missing or module.startswith(missing + "."))
+
+
+def _import(module: str, what: str, fix: str) -> Any:
+    """``importlib.import_module(module)``; :class:`RegistrationError` starting with ``what``
+    when the module does not exist, or when importing it raises (a ``StudySpec`` refused, a
+    typo in its code): the error and the line of the study's code that raised it."""
+    try:
+        return importlib.import_module(module)
+    except Exception as exc:
+        if isinstance(exc, ImportError) and _missing(exc, module):
+            raise RegistrationError(f"{what} does not exist ({exc}); {fix}") from exc
+        raise RegistrationError(f"{what} cannot be imported: {type(exc).__name__}: {exc}"
+                                f"{_where(exc)}; {fix}") from exc
+
+
+def _where(exc: BaseException) -> str:
+    """`` at FILE:LINE``: the last line outside the library (and the import machinery) that
+    raised ``exc``, or where a syntax error is."""
+    if isinstance(exc, SyntaxError) and exc.filename and exc.lineno:
+        return f" at {exc.filename}:{exc.lineno}"
+    library = str(Path(__file__).resolve().parents[1])
+    frames = [f for f in traceback.extract_tb(exc.__traceback__)
+              if not f.filename.startswith((library, "<frozen"))]
+    return f" at {frames[-1].filename}:{frames[-1].lineno}" if frames else ""
