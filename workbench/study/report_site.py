@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import re
+import secrets
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -32,6 +33,7 @@ from urllib.parse import quote
 
 import markdown
 
+from workbench.study.html_safe import NoRawHtml, clean_html
 from workbench.study.io import atomic_write_text, make_dirs
 
 log = logging.getLogger("workbench.study")
@@ -115,7 +117,6 @@ _INLINE = re.compile(r"(?<![\\$\w])\$(?![\s$])([^$\n]+?)(?<![\s\\])\$(?![\d$])")
 # "assumptions §3.3", "assumptions §3.3, §6, §12.1", "assumptions §6.1-§6.3"
 _REF = re.compile(r"(?<!\[)\bassumptions (§\d+(?:\.\d+)*(?:(?:, |-| and )§\d+(?:\.\d+)*)*)")
 _SECTION = re.compile(r"§(\d+(?:\.\d+)*)")
-_TOKEN = re.compile(r"WBMATH(\d+)X")
 # a short table cell (a number with its interval) is kept on one line
 _SHORT_CELL = re.compile(r"<(td|th)>([^<]{1,32})</\1>")
 
@@ -151,14 +152,15 @@ def latex_to_mathml(latex: str, display: bool = False) -> str:
         return f"<code class=\"tex\">{html.escape(latex.strip())}</code>"
 
 
-def _protect_math(text: str) -> tuple[str, list[str]]:
-    """Replace every formula outside code by a token; return the text and the MathML of each
-    token (in order)."""
+def _protect_math(text: str, tag: str) -> tuple[str, list[str]]:
+    """Replace every formula outside code by a token (``WBMATH<tag>N<i>X``: ``tag`` is new
+    for every page, so no text of a report can name a token); return the text and the MathML
+    of each token (in order)."""
     formulas: list[str] = []
 
     def keep(mathml: str) -> str:
         formulas.append(mathml)
-        return f"WBMATH{len(formulas) - 1}X"
+        return f"WBMATH{tag}N{len(formulas) - 1}X"
 
     parts = _CODE.split(text)
     for i in range(0, len(parts), 2):  # even parts are outside code
@@ -188,12 +190,16 @@ def link_refs_html(escaped: str, docs: str | None) -> str:
 
 def markdown_html(text: str, docs: str | None = None) -> str:
     """Markdown (with LaTeX formulas) -> HTML: formulas as MathML, ``assumptions §x.y`` as
-    links to ``docs`` (None: left as text), every table in a box that scrolls sideways."""
-    text, formulas = _protect_math(text)
-    body = markdown.markdown(_link_refs(text, docs), extensions=MD_EXTENSIONS)
+    links to ``docs`` (None: left as text), every table in a box that scrolls sideways. Raw
+    HTML in the text is shown as text, and only markdown's and MathML's elements come out,
+    without scripts or event handlers (:mod:`workbench.study.html_safe`): a string a study
+    echoes from its config reads as written."""
+    tag = secrets.token_hex(8)
+    text, formulas = _protect_math(text, tag)
+    body = markdown.markdown(_link_refs(text, docs), extensions=[*MD_EXTENSIONS, NoRawHtml()])
     body = _SHORT_CELL.sub(r'<\1 class="nw">\2</\1>', body)
-    body = _TOKEN.sub(lambda m: formulas[int(m.group(1))], body)
-    return body.replace("<table>", "<div class=\"wide\"><table>").replace(
+    body = re.sub(rf"WBMATH{tag}N(\d+)X", lambda m: formulas[int(m.group(1))], body)
+    return clean_html(body).replace("<table>", "<div class=\"wide\"><table>").replace(
         "</table>", "</table></div>")
 
 
