@@ -33,32 +33,46 @@ typecheck: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check workbench studies tests benchmarks examples
 
-# every study target is `workbench run NAME --profile $(PROFILE)`; SET='key=value ...' adds
-# --set overrides (e.g. make study-tracking SET='noise_std=5 n_seeds=4')
+# every study target is `workbench run NAME --profile $(PROFILE) --out DIR`; SET='key=value ...'
+# adds --set overrides (e.g. make study-tracking SET='noise_std=5 n_seeds=4')
 SETS = $(foreach s,$(SET),--set $(s))
+
+# Each run has its own folder, so that the targets run one after another (a folder holds one
+# config's run): the quick profile's in reports/<study folder>, another profile's in
+# reports/<study folder>_<profile>, a run with SET in reports/<study folder>_<profile>_set-<a
+# checksum of SET>; OUT=DIR chooses the folder (a rerun into it continues the stored run)
+OUT ?=
+quote = '$(subst ','\'',$(1))'
+SET_TAG = $(if $(SET),_set-$(firstword $(shell printf '%s' $(call quote,$(SET)) | cksum)))
+run_dir = $(if $(OUT),$(OUT),reports/$(1)$(if $(or $(SET),$(filter-out quick,$(2))),_$(2))$(SET_TAG))
+run_out = --out $(call run_dir,$(1),$(2))
 
 study: study-tracking-demo study-tracking study-navigation study-bound study-sampling-safety \
 	study-arena reports
 
 study-tracking-demo: $(STAMP)
-	$(WB) run tracking-demo --profile $(PROFILE) $(SETS)
+	$(WB) run tracking-demo --profile $(PROFILE) $(SETS) $(call run_out,tracking_demo,$(PROFILE))
 
 study-tracking: $(STAMP)
-	$(WB) run tracking --profile $(PROFILE) $(STUDY_EXEC) $(SETS)
+	$(WB) run tracking --profile $(PROFILE) $(STUDY_EXEC) $(SETS) \
+		$(call run_out,tracking_comparison,$(PROFILE))
 
 # navigation and bound have tiny/quick/paper profiles; any other PROFILE (the tracking study's
 # full) runs their quick profile
 NAV_PROFILE = $(if $(filter paper tiny,$(PROFILE)),$(PROFILE),quick)
 study-navigation: $(STAMP)
-	$(WB) run navigation --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
+	$(WB) run navigation --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS) \
+		$(call run_out,navigation,$(NAV_PROFILE))
 
 # Lemma 1 checked on SA-RMPPI episodes: quick about 2-2.5 min, paper 35-60 min
 study-bound: $(STAMP)
-	$(WB) run free-energy-bound --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
+	$(WB) run free-energy-bound --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS) \
+		$(call run_out,free_energy_bound,$(NAV_PROFILE))
 
 # every safe-sampling method on one sampler (claim 1 of the paper): tiny/quick/paper profiles
 study-sampling-safety: $(STAMP)
-	$(WB) run sampling-safety --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS)
+	$(WB) run sampling-safety --profile $(NAV_PROFILE) $(STUDY_EXEC) $(SETS) \
+		$(call run_out,sampling_safety,$(NAV_PROFILE))
 
 # the arena: controllers x systems x generated maps x disturbances, declared comparisons decided
 # group-sequentially (quick: a few minutes; PROFILE=verdict: claim (i) on the double integrator
@@ -66,16 +80,19 @@ study-sampling-safety: $(STAMP)
 # for a cluster, SCHEDULER=tcp://host:8786)
 ARENA_PROFILE = $(if $(filter tiny verdict decide paper,$(PROFILE)),$(PROFILE),quick)
 study-arena: $(STAMP)
-	$(WB) run arena --profile $(ARENA_PROFILE) $(STUDY_EXEC) $(SETS)
+	$(WB) run arena --profile $(ARENA_PROFILE) $(STUDY_EXEC) $(SETS) \
+		$(call run_out,arena,$(ARENA_PROFILE))
 
 # equal-budget tuning of the arena's controllers; ships the result as their tuned defaults
 # (workbench/scenarios/tuned.json)
 TUNE_PROFILE = $(if $(filter tiny verdict,$(PROFILE)),$(PROFILE),quick)
 tune-arena: $(STAMP)
-	$(WB) run arena-tuning --profile $(TUNE_PROFILE) $(STUDY_EXEC) $(SETS)
-	$(PY) -m studies.arena.tuning reports/arena_tuning
+	$(WB) run arena-tuning --profile $(TUNE_PROFILE) $(STUDY_EXEC) $(SETS) \
+		$(call run_out,arena_tuning,$(TUNE_PROFILE))
+	$(PY) -m studies.arena.tuning $(call run_dir,arena_tuning,$(TUNE_PROFILE))
 
-# reports/index.html: every study's report, figures, tables and manifest, offline
+# reports/index.html: every study's report (each profile's run), figures, tables and manifest,
+# offline
 reports: $(STAMP)
 	$(WB) report
 

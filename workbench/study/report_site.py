@@ -2,9 +2,10 @@
 
 For each registered study whose run directory (``ROOT/<dir of its default_out>``) exists: its
 report.md rendered to report.html beside it (so the report's relative figure links keep
-working), links to report.md, summary.json, manifest.json, config.toml and the tidy tables, the
-paper's numbers beside ours (``StudySpec.paper``) and every figure as a thumbnail. Studies not
-run yet are listed with the command that runs them. The page of assumptions
+working), links to report.md, summary.json, manifest.json, config.toml and the tidy tables, to
+the report of each other profile's run (``ROOT/<dir>_<profile>``, where the make targets write
+them), the paper's numbers beside ours (``StudySpec.paper``) and every figure as a thumbnail.
+Studies not run yet are listed with the command that runs them. The page of assumptions
 (``workbench/assumptions.md``) is rendered to ``assumptions.html`` beside the index; every
 ``assumptions §x.y`` in a report becomes a link to its section (``assumptions.html#sx-y``).
 
@@ -328,6 +329,7 @@ def _study_section(entry, root: Path, docs: str | None) -> str:
                      f"{html.escape(entry.name)} --out {html.escape(str(d))}</code> writes it "
                      "again (stored tasks are reused).</p>")
     parts.append("<p>" + " · ".join(_links(d, rel)) + "</p>")
+    parts.append(_profile_runs(entry, root, docs))
     parts.append(_paper_table(entry, d, docs))
     figs = sorted(d.glob("*.png"), key=lambda p: (p.name != entry.figure, p.name))
     if figs:
@@ -338,11 +340,36 @@ def _study_section(entry, root: Path, docs: str | None) -> str:
     return "\n".join(parts)
 
 
+def profile_folders(entry, root: Path) -> dict[str, Path]:
+    """The runs of ``entry``'s other profiles under ``root`` (``make study-... PROFILE=P``
+    writes them to ``<study folder>_<P>``), by profile, that hold a run's manifest."""
+    out = {}
+    for profile in entry.profiles:
+        d = root / f"{entry.default_out.name}_{profile}"
+        if profile != entry.default_profile and (d / "manifest.json").is_file():
+            out[profile] = d
+    return out
+
+
+def _profile_runs(entry, root: Path, docs: str | None) -> str:
+    """A line linking the report of each other profile's run (rendered here)."""
+    items = []
+    for profile, d in profile_folders(entry, root).items():
+        if (d / "report.md").is_file():
+            render_markdown(d / "report.md", "../index.html", f"../{docs}" if docs else None)
+            items.append(f"<a href=\"{_href(d.name, 'report.html')}\">{html.escape(profile)}</a>")
+        else:
+            items.append(f"{html.escape(profile)} (<code>{html.escape(d.name)}/</code>, no "
+                         "report yet)")
+    return f"<p>Other profiles' runs: {' · '.join(items)}</p>" if items else ""
+
+
 def _other_runs(root: Path, registry: Mapping[str, object], docs: str | None) -> str:
     """The run folders under ``root`` that are not a study's own (e.g. a comparison on your
     own system, ``workbench run sampling-safety --config arm.toml --out reports/arm``): a
     link to each one's report, rendered here, with its study."""
     own = {e.default_out.name for e in registry.values()} | {"bench"}  # type: ignore[attr-defined]
+    own |= {d.name for e in registry.values() for d in profile_folders(e, root).values()}
     runs = [d for d in sorted(root.iterdir())
             if d.is_dir() and d.name not in own and (d / "manifest.json").is_file()]
     if not runs:
