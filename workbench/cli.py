@@ -160,6 +160,7 @@ def cmd_show_config(args) -> int:
 
 
 def cmd_run(args) -> int:
+    from workbench.study.execute import check_timeout
     from workbench.study.runner import dry_manifest, resolve_config
     from workbench.validation import writable_dir
 
@@ -168,6 +169,10 @@ def cmd_run(args) -> int:
     if args.workers < 0:
         raise ConfigError(f"--workers = {args.workers} is invalid: must be >= 0 (0: in this "
                           "process)")
+    try:  # checked before a dry run too: a value is used or refused, never ignored
+        check_timeout(args.task_timeout)
+    except ValueError as exc:
+        raise ConfigError(f"--task-timeout {args.task_timeout:g}: {exc}") from exc
     profile = args.profile or (entry.default_profile if args.config is None else None)
     if args.dry_run:
         from workbench.study.io import dumps_json
