@@ -45,7 +45,7 @@ OUT ?=
 quote = '$(subst ','\'',$(1))'
 SET_TAG = $(if $(SET),_set-$(firstword $(shell printf '%s' $(call quote,$(SET)) | cksum)))
 run_dir = $(if $(OUT),$(OUT),reports/$(1)$(if $(or $(SET),$(filter-out quick,$(2))),_$(2))$(SET_TAG))
-run_out = --out $(call run_dir,$(1),$(2))
+run_out = --out $(call quote,$(call run_dir,$(1),$(2)))
 
 study: study-tracking-demo study-tracking study-navigation study-bound study-sampling-safety \
 	study-arena reports
@@ -89,7 +89,9 @@ TUNE_PROFILE = $(if $(filter tiny verdict,$(PROFILE)),$(PROFILE),quick)
 tune-arena: $(STAMP)
 	$(WB) run arena-tuning --profile $(TUNE_PROFILE) $(STUDY_EXEC) $(SETS) \
 		$(call run_out,arena_tuning,$(TUNE_PROFILE))
-	$(PY) -m studies.arena.tuning $(call run_dir,arena_tuning,$(TUNE_PROFILE))
+	$(PY) -m studies.arena.tuning $(call quote,$(call run_dir,arena_tuning,$(TUNE_PROFILE)))
+	@echo "tuned values shipped; if they changed, an arena folder run with the old ones is refused" \
+		"(naming the differences): make study-arena OUT=DIR, or delete that folder"
 
 # reports/index.html: every study's report (each profile's run), figures, tables and manifest,
 # offline
