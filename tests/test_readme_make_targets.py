@@ -115,3 +115,19 @@ def test_a_set_with_quotes_gets_a_folder_of_its_own():
     two = runs(["study-tracking", "SET=methods=['ecbf'] n_seeds=4"])
     assert one[0][3] != two[0][3] and one[0][3].startswith("reports/tracking_comparison_quick_set-")
     assert runs(["study-tracking", "SET=methods=['bas'] n_seeds=4"]) == one  # stable
+
+
+@pytest.mark.parametrize("quick_run", [True, False])
+def test_make_reports_links_each_profiles_run_from_its_study(tmp_path, quick_run):
+    from workbench.study.report_site import build_site
+
+    folders = ["tracking_comparison_full", *(["tracking_comparison"] if quick_run else [])]
+    for name in folders:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "manifest.json").write_text('{"study": "tracking_comparison"}')
+        (tmp_path / name / "report.md").write_text(f"# {name}\n")
+    index = (build_site(tmp_path, REGISTRY)).read_text()
+    section = index.split('<section id="tracking">', 1)[1].split("</section>", 1)[0]
+    assert 'href="tracking_comparison_full/report.html">full</a>' in section
+    assert 'id="other-runs"' not in index  # listed with its study, not as another run
+    assert (tmp_path / "tracking_comparison_full" / "report.html").is_file()

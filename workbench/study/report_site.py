@@ -307,10 +307,11 @@ def _study_section(entry, root: Path, docs: str | None) -> str:
     rel = entry.default_out.name
     head = (f"<section id=\"{html.escape(entry.name)}\"><h2>{html.escape(entry.name)}</h2>"
             f"<p>{html.escape(entry.description)}</p>")
+    others = _profile_runs(entry, root, docs)
     if not d.is_dir() or not ((d / "report.md").is_file() or (d / "summary.json").is_file()):
         return (head + "<p class=\"muted\">Not run yet: <code>workbench run "
                 f"{html.escape(entry.name)}</code> (profiles: "
-                f"{html.escape(', '.join(entry.profiles))}).</p></section>")
+                f"{html.escape(', '.join(entry.profiles))}).</p>{others}</section>")
     parts = [head]
     if (d / "report.md").is_file():
         render_markdown(d / "report.md", "../index.html", f"../{docs}" if docs else None)
@@ -329,7 +330,7 @@ def _study_section(entry, root: Path, docs: str | None) -> str:
                      f"{html.escape(entry.name)} --out {html.escape(str(d))}</code> writes it "
                      "again (stored tasks are reused).</p>")
     parts.append("<p>" + " · ".join(_links(d, rel)) + "</p>")
-    parts.append(_profile_runs(entry, root, docs))
+    parts.append(others)
     parts.append(_paper_table(entry, d, docs))
     figs = sorted(d.glob("*.png"), key=lambda p: (p.name != entry.figure, p.name))
     if figs:
