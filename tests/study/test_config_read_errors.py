@@ -103,7 +103,7 @@ def test_deep_nesting_is_a_toml_error_not_a_recursion_error(tmp_path):
     path = tmp_path / "c.toml"
     path.write_text("a = " + "[" * 100_000)
     assert _message(path) == (f"{path}: not valid TOML (arrays or inline tables nest too "
-                              "deeply)")
+                              "deeply: a config nests at most 32 levels)")
 
 
 def test_a_parent_that_is_a_file_is_named(tmp_path):

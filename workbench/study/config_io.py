@@ -69,8 +69,8 @@ def read_toml(path: Path | str) -> dict[str, Any]:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
     except RecursionError:
-        raise ConfigError(f"{path}: arrays or inline tables nest too deeply for the TOML "
-                          f"reader; a config nests at most {MAX_NESTING} levels") from None
+        raise ConfigError(f"{path}: not valid TOML (arrays or inline tables nest too "
+                          f"deeply: a config nests at most {MAX_NESTING} levels)") from None
     _check_nesting(parsed, str(path))
     return parsed
 
