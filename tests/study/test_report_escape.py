@@ -32,6 +32,7 @@ PAYLOADS = [
     '```{ .python onclick="alert(10)" }\ncode\n```',
     r"$\text{<img src=x onerror=alert(11)>}$",
     r"$\href{javascript:alert(12)}{x}$",
+    r"$\text{<img/src=x/onerror=alert(15)>}$",
     "<!-- <script>alert(13)</script> -->",
     "<svg/onload=alert(14)>",
     "WBMATH0X WBMATH7X",  # looks like the formulas' placeholder
@@ -97,6 +98,13 @@ def test_what_reports_use_still_renders():
     assert any(t == "img" and a.get("src") == "a%20b.png" for t, a in tags)
     assert any(t == "h2" and a.get("id") == "s3" for t, a in tags)
     assert "<msub>" in page and "a &lt; b" in page
+
+
+def test_a_formula_holds_only_mathml():
+    page = markdown_html(r"$\text{<img/src=x/onerror=alert(1)>}$ $\text{<b>bold</b>}$ $x^2$")
+    assert {t for t, _ in parse(page).tags} <= {"p", "math", "mrow", "mtext", "msup", "mi",
+                                                "mn"}
+    assert "&lt;b&gt;bold&lt;/b&gt;" in page
 
 
 def test_clean_html_keeps_elements_and_drops_handlers():

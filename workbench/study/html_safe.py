@@ -8,9 +8,10 @@ every study:
   ``<img onerror=...>`` in a report is shown as those characters;
 - the HTML that comes out (markdown's, and the MathML of the formulas) is written again by
   :func:`clean_html`: only the elements that markdown and MathML produce are kept as elements
-  (any other tag is shown as text), event-handler attributes (``on...``), ``style`` and
-  namespaced attributes are dropped, and a link or image whose address has a scheme other than
-  http, https or mailto (``javascript:``, ``data:``) loses that address.
+  (only MathML's inside a formula; any other tag is shown as text), event-handler attributes
+  (``on...``), ``style`` and namespaced attributes are dropped, and a link or image whose
+  address has a scheme other than http, https or mailto (``javascript:``, ``data:``) loses
+  that address.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from html.parser import HTMLParser
 from markdown import Markdown
 from markdown.extensions import Extension
 
-__all__ = ["NoRawHtml", "clean_html"]
+__all__ = ["MATHML_TAGS", "NoRawHtml", "clean_html", "safe_url"]
 
 MARKDOWN_TAGS = frozenset(
     "a abbr blockquote br code dd del div dl dt em h1 h2 h3 h4 h5 h6 hr img li ol p pre "
@@ -61,12 +62,13 @@ def _attribute_kept(name: str, value: str | None) -> bool:
 
 
 class _Cleaner(HTMLParser):
-    def __init__(self) -> None:
+    def __init__(self, tags: frozenset[str]) -> None:
         super().__init__(convert_charrefs=True)
         self.out: list[str] = []
+        self.tags = tags
 
     def _tag(self, tag: str, attrs: list[tuple[str, str | None]], end: str) -> None:
-        if tag not in ALLOWED_TAGS:
+        if tag not in self.tags:
             self.out.append(html.escape(self.get_starttag_text() or f"<{tag}>"))
             return
         kept = "".join(f' {k}="{html.escape(v or "")}"' for k, v in attrs
@@ -80,7 +82,7 @@ class _Cleaner(HTMLParser):
         self._tag(tag, attrs, " /")
 
     def handle_endtag(self, tag: str) -> None:
-        if tag in ALLOWED_TAGS:
+        if tag in self.tags:
             if tag not in VOID_TAGS or tag not in MARKDOWN_TAGS:
                 self.out.append(f"</{tag}>")
         else:
@@ -102,10 +104,11 @@ class _Cleaner(HTMLParser):
         self.out.append(html.escape(f"<?{data}>"))
 
 
-def clean_html(fragment: str) -> str:
-    """``fragment`` written again with only markdown's and MathML's elements, without event
-    handlers, styles or addresses of other schemes; anything else is shown as text."""
-    cleaner = _Cleaner()
+def clean_html(fragment: str, tags: frozenset[str] = ALLOWED_TAGS) -> str:
+    """``fragment`` written again with only the elements ``tags`` (markdown's and MathML's;
+    :data:`MATHML_TAGS` for a formula), without event handlers, styles or addresses of other
+    schemes; anything else is shown as text."""
+    cleaner = _Cleaner(tags)
     cleaner.feed(fragment)
     cleaner.close()
     return "".join(cleaner.out)

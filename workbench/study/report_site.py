@@ -34,7 +34,7 @@ from urllib.parse import quote
 
 import markdown
 
-from workbench.study.html_safe import NoRawHtml, clean_html
+from workbench.study.html_safe import MATHML_TAGS, NoRawHtml, clean_html
 from workbench.study.io import atomic_write_text, make_dirs
 
 log = logging.getLogger("workbench.study")
@@ -199,7 +199,8 @@ def markdown_html(text: str, docs: str | None = None) -> str:
     text, formulas = _protect_math(text, tag)
     body = markdown.markdown(_link_refs(text, docs), extensions=[*MD_EXTENSIONS, NoRawHtml()])
     body = _SHORT_CELL.sub(r'<\1 class="nw">\2</\1>', body)
-    body = re.sub(rf"WBMATH{tag}N(\d+)X", lambda m: formulas[int(m.group(1))], body)
+    body = re.sub(rf"WBMATH{tag}N(\d+)X",
+                  lambda m: clean_html(formulas[int(m.group(1))], MATHML_TAGS), body)
     return clean_html(body).replace("<table>", "<div class=\"wide\"><table>").replace(
         "</table>", "</table></div>")
 
