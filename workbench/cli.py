@@ -26,7 +26,6 @@ import textwrap
 from pathlib import Path
 
 from workbench.codegen.toolchain import check_environment
-from workbench.environment import EnvironmentVariableError
 from workbench.study import config_io
 from workbench.study.checkout import StudiesLocationError
 from workbench.study.config_io import ConfigError
@@ -470,7 +469,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             check_environment()  # a bad WORKBENCH_* value stops here, named
             return args.fn(args)
-        except (UserError, StudiesLocationError, EnvironmentVariableError) as exc:
+        except (UserError, StudiesLocationError) as exc:
             print(f"workbench {args.command}: error: {exc}", file=sys.stderr)
             return 2
         except (StorageError, TasksFailed) as exc:  # StorageError names the file

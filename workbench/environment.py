@@ -17,6 +17,8 @@ import re
 import shlex
 from pathlib import Path
 
+from workbench.validation import UserError
+
 TRUE = ("1", "true", "yes", "on")
 FALSE = ("0", "false", "no", "off")
 
@@ -38,7 +40,7 @@ VARIABLES = (CACHE_DIR, CC, CFLAGS, COMPILE_TIMEOUT, NO_CODEGEN, VECTOR_MATH, VE
 _MODULE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
 
 
-class EnvironmentVariableError(ValueError):
+class EnvironmentVariableError(UserError):
     """A ``WORKBENCH_*`` variable holds a value that is not allowed (the message names it)."""
 
 
