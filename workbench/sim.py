@@ -349,10 +349,14 @@ class Controller(Protocol):
 class Episode:
     """Per-step records of one closed-loop run. X (n+1, nx), U (n, nu).
 
-    ``scene_time_s`` (n,): time spent handing each step's scene to the controller (zeros when
-    the scene is static); ``scenes`` (n+1, n_scene): the scene of every state in X when the
-    scene moves (empty otherwise). ``reached_goal``/``goal_step``: with ``stop_at_goal``, whether
-    and at which state X[goal_step] the episode reached the goal (it ends there)."""
+    ``step_time_s`` (n,): wall-clock time of each controller step (``time.perf_counter``);
+    ``step_cpu_s`` (n,): the process's CPU time over the same call (``time.process_time``: all
+    threads, the kernels' OpenMP team included; unaffected by other processes, see
+    :mod:`workbench.study.latency`). ``scene_time_s`` (n,): time spent handing each step's
+    scene to the controller (zeros when the scene is static); ``scenes`` (n+1, n_scene): the
+    scene of every state in X when the scene moves (empty otherwise).
+    ``reached_goal``/``goal_step``: with ``stop_at_goal``, whether and at which state
+    X[goal_step] the episode reached the goal (it ends there)."""
 
     X: np.ndarray
     U: np.ndarray
@@ -365,6 +369,7 @@ class Episode:
     scenes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
     reached_goal: bool = False
     goal_step: int | None = None
+    step_cpu_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
 
 SceneInput = Callable[[int], object] | object
@@ -467,17 +472,18 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     if static is not None and set_scene is not None:
         set_scene(s)
     state = controller.initial_state(x)
-    X, U, times, infos, stimes = [x.copy()], [], [], [], []
+    X, U, times, infos, stimes, cpu = [x.copy()], [], [], [], [], []
     scenes = [s] if moving else None
     crashed, crash_step = False, None
     for k in range(steps):
         t0 = time.perf_counter()
         if moving and set_scene is not None:
             set_scene(s)
-        t1 = time.perf_counter()
+        c1, t1 = time.process_time(), time.perf_counter()
         state, u, info = controller.step(state, x, rng_controller)
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
         times.append(t2 - t1)
+        cpu.append(c2 - c1)
         stimes.append(t1 - t0)
         u = np.clip(u, plant.u_min, plant.u_max)
         x_model = f(x, u)[0]
@@ -505,7 +511,7 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
                       min_margin=min_h, step_time_s=np.array(times), infos=tuple(infos),
                       scene_time_s=np.array(stimes),
                       scenes=np.array(scenes) if moving else np.zeros((0, 0)),
-                      reached_goal=reached, goal_step=goal_step)
+                      reached_goal=reached, goal_step=goal_step, step_cpu_s=np.array(cpu))
     check = getattr(controller, "check_episode", None)
     if check_episode and keep_infos and callable(check):
         check(episode)

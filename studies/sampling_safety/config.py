@@ -17,7 +17,7 @@ from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.model_system import resolve_system
 from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, real
 
-RESULT_VERSION = 1  # bump when the meaning of stored task results changes
+RESULT_VERSION = 2  # bump when the meaning of stored task results changes
 
 __all__ = ["RESULT_VERSION", "Resolved", "SamplerSettings", "StudyConfig", "variance_key"]
 

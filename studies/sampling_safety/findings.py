@@ -41,7 +41,7 @@ def _fraction_claim(s: SamplingSafetySummary, other: str, key: str, claim: str) 
 
 
 def _ms(s: SamplingSafetySummary, controller: str) -> float:
-    ms = [c.mean_step_ms for c in s.cells if c.controller == controller]
+    ms = [c.cpu_ms for c in s.cells if c.controller == controller]
     return sum(ms) / len(ms) if ms else math.nan
 
 
@@ -63,14 +63,14 @@ def verdicts(s: SamplingSafetySummary) -> list[Verdict]:
         out.append(Verdict(
             "bas_feasible", "barrier states are computationally feasible per sample",
             bool(bas < dt_ms),
-            f"BaS-MPPI {bas:.2f} ms per control step against {crash:.2f} ms for MPPI with a "
+            f"BaS-MPPI {bas:.2f} CPU ms per control step against {crash:.2f} ms for MPPI with a "
             f"crash cost ({ratio:.2f}x), control period {dt_ms:.0f} ms"))
     if math.isfinite(proj) and math.isfinite(bas):
         out.append(Verdict(
             "cbf_infeasible", "a per-sample CBF filter is computationally infeasible",
             bool(proj > dt_ms),
             f"CBF projection of every sample (closed form, most restrictive constraint) "
-            f"{proj:.2f} ms per control step, {proj / bas:.2f}x BaS-MPPI; control period "
+            f"{proj:.2f} CPU ms per control step, {proj / bas:.2f}x BaS-MPPI; control period "
             f"{dt_ms:.0f} ms. A QP per sample would cost more; the closed form is what a "
             "user would implement first"))
     return [v for v in out if v is not None]
@@ -88,11 +88,11 @@ def most_collision_free(s: SamplingSafetySummary, variance: float):
 
 
 def frontier(s: SamplingSafetySummary, variance: float):
-    """The cells not dominated in (higher safety, lower ms per step) at ``variance``, fastest
-    first, and the cell with the highest safety per millisecond."""
+    """The cells not dominated in (higher safety, lower CPU ms per step) at ``variance``,
+    cheapest first, and the cell with the highest safety per CPU millisecond."""
     cells = [c for c in s.cells if c.variance == variance]
     front = [c for c in cells if not any(
-        (o.safety >= c.safety and o.mean_step_ms <= c.mean_step_ms)
-        and (o.safety > c.safety or o.mean_step_ms < c.mean_step_ms) for o in cells)]
-    best = max(cells, key=lambda c: c.safety / c.mean_step_ms) if cells else None
-    return sorted(front, key=lambda c: c.mean_step_ms), best
+        (o.safety >= c.safety and o.cpu_ms <= c.cpu_ms)
+        and (o.safety > c.safety or o.cpu_ms < c.cpu_ms) for o in cells)]
+    best = max(cells, key=lambda c: c.safety / c.cpu_ms) if cells else None
+    return sorted(front, key=lambda c: c.cpu_ms), best

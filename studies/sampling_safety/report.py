@@ -17,26 +17,27 @@ from workbench.scenarios.mechanism_health import console_lines, headline, report
 from workbench.scenarios.methods import labels, markers, method
 from workbench.study import md_table, png_bytes, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.latency import LATENCY_HEADER, LATENCY_NOTE
 from workbench.study.spec import Summary
 
 
 def frontier_figure(s: SamplingSafetySummary) -> bytes:
-    """Safety (95 % Wilson interval) against mean compute time per control step, one panel per
+    """Safety (95 % Wilson interval) against mean CPU time per control step, one panel per
     variance, one marker per controller: the cost-safety frontier."""
     vs = s.config["variances"]
     fig, axes = plt.subplots(1, len(vs), figsize=(4.6 * len(vs), 4.4), squeeze=False)
     for ax, v in zip(axes[0], vs, strict=True):
         for c in (c for c in s.cells if c.variance == v):
-            ax.errorbar([c.mean_step_ms], [100 * c.safety],
+            ax.errorbar([c.cpu_ms], [100 * c.safety],
                         yerr=[[100 * (c.safety - c.ci_low)], [100 * (c.ci_high - c.safety)]],
                         marker=markers()[c.controller], capsize=3, ls="none",
                         label=labels()[c.controller])
         front, _ = frontier(s, v)
-        ax.plot([c.mean_step_ms for c in front], [100 * c.safety for c in front], "--",
+        ax.plot([c.cpu_ms for c in front], [100 * c.safety for c in front], "--",
                 color="0.5", lw=1, zorder=0)
         ax.axvline(1e3 * s.dt, color="tab:red", lw=0.8, ls=":")
         ax.set_xscale("log")
-        ax.set_xlabel("compute time per control step [ms] (log)")
+        ax.set_xlabel("CPU time per control step [ms] (log)")
         ax.set_ylabel("safety: episodes without a crash [%]")
         ax.set_ylim(-3, 103)
         ax.set_title(f"velocity variance {v:g}", fontsize=10)
@@ -90,13 +91,21 @@ def cells_table(s: SamplingSafetySummary) -> list[str]:
     order = list(labels())
     rows = [[labels()[c.controller], f"{c.variance:g}", c.n, _pct(c.safety, c.ci_low, c.ci_high, 0),
              _pct(c.collision_free_sample_fraction, c.cf_low, c.cf_high),
-             _num(c.ess_mean, c.ess_low, c.ess_high), f"{c.mean_step_ms:.2f}",
+             _num(c.ess_mean, c.ess_low, c.ess_high), f"{c.cpu_ms:.2f}",
              _num(c.final_error.mean, c.final_error_low, c.final_error_high, 3),
              f"{100 * c.reached.value:.0f}"]
             for c in sorted(s.cells, key=lambda c: (c.variance, order.index(c.controller)))]
     return md_table(["controller", "variance", "n", "safety % [95%]",
-                     "collision-free samples % [95%]", "ESS [95%]", "ms / step",
+                     "collision-free samples % [95%]", "ESS [95%]", "CPU ms / step",
                      "final error, safe [m] [95%]", "reached 1 m %"], rows)
+
+
+def latency_rows(s: SamplingSafetySummary) -> list[list[str]]:
+    """Per cell: CPU and wall means, wall p50 / p95 / p99 / max, steps."""
+    order = list(labels())
+    return [[f"{labels()[c.controller]}, variance {c.variance:g}", f"{c.cpu_ms:.2f}",
+             f"{c.wall.mean_ms:.2f}", *c.wall.row(), str(c.wall.n)]
+            for c in sorted(s.cells, key=lambda c: (c.variance, order.index(c.controller)))]
 
 
 def activity_table(s: SamplingSafetySummary) -> list[str]:
@@ -142,9 +151,9 @@ def answers(s: SamplingSafetySummary) -> list[str]:
                f" with {'disjoint' if sep else 'overlapping'} intervals. " if second else ". ")
             + f"Safest per millisecond: {labels()[eff.controller]} "
             f"({_pct(eff.safety, eff.ci_low, eff.ci_high, 0)} % safe at "
-            f"{eff.mean_step_ms:.2f} ms). Not dominated in (safety, ms): "
+            f"{eff.cpu_ms:.2f} CPU ms). Not dominated in (safety, CPU ms): "
             + ", ".join(f"{labels()[c.controller]} ({100 * c.safety:.0f} %, "
-                        f"{c.mean_step_ms:.2f} ms)" for c in front) + ".")
+                        f"{c.cpu_ms:.2f} ms)" for c in front) + ".")
     return out
 
 
@@ -201,7 +210,7 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         "## Which method keeps the most samples collision-free, and which is safest per "
         "millisecond", "", *answers(s), "",
         "![cost-safety frontier](frontier.png)", "",
-        "Safety against compute time per control step (log scale), 95 % Wilson intervals; the "
+        "Safety against CPU time per control step (log scale), 95 % Wilson intervals; the "
         "dashed line joins the methods no other beats in both; the dotted red line is the "
         "control period.", "",
         "![collision-free samples](samples.png)", "",
@@ -210,6 +219,8 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         "weighted over that never crashed (for the robust controllers, the real samples with "
         "feedback), averaged over the steps of an episode; the interval is over realisations. "
         "ESS: effective sample size of the update's weights.", "",
+        "## What a step costs: CPU time and the wall-clock tail", "",
+        *md_table(LATENCY_HEADER, latency_rows(s)), "", LATENCY_NOTE, "",
         "## What each mechanism did", "",
         "How often each method's safety mechanism acted, as a share of control steps (or of "
         "sample-steps for the per-sample projection, of horizon steps for the AL and ECBF "
@@ -228,7 +239,8 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         *md_table(["controller", "mechanism"], [[labels()[c], method(c).mechanism]
                                                 for c in cfg["controllers"]]), "",
         "Data: `episodes.parquet/.csv` (one row per realisation), `timing.parquet/.csv` "
-        "(compute time, not reproducible), `activity.parquet/.csv` (mechanism activity per "
+        "(compute time per realisation, not reproducible), `step_times.parquet/.csv` (wall and "
+        "CPU time of every step), `activity.parquet/.csv` (mechanism activity per "
         "realisation), `tasks/*.npz` (paths and per-step sample statistics), `summary.json` "
         "(`cells`, `paired`, `paired_fraction`, `health`, `claims`).", ""]
     path = out / "report.md"
@@ -245,7 +257,8 @@ def summary(finished) -> Summary:
     lines = tuple(f"{names[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
                   f"[{100 * c.ci_low:.0f}, {100 * c.ci_high:.0f}]  collision-free samples "
                   f"{100 * c.collision_free_sample_fraction:5.1f} %  ESS {c.ess_mean:7.1f}  "
-                  f"{c.mean_step_ms:6.2f} ms/step" for c in s.cells)
+                  f"{c.cpu_ms:6.2f} CPU ms/step  wall p50 / p99 {c.wall.p50_ms:.2f} / "
+                  f"{c.wall.p99_ms:.2f} ms" for c in s.cells)
     lines += console_lines(s.health)
     return Summary({**to_jsonable(s), "claims": to_jsonable(verdicts(s))}, s, lines)
 

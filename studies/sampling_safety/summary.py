@@ -6,7 +6,9 @@ interval); collision-free sample fraction = per control step, the share of the s
 update was weighted over whose rollout never crashed (for the robust controllers: the real
 samples, with feedback), averaged over the episode's steps, then over realisations (95 %
 t-interval over realisations); ESS likewise; final error = distance to the goal at the end,
-over safe episodes; ms per step = mean compute time of a control step. Paired comparisons use
+over safe episodes; cost = mean process CPU time of a control step (all its threads; what
+other processes do does not change it), beside the wall-clock step time's mean, p50, p95, p99
+and maximum over every step of the cell (:mod:`workbench.study.latency`). Paired comparisons use
 the same realisations (common random numbers): McNemar's exact test on safety, a paired
 t-interval on the collision-free fraction. Mechanism health
 (:func:`~workbench.scenarios.mechanism_health.study_health`): per variance, whether each
@@ -28,6 +30,7 @@ from studies.sampling_safety.config import StudyConfig
 from workbench.scenarios.mechanism_health import StudyHealth, study_health
 from workbench.scenarios.model_system import resolve_system
 from workbench.study import Rate, RunStore, Spread
+from workbench.study.latency import Latency
 
 
 def mean_interval(values, lo: float = -math.inf,
@@ -66,13 +69,16 @@ class Cell:
     ess_mean: float
     ess_low: float
     ess_high: float
-    mean_step_ms: float
+    mean_step_ms: float  # wall clock
     median_step_ms: float
     activity: dict[str, float]  # mechanism -> mean activity over steps and realisations
+    cpu_ms: float  # the cost: mean process CPU time per step
+    wall: Latency  # wall-clock step times over every step of every realisation
+    cpu: Latency
 
     @classmethod
     def of(cls, controller: str, variance: float, rows: pd.DataFrame, timing: pd.DataFrame,
-           activity: pd.DataFrame) -> Cell:
+           activity: pd.DataFrame, steps: pd.DataFrame) -> Cell:
         safe_mask = ~rows["crashed"].to_numpy(bool)
         safe = Rate.of(safe_mask)
         err = rows["final_error"].to_numpy(float)[safe_mask]
@@ -83,7 +89,9 @@ class Cell:
         return cls(controller, float(variance), safe.n, safe.value, safe.low, safe.high, safe,
                    Rate.of(rows["reached"].to_numpy(bool)), Spread.of(err), fe[1], fe[2],
                    *cf, *ess, float(timing["mean_step_ms"].mean()),
-                   float(timing["median_step_ms"].median()), act)
+                   float(timing["median_step_ms"].median()), act,
+                   float(steps["cpu_ms"].mean()), Latency.of(steps["wall_ms"], "wall_ms"),
+                   Latency.of(steps["cpu_ms"], "cpu_ms"))
 
 
 @dataclass(frozen=True)
@@ -127,11 +135,13 @@ class SamplingSafetySummary:
 
 def summarise(config, store: RunStore) -> SamplingSafetySummary:
     ep, timing, act = store.table("episodes"), store.table("timing"), store.table("activity")
+    per_step = store.table("step_times")
     cells = []
     for (c, v), rows in ep.groupby(["controller", "variance"], sort=False):
         tids = set(rows["task_id"])
         cells.append(Cell.of(c, v, rows, timing[timing["task_id"].isin(tids)],
-                             act[act["task_id"].isin(tids)]))
+                             act[act["task_id"].isin(tids)],
+                             per_step[per_step["task_id"].isin(tids)]))
     paired, fractions = [], []
     for v in config.variances:
         at = ep[ep["variance"] == v]

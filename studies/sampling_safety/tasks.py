@@ -21,6 +21,7 @@ from workbench.scenarios.model_system import resolve_system
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.latency import step_table
 from workbench.study.spec import Declaration
 
 
@@ -116,17 +117,20 @@ def run_task(task: Realisation, ctx: TaskContext, config: StudyConfig,
     steps = step_rows(ep.infos)
     dist = nav.goal_distance(ep.X)
     inside = np.flatnonzero(dist <= s.goal_radius)
-    ms = 1e3 * ep.step_time_s
     cf = steps["n_collision_free"] / np.maximum(steps["n_samples"], 1)
     episode = {"crashed": ep.crashed, "steps": len(ep.U), "final_error": dist[-1],
                "reached": bool(inside.size), "min_h": ep.min_margin,
                "time_to_goal_s": inside[0] * nav.plant.dt if inside.size else np.nan,
                "collision_free_fraction": float(cf.mean()),
                "ess_mean": float(steps["ess"].mean())}
-    # compute time is not reproducible: its own table, as in the navigation study
-    timing = {"mean_step_ms": float(ms.mean()), "median_step_ms": float(np.median(ms))}
+    # compute time is not reproducible: its own tables, as in the navigation study
+    per_step = step_table(ep.step_time_s, ep.step_cpu_s)
+    timing = {"mean_step_ms": float(per_step["wall_ms"].mean()),
+              "median_step_ms": float(np.median(per_step["wall_ms"])),
+              "mean_cpu_ms": float(per_step["cpu_ms"].mean())}
     return TaskOutput(tables={"episodes": {k: np.array([v]) for k, v in episode.items()},
                               "timing": {k: np.array([v]) for k, v in timing.items()},
+                              "step_times": per_step,
                               "activity": activity_rows(ep.infos)},
                       arrays={"X": ep.X, "U": np.asarray(ep.U), "collision_free": cf,
                               "ess": steps["ess"]})
