@@ -36,9 +36,12 @@ def calibration_trace(problem: SamplingProblem, goal, plant: Model, x0, mppi: MP
     """The undisturbed episode of ``steps`` plant steps from ``x0`` with alpha = +inf: visited
     plant states (n, nx_plant) and the real-state candidate free energies (n,) (NaN where a step
     evaluated no candidate). The controller draws from ``default_rng(seed)``, the plant from
-    ``default_rng(seed + 1)`` (it draws nothing without a disturbance)."""
+    ``default_rng(seed + 1)`` (it draws nothing without a disturbance). The episode runs
+    without ``mppi.deadline_s`` (every sample drawn): the threshold is reproducible and does
+    not depend on the machine's load."""
     steps = integer("steps", steps, 1)
     seed = integer("seed", seed, 0)
+    mppi = replace(mppi, deadline_s=None)
     # diagnostics off: the episode keeps every step's info, and a diagnostic batch is MBs
     ctrl = RobustMPPI(problem, goal, mppi, replace(robust, alpha=np.inf, diagnostics=False),
                       feedback, ConstantThreshold.selection_off())  # the explicit opt-out

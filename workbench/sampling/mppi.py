@@ -22,6 +22,7 @@ from typing import Literal
 import numpy as np
 from scipy.signal import savgol_filter
 
+from workbench.sampling.deadline import DeadlineReport, StepClock, sample_within
 from workbench.sampling.kernels.constants import FLOAT32_MAX, check_scales32
 from workbench.sampling.planning import (
     PlansToGoal,
@@ -30,7 +31,7 @@ from workbench.sampling.planning import (
     shift_plan,
 )
 from workbench.sampling.problem import SamplingProblem
-from workbench.sampling.sampler import Backend, Precision, Sampler
+from workbench.sampling.sampler import Backend, MPPIBatch, Precision, Sampler
 from workbench.sampling.samples import RecordsSamples, SampleTrajectories
 from workbench.sampling.step_stats import StepStats
 from workbench.sampling.weights import importance_weights, weighted_controls
@@ -64,7 +65,13 @@ class MPPIConfig:
 
     Bounds checked here: every ``sigma`` in [1.5e-154, 6.7e153] and ``lam`` in
     [2.2e-308, 4.5e307] (their squares, resp. values, and reciprocals are normal float64
-    numbers); ``n_samples * horizon * len(sigma) <= 2**31``; ``iterations <= 1000``."""
+    numbers); ``n_samples * horizon * len(sigma) <= 2**31``; ``iterations <= 1000``.
+
+    ``deadline_s`` (None or a time > 0 in seconds) bounds each step's time, ``deadline_chunks``
+    (1 .. n_samples) sets the granularity of the cut (:mod:`workbench.sampling.deadline`):
+    results with a deadline depend on timing and are not reproducible bit for bit. MPPI,
+    BaS-MPPI and the robust controllers apply it; the controllers with their own sampling
+    loops (Tube-MPPI, Shield-MPPI, CBF projection) refuse it."""
 
     n_samples: int = 1024
     horizon: int = 100
@@ -80,6 +87,11 @@ class MPPIConfig:
     # sampler kernels: "float32" = twice the SIMD lanes; samples near the crash margin and
     # batches without a crash-free sample are recomputed in float64 (workbench.sampling.sampler)
     precision: Precision = "float64"
+    # a step returns within deadline_s seconds (plus about one chunk of samples), drawing its
+    # samples in deadline_chunks chunks and stopping when the next would not fit
+    # (workbench.sampling.deadline); None: no deadline, results exactly reproducible
+    deadline_s: float | None = None
+    deadline_chunks: int = 8
 
     def __post_init__(self) -> None:
         for name in ("n_samples", "horizon"):  # the kernels take them as a C int
@@ -112,6 +124,9 @@ class MPPIConfig:
                 raise fail("MPPIConfig.smoothing", self.smoothing,
                            "need (window, order) with an odd window <= horizon and order < window")
         one_of("MPPIConfig.precision", self.precision, ("float64", "float32"))
+        if self.deadline_s is not None:
+            real("MPPIConfig.deadline_s", self.deadline_s, 0.0, strict=True)
+        integer("MPPIConfig.deadline_chunks", self.deadline_chunks, 1, self.n_samples)
         if self.precision == "float32":  # the kernels' own float32 rules, checked at once
             check_scales32("MPPIConfig", self.sigma, self.lam, self.nu_mix)
             if self.crash_cost > FLOAT32_MAX:
@@ -138,6 +153,13 @@ class MPPIConfig:
         return cls(sigma=tuple(np.sqrt(np.diag(S))), **kw)
 
 
+def join_mppi(parts: list[MPPIBatch]) -> MPPIBatch:
+    """One batch of the samples of several (the chunks of a step with a deadline)."""
+    return MPPIBatch(S=np.concatenate([b.S for b in parts]),
+                     crashed=np.concatenate([b.crashed for b in parts]),
+                     v=np.concatenate([b.v for b in parts], axis=-1))
+
+
 @dataclass(frozen=True)
 class MPPIState:
     U: np.ndarray  # (T, nu) importance-sampling sequence
@@ -152,6 +174,7 @@ class MPPIInfo:
     time_s: float
     n_samples: int = 0  # samples of the last batch (the one the update was weighted over)
     samples: SampleTrajectories | None = None  # with MPPI.record_samples, else None
+    deadline: DeadlineReport | None = None  # with MPPIConfig.deadline_s, else None
 
     @property
     def stats(self) -> StepStats:
@@ -182,19 +205,32 @@ class MPPI(RecordsSamples, PlansToGoal):
         xb = full_state(self.sp, x, self.consts.scene)
         U = state.U
         check_plan(U, self.cfg.horizon, self.sp.nu)
-        for _ in range(self.cfg.iterations):
-            batch = self.sampler.mppi(xb, U, self.cfg.n_samples, self.consts,
-                                      int(rng.integers(0, 2**63)))
-            W = importance_weights(batch.S, self.cfg.lam)
+        cfg = self.cfg
+        clock = None if cfg.deadline_s is None else StepClock(cfg.deadline_s, t0)
+        for _ in range(cfg.iterations):
+            if clock is None:
+                batch = self.sampler.mppi(xb, U, cfg.n_samples, self.consts,
+                                          int(rng.integers(0, 2**63)))
+            else:
+                def draw(n: int, seed: int, U: np.ndarray = U) -> MPPIBatch:
+                    return self.sampler.mppi(xb, U, n, self.consts, seed)
+
+                got = sample_within(clock, cfg.n_samples, cfg.deadline_chunks, draw, rng,
+                                    join_mppi)
+                if got is None:
+                    break
+                batch = got
+            W = importance_weights(batch.S, cfg.lam)
             if W.valid:
-                U = self.cfg.smooth(weighted_controls(batch.v, W.w))
+                U = cfg.smooth(weighted_controls(batch.v, W.w))
         u = U[0].copy()
         dt = time.perf_counter() - t0
         rec = self.sample_recorder
         samples = None if rec is None else rec.record(
             x0=xb, v=batch.v, crashed=batch.crashed, weights=W.w, scene=self.consts.scene)
         info = MPPIInfo(free_energy=W.free_energy, ess=W.ess, n_crashed=int(batch.crashed.sum()),
-                        valid_weights=W.valid, time_s=dt, n_samples=self.cfg.n_samples,
-                        samples=samples)
+                        valid_weights=W.valid, time_s=dt, n_samples=int(batch.S.size),
+                        samples=samples,
+                        deadline=None if clock is None else clock.report(cfg.n_samples))
         return MPPIState(U=shift_plan(U, 1, self.cfg.tail)), u, info
 

@@ -21,6 +21,7 @@ from typing import Literal
 import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
+from workbench.sampling.deadline import DeadlineReport, StepClock, sample_within
 from workbench.sampling.feedback.base import FeedbackLaw, Gains
 from workbench.sampling.feedback.effect import differs
 from workbench.sampling.feedback.ilqg import ILQGFeedback
@@ -129,6 +130,7 @@ class RMPPIInfo:
     gains_activity: dict[str, float] = field(default_factory=dict)  # Gains.activity
     # the last SAIS batch's samples, real and nominal (RobustMPPI.record_samples), else None
     samples: SampleTrajectories | None = None
+    deadline: DeadlineReport | None = None  # with MPPIConfig.deadline_s, else None
 
     @property
     def feedback_ok(self) -> bool:
@@ -152,6 +154,15 @@ class RMPPIInfo:
         return StepStats(n_samples=self.n_samples,
                          n_collision_free=self.n_samples - self.n_crashed_real,
                          ess=self.ess_nom, activity=act)
+
+
+def join_sais(parts: list[SAISBatch]) -> SAISBatch:
+    """One SAIS batch of the samples of several (the chunks of a step with a deadline)."""
+    cat = {f: np.concatenate([getattr(b, f) for b in parts])
+           for f in ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "crashed_real",
+                     "crashed_nom")}
+    return SAISBatch(**cat, v_nom=np.concatenate([b.v_nom for b in parts], axis=-1),
+                     v_real=np.concatenate([b.v_real for b in parts], axis=-1))
 
 
 def strides(n_candidates: int, s: int = 1) -> np.ndarray:
@@ -189,6 +200,10 @@ class RobustMPPI(RecordsSamples):
                  threshold: Threshold | None = None, fast: bool = True):
         if sp.nx == sp.model.n_physical:
             raise fail("sp.model", sp.model.name, "RMPPI here runs on a barrier-embedded model")
+        if config.deadline_s is not None and (robust.diagnostics or not fast):
+            raise fail("MPPIConfig.deadline_s", config.deadline_s, "a deadline runs on the "
+                       "fast step without diagnostics; leave it None with "
+                       "RMPPIConfig.diagnostics or fast=False")
         at_most("RMPPIConfig.candidate_samples", robust.candidate_samples,
                 robust.n_candidates * robust.candidate_samples * config.horizon * sp.nu,
                 MAX_BATCH, "n_candidates * candidate_samples * horizon * nu (entries of the "
@@ -328,10 +343,21 @@ class RobustMPPI(RecordsSamples):
         U_real = U
         first = None
         lam, M = cfg.lam, self._smooth
+        clock = None if cfg.deadline_s is None else StepClock(cfg.deadline_s, t0)
         for it in range(cfg.iterations):
             diag = self.rcfg.diagnostics and it == 0
-            b = self.sampler.sais(xb, x_nom, U, K, cfg.n_samples, consts,
-                                  int(rng.integers(0, 2**63)), diagnostics=diag)
+            if clock is None:
+                b = self.sampler.sais(xb, x_nom, U, K, cfg.n_samples, consts,
+                                      int(rng.integers(0, 2**63)), diagnostics=diag)
+            else:
+                def draw(n: int, seed: int, U: np.ndarray = U) -> SAISBatch:
+                    return self.sampler.sais(xb, x_nom, U, K, n, consts, seed)
+
+                got = sample_within(clock, cfg.n_samples, cfg.deadline_chunks, draw, rng,
+                                    join_sais)
+                if got is None:
+                    break
+                b = got
             first = b if diag else first
             t3 = time.perf_counter()
             Wn = importance_weights(b.S_nom, lam)
@@ -348,7 +374,7 @@ class RobustMPPI(RecordsSamples):
             u = U_real[0].copy()
         t4 = time.perf_counter()
         return self._finish(state, sel, gains, b, Wn, Wr, U, u, xb, consts, first,
-                            (t0, t1, t2, t3, t4))
+                            (t0, t1, t2, t3, t4), clock)
 
     def _consts_at(self, alpha: float) -> SamplerConstants:
         """The controller's constants with the SAIS threshold ``alpha`` (kept while the
@@ -360,7 +386,7 @@ class RobustMPPI(RecordsSamples):
         self._consts_cache = (self.consts, alpha, c)
         return c
 
-    def _finish(self, state, sel, gains, b, Wn, Wr, U, u, xb, consts, first, t):
+    def _finish(self, state, sel, gains, b, Wn, Wr, U, u, xb, consts, first, t, clock=None):
         t0, t1, t2, t3, t4 = t
         x_nom, alpha = sel.x_nom, sel.alpha_nominal
         timing = {"selection": t1 - t0, "k_safe": t2 - t1, "sais": t3 - t2, "update": t4 - t3,
@@ -379,8 +405,8 @@ class RobustMPPI(RecordsSamples):
             ess_real=Wr.ess, n_crashed_real=int(np.count_nonzero(b.crashed_real)),
             n_crashed_nom=int(np.count_nonzero(b.crashed_nom)), ksafe_fallback=gains.fallback,
             nominal_unsafe=gains.nominal_unsafe, timing=timing, x_nom=x_nom, batch=first,
-            n_samples=self.cfg.n_samples, gains_activity=dict(gains.activity),
-            samples=samples)
+            n_samples=int(b.S_nom.size), gains_activity=dict(gains.activity),
+            samples=samples, deadline=None if clock is None else clock.report(self.cfg.n_samples))
         return RMPPIState(U=U, x_nom=x_nom, index=sel.index, gains=gains), u, info
 
     def step_twin(self, state: RMPPIState, x, rng: np.random.Generator):

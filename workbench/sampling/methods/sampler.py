@@ -147,6 +147,10 @@ class SafeMPPIPlanner(PlansToGoal):
             raise fail("config", config, "must be an MPPIConfig")
         if len(config.sigma) != sp.nu:
             raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
+        if config.deadline_s is not None:
+            raise fail("MPPIConfig.deadline_s", config.deadline_s, "Shield-MPPI and the CBF "
+                       "projection have no deadline; leave it None (MPPI, BaS-MPPI and the "
+                       "robust controllers apply one)")
         self.sp, self.cfg, self.options = sp, config, options
         self.sampler = SafeSampler(sp, config.backend)
         self._plan_to(goal, config)

@@ -142,6 +142,9 @@ class TubeMPPI(RecordsSamples):
                  tube: TubeConfig = TubeConfig(), feedback: FeedbackLaw | None = None):
         if not isinstance(tube, TubeConfig):
             raise fail("tube", tube, "must be a TubeConfig")
+        if config.deadline_s is not None:
+            raise fail("MPPIConfig.deadline_s", config.deadline_s, "Tube-MPPI has no deadline; "
+                       "leave it None (MPPI, BaS-MPPI and the robust controllers apply one)")
         self._mppi = MPPI(sp, goal, config)
         self.goal = self._mppi.goal  # read-only, as given
         self.sp, self.cfg, self.tcfg = sp, config, tube
