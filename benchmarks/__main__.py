@@ -86,7 +86,8 @@ def optional_records(repeats: int) -> list[dict]:
     for module, fn in (("benchmarks.precision", "bench_precision"),
                        ("benchmarks.threads", "bench_threads"),
                        ("benchmarks.robust_step", "records"),
-                       ("benchmarks.sequential_operating", "records")):
+                       ("benchmarks.sequential_operating", "records"),
+                       ("benchmarks.latency", "records")):
         if importlib.util.find_spec(module) is None:
             print(f"{module}: not present, skipped")
             continue

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 
 from benchmarks.floor import cpu_flags, cpu_model
+from benchmarks.latency import markdown as latency_markdown
 
 
 def _fmt(v, spec: str = ".3g") -> str:
@@ -245,6 +246,7 @@ def report_markdown(records: list[dict], man: dict, growth_md: str | None = None
                      f"{r['baseline'] or '—'} | {_fmt(r['baseline_value'])} | "
                      f"{_fmt(r['ratio'], '.1f')} | {'; '.join(_notes(r))} |")
     lines += split_section(records)
+    lines += latency_markdown(records)
     lines += nlp_section(records)
     if growth_md:
         lines += ["", growth_md.rstrip()]

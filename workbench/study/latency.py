@@ -31,7 +31,7 @@ PERCENTILES = (50.0, 95.0, 99.0)
 def _times(name: str, values) -> np.ndarray:
     v = np.asarray(values, dtype=float).ravel()
     if v.size == 0:
-        raise fail(name, "[]", "need at least one step time")
+        raise fail(name, [], "need at least one step time")
     if not np.all(np.isfinite(v)) or np.any(v < 0):
         raise fail(name, v[~np.isfinite(v) | (v < 0)][:3], "step times must be finite and >= 0")
     return v
@@ -64,7 +64,8 @@ def step_table(wall_s, cpu_s) -> dict[str, np.ndarray]:
     """A task's per-step timing rows: ``step``, ``wall_ms``, ``cpu_ms``."""
     w, c = _times("wall_s", wall_s), _times("cpu_s", cpu_s)
     if w.shape != c.shape:
-        raise fail("cpu_s", c.shape, f"need one CPU time per step ({w.size})")
+        raise fail("cpu_s", c, f"need one CPU time per step ({c.size} given for {w.size} "
+                   "steps)")
     return {"step": np.arange(w.size), "wall_ms": 1e3 * w, "cpu_ms": 1e3 * c}
 
 

@@ -1,0 +1,190 @@
+"""Step-time tails and deadlines on the navigation map (``make bench`` records).
+
+``method_latency``: every registered method, one disturbed episode alone on the machine: p50,
+p95, p99 and maximum of the wall-clock step time, the mean CPU time, and where the tail comes
+from, by tagging steps: the first step of the episode (first calls: page faults, lazy set-up),
+steps where a fallback acted (an activity whose name holds "fallback", "backup" or "reset"),
+steps right after 20 ms of idle Python (the OpenMP team wakes up), and the one-off costs
+before the first step (building the controller, which compiles its kernels on a cold cache,
+and calibrating the robust methods' threshold).
+
+``deadline_records``: SA-RMPPI and BaS-MPPI with 8192 samples (a step takes longer than the
+budget) at a 20 Hz and a 50 Hz budget (``MPPIConfig.deadline_s``), 1000 steps under a load of
+2 (two busy processes beside the benchmark): the largest overshoot over the budget, the misses,
+how often the deadline cut the samples, and the crash rate over a few disturbed episodes.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from benchmarks.timing import record
+from workbench.sampling.threshold import AlphaRule
+from workbench.scenarios.methods import build, method, names
+from workbench.scenarios.navigation import NavigationSetup, navigation_setup
+from workbench.sim import Disturbance, closed_loop
+from workbench.study.latency import Latency
+
+FALLBACK_WORDS = ("fallback", "backup", "reset")
+VARIANCE = 100.0  # the velocity disturbance of the episodes
+IDLE_S = 0.02
+
+
+def _controller(nav: NavigationSetup, name: str) -> tuple[object, float, float]:
+    """(controller, seconds to calibrate its threshold (0 if none), seconds to build it)."""
+    t0 = time.perf_counter()
+    thr = nav.threshold(AlphaRule(kappa=0.1), feedback=method(name).feedback or "bas_ilqg") \
+        if method(name).robust else None
+    t1 = time.perf_counter()
+    ctrl = build(nav, name, threshold=thr)
+    return ctrl, t1 - t0, time.perf_counter() - t1
+
+
+def _fallback(info) -> bool:
+    return any(v > 0 for k, v in info.stats.activity.items()
+               if any(w in k for w in FALLBACK_WORDS))
+
+
+def _after_idle(ctrl, nav: NavigationSetup, x, n: int, seed: int) -> list[float]:
+    """Wall ms of ``n`` steps from ``x``, each after ``IDLE_S`` of sleep."""
+    rng, state, out = np.random.default_rng(seed), ctrl.initial_state(x), []
+    for _ in range(n):
+        time.sleep(IDLE_S)
+        t = time.perf_counter()
+        state, _, _ = ctrl.step(state, x, rng)
+        out.append(1e3 * (time.perf_counter() - t))
+    return out
+
+
+def method_latency(steps: int = 300, seed: int = 0) -> list[dict]:
+    nav = navigation_setup()
+    out = []
+    for name in names():
+        ctrl, calib_s, build_s = _controller(nav, name)
+        ep = closed_loop(ctrl, nav.plant, nav.x0, steps, np.random.default_rng(seed),
+                         np.random.default_rng(seed + 1), Disturbance(VARIANCE),
+                         check_episode=False)
+        wall, cpu = 1e3 * ep.step_time_s, 1e3 * ep.step_cpu_s
+        w, rest = Latency.of(wall), Latency.of(wall[1:]) if wall.size > 1 else None
+        fb = np.array([_fallback(i) for i in ep.infos])
+        idle = Latency.of(_after_idle(ctrl, nav, ep.X[len(ep.U) // 2], 30, seed))
+        tail = {"first_step_ms": float(wall[0]),
+                "p99_without_first_ms": rest.p99_ms if rest else None,
+                "fallback_steps": int(fb.sum()),
+                "fallback_median_ms": float(np.median(wall[fb])) if fb.any() else None,
+                "other_median_ms": float(np.median(wall[~fb])) if (~fb).any() else None,
+                "after_idle_p50_ms": idle.p50_ms, "back_to_back_p50_ms": w.p50_ms,
+                "calibration_s": calib_s, "build_s": build_s}
+        out.append(record(f"step_latency_{name}", w.p99_ms, "ms (wall p99)", None, None,
+                          {"steps": w.n, "crashed": bool(ep.crashed), "p50_ms": w.p50_ms,
+                           "p95_ms": w.p95_ms, "p99_ms": w.p99_ms, "max_ms": w.max_ms,
+                           "mean_ms": w.mean_ms, "cpu_mean_ms": float(cpu.mean()),
+                           "variance": VARIANCE, "tail": tail}))
+    return out
+
+
+def _busy(n: int) -> list[subprocess.Popen]:
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        p.kill()
+        p.wait()
+
+
+def deadline_records(steps: int = 1000, episodes: int = 4, episode_steps: int = 200,
+                     n_samples: int = 8192, load: int = 2) -> list[dict]:
+    base = navigation_setup()
+    out = []
+    for name in ("bas_mppi", "sa_rmppi"):
+        for hz in (20, 50):
+            budget = 1.0 / hz
+            nav = navigation_setup(mppi=replace(base.mppi, n_samples=n_samples,
+                                                deadline_s=budget))
+            ctrl, _, _ = _controller(nav, name)
+            procs = _busy(load)
+            try:
+                ep = closed_loop(ctrl, nav.plant, nav.x0, steps, np.random.default_rng(0),
+                                 np.random.default_rng(1), check_episode=False)
+                crashes, done = 0, 0
+                for j in range(episodes):
+                    e = closed_loop(ctrl, nav.plant, nav.x0, episode_steps,
+                                    np.random.default_rng(10 + j), np.random.default_rng(20 + j),
+                                    Disturbance(VARIANCE), keep_infos=False,
+                                    check_episode=False)
+                    crashes, done = crashes + int(e.crashed), done + 1
+            finally:
+                _stop(procs)
+            wall = 1e3 * ep.step_time_s
+            rep = [i.deadline for i in ep.infos]
+            over = float(np.max(wall) - 1e3 * budget)
+            w = Latency.of(wall)
+            out.append(record(f"deadline_{name}_{hz}hz", over, "ms (max over budget)", None,
+                              None,
+                              {"budget_ms": 1e3 * budget, "steps": w.n, "load": load,
+                               "n_samples": n_samples, "misses": int(np.sum(wall > 1e3 * budget)),
+                               "p50_ms": w.p50_ms, "p99_ms": w.p99_ms, "max_ms": w.max_ms,
+                               "truncated": float(np.mean([r.truncated for r in rep])),
+                               "samples_mean": float(np.mean([r.samples for r in rep])),
+                               "crash_rate": crashes / done, "episodes": done,
+                               "episode_steps": episode_steps, "variance": VARIANCE,
+                               "margin_ms": "one chunk of samples (n_samples / "
+                               f"{nav.mppi.deadline_chunks}) plus the step's fixed work"}))
+    return out
+
+
+def records(repeats: int) -> list[dict]:
+    """The latency and deadline records (``repeats`` is not used: the step counts are fixed)."""
+    return method_latency() + deadline_records()
+
+
+def markdown(records_: list[dict]) -> list[str]:
+    """The report's tail-latency and deadline tables."""
+    lat = [r for r in records_ if r["name"].startswith("step_latency_") and r.get("params")]
+    dl = [r for r in records_ if r["name"].startswith("deadline_") and r.get("params")]
+    lines: list[str] = []
+    if lat:
+        lines += ["", "## Step time per method: p50 / p95 / p99 / max and where the tail "
+                  "comes from", "",
+                  "One disturbed episode per method on the navigation map, alone on the machine "
+                  "(wall clock, ms). First step: the first call of the episode. Fallback: steps "
+                  "where a fallback, backup or reset acted. After idle: median of steps after "
+                  f"{1e3 * IDLE_S:.0f} ms of sleep (the OpenMP team wakes up). Calibration and "
+                  "build happen once, before the first step.", "",
+                  "| method | p50 | p95 | p99 | max | CPU mean | first step | p99 w/o first | "
+                  "fallback steps (median) | after idle p50 | calibration s | build s |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
+        for r in lat:
+            p, t = r["params"], r["params"]["tail"]
+            fb = (f"{t['fallback_steps']} ({t['fallback_median_ms']:.2f})"
+                  if t["fallback_steps"] else "0")
+            lines.append(
+                f"| {r['name'].removeprefix('step_latency_')} | {p['p50_ms']:.2f} | "
+                f"{p['p95_ms']:.2f} | {p['p99_ms']:.2f} | {p['max_ms']:.2f} | "
+                f"{p['cpu_mean_ms']:.2f} | {t['first_step_ms']:.2f} | "
+                f"{t['p99_without_first_ms']:.2f} | {fb} | {t['after_idle_p50_ms']:.2f} | "
+                f"{t['calibration_s']:.2f} | {t['build_s']:.2f} |")
+    if dl:
+        lines += ["", "## Deadlines under a load of 2", "",
+                  "`MPPIConfig.deadline_s` at a 20 Hz and a 50 Hz budget, 8192 samples per step "
+                  "(more than fit), two busy processes beside the benchmark. Overshoot: the "
+                  "largest step time over the budget; a step can exceed it by one chunk of "
+                  "samples plus its fixed work. Crash rate: disturbed episodes with the same "
+                  "deadline and load.", "",
+                  "| controller | budget ms | steps | misses | max over budget ms | p50 | p99 | "
+                  "cut steps | samples used (mean) | crash rate |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        for r in dl:
+            p = r["params"]
+            lines.append(
+                f"| {r['name'].removeprefix('deadline_')} | {p['budget_ms']:.0f} | "
+                f"{p['steps']} | {p['misses']} | {r['value']:.2f} | {p['p50_ms']:.2f} | "
+                f"{p['p99_ms']:.2f} | {100 * p['truncated']:.0f} % | {p['samples_mean']:.0f} | "
+                f"{p['crash_rate']:.2f} ({p['episodes']} × {p['episode_steps']} steps) |")
+    return lines

@@ -1,0 +1,128 @@
+"""The step deadline (``MPPIConfig.deadline_s``): bad values are refused naming the field;
+with a deadline that never binds a step draws every sample (in chunks, each from its own seed,
+weighted as one batch); with one that always binds it draws one chunk and says so; the
+controllers with their own sampling loops refuse it; without a deadline nothing changes."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+
+from workbench.problem.barrier import embed_barrier
+from workbench.problem.models import double_integrator
+from workbench.problem.obstacles import Circle
+from workbench.sampling.deadline import chunk_sizes
+from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
+from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
+from workbench.sampling.methods.tube import TubeMPPI
+from workbench.sampling.mppi import MPPI, MPPIConfig, join_mppi
+from workbench.sampling.problem import navigation_costs
+from workbench.sampling.robust import RMPPIConfig, RobustMPPI
+from workbench.sampling.threshold import ConstantThreshold
+from workbench.sampling.weights import importance_weights, weighted_controls
+
+OBST = (Circle((2.0, 2.0), 0.8), Circle((3.5, 1.0), 0.5))
+N, T, CHUNKS = 203, 25, 4
+GOAL = (4.0, 4.0, 0.0, 0.0)
+X0 = np.array([0.3, 0.5, 0.5, 0.4])
+RTOL = 1e-12
+
+
+@pytest.fixture(scope="module")
+def problems():
+    plain = double_integrator(obstacles=OBST, u_limit=5.0)
+    return (navigation_costs(embed_barrier(plain)),
+            navigation_costs(plain, S=(10.0, 10.0, 1.0, 1.0)))
+
+
+def cfg(**kw) -> MPPIConfig:
+    return MPPIConfig(n_samples=N, horizon=T, lam=1.3, sigma=(3.0, 2.4), backend="compiled",
+                      **kw)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"deadline_s": 0.0}, r"^MPPIConfig\.deadline_s = 0"),
+    ({"deadline_s": -0.02}, r"^MPPIConfig\.deadline_s = -0\.02"),
+    ({"deadline_s": math.nan}, r"^MPPIConfig\.deadline_s"),
+    ({"deadline_s": math.inf}, r"^MPPIConfig\.deadline_s"),
+    ({"deadline_s": True}, r"^MPPIConfig\.deadline_s"),
+    ({"deadline_chunks": 0}, r"^MPPIConfig\.deadline_chunks = 0"),
+    ({"deadline_chunks": N + 1}, rf"^MPPIConfig\.deadline_chunks = {N + 1}"),
+])
+def test_bad_deadline_is_refused_naming_the_field(kw, match):
+    with pytest.raises(ValueError, match=match):
+        cfg(**kw)
+
+
+def test_chunks_cover_the_samples():
+    assert chunk_sizes(203, 4) == [51, 51, 51, 50]
+    assert chunk_sizes(3, 8) == [1, 1, 1]
+    assert sum(chunk_sizes(8192, 8)) == 8192
+
+
+def test_loose_deadline_draws_every_sample_in_chunks(problems):
+    """A deadline of an hour never binds: all N samples, weighted as one batch of the chunks
+    drawn from the step's own seeds (the plan equals that batch's update to 1e-12)."""
+    bas, _ = problems
+    ctrl = MPPI(bas, GOAL, cfg(deadline_s=3600.0, deadline_chunks=CHUNKS))
+    rng = np.random.default_rng(5)
+    twin = copy.deepcopy(rng)
+    st0 = ctrl.initial_state(X0)
+    _, u, info = ctrl.step(st0, X0, rng)
+    d = info.deadline
+    assert d is not None and not d.truncated and not d.missed
+    assert (d.samples, d.planned, d.iterations) == (N, N, 1)
+    assert info.stats.n_samples == N
+    xb = ctrl.sp.model.lift(X0, ctrl.consts.scene)
+    parts = [ctrl.sampler.mppi(xb, st0.U, n, ctrl.consts, int(twin.integers(0, 2**63)))
+             for n in chunk_sizes(N, CHUNKS)]
+    b = join_mppi(parts)
+    U = weighted_controls(b.v, importance_weights(b.S, ctrl.cfg.lam).w)
+    np.testing.assert_allclose(u, U[0], rtol=RTOL, atol=0)
+
+
+def test_tight_deadline_draws_one_chunk_and_says_so(problems):
+    bas, _ = problems
+    ctrl = MPPI(bas, GOAL, cfg(deadline_s=1e-9, deadline_chunks=CHUNKS, iterations=3))
+    _, u, info = ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(5))
+    d = info.deadline
+    assert d.truncated and d.missed and d.iterations == 1
+    assert d.samples == info.stats.n_samples == chunk_sizes(N, CHUNKS)[0]
+    assert np.all(np.isfinite(u))
+
+
+def test_robust_controller_applies_the_deadline(problems):
+    bas, _ = problems
+    loose = RobustMPPI(bas, GOAL, cfg(deadline_s=3600.0, deadline_chunks=CHUNKS),
+                       RMPPIConfig(), threshold=ConstantThreshold(-1e9))
+    tight = RobustMPPI(bas, GOAL, cfg(deadline_s=1e-9, deadline_chunks=CHUNKS),
+                       RMPPIConfig(), threshold=ConstantThreshold(-1e9))
+    for ctrl, n, cut in ((loose, N, False), (tight, chunk_sizes(N, CHUNKS)[0], True)):
+        _, u, info = ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(2))
+        assert info.deadline.truncated is cut and info.deadline.samples == n
+        assert info.stats.n_samples == n and np.all(np.isfinite(u))
+
+
+def test_no_deadline_reports_nothing_and_stays_reproducible(problems):
+    bas, _ = problems
+    ctrl = MPPI(bas, GOAL, cfg())
+    a = ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(9))
+    b = ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(9))
+    assert a[2].deadline is None
+    np.testing.assert_array_equal(a[1], b[1])
+    np.testing.assert_array_equal(a[0].U, b[0].U)
+
+
+def test_controllers_without_a_deadline_refuse_it(problems):
+    bas, phys = problems
+    c = cfg(deadline_s=0.05)
+    for build in (lambda: TubeMPPI(phys, GOAL, c),
+                  lambda: ShieldMPPI(phys, GOAL, c, ShieldConfig(gamma=0.1)),
+                  lambda: CBFProjectionMPPI(phys, GOAL, c, CBFProjectionConfig(gamma=0.1)),
+                  lambda: RobustMPPI(bas, GOAL, c, RMPPIConfig(diagnostics=True),
+                                     threshold=ConstantThreshold(-1e9))):
+        with pytest.raises(ValueError, match=r"^MPPIConfig\.deadline_s = 0\.05"):
+            build()
