@@ -16,7 +16,7 @@ from workbench.sim import DISTURBANCE_MODELS, Disturbance
 from workbench.study.tuning import TuningBudget
 from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, real
 
-RESULT_VERSION = 1  # bump when the meaning of stored task results changes
+RESULT_VERSION = 2  # bump when the meaning of stored task results changes
 TUNINGS = ("hand", "tuned")
 
 

@@ -138,6 +138,8 @@ class Outcome:
     X: np.ndarray
     U: np.ndarray
     activity: dict[str, float]
+    step_wall_s: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    step_cpu_s: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     @property
     def success(self) -> bool:
@@ -145,7 +147,8 @@ class Outcome:
 
     def row(self) -> dict[str, object]:
         return {k: v for k, v in dataclasses.asdict(self).items()
-                if k not in ("X", "U", "activity", "mean_step_ms")}
+                if k not in ("X", "U", "activity", "mean_step_ms", "step_wall_s",
+                             "step_cpu_s")}
 
 
 def run_episode(where: Where, c: Controls, disturbance: Disturbance, steps: int,
@@ -183,4 +186,4 @@ def run_episode(where: Where, c: Controls, disturbance: Disturbance, steps: int,
         collision_free_fraction=float(cf.mean()) if cf.size else math.nan,
         ess_mean=float(np.mean([s.ess for s in stats])) if stats else math.nan,
         mean_step_ms=float(1e3 * ep.step_time_s.mean()), X=ep.X, U=np.asarray(ep.U),
-        activity=activity)
+        activity=activity, step_wall_s=ep.step_time_s, step_cpu_s=ep.step_cpu_s)

@@ -18,11 +18,12 @@ from workbench.scenarios.mechanism_health import console_lines, headline, report
 from workbench.scenarios.methods import labels, markers, method
 from workbench.study import md_table, png_bytes, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.latency import tail_lines
 from workbench.study.spec import Summary
 
 
 def frontier_figure(s: ArenaSummary) -> bytes:
-    """Safety (95 % Wilson interval, every map and disturbance pooled) against compute time
+    """Safety (95 % Wilson interval, every map and disturbance pooled) against CPU time
     per control step: one panel per system, one marker per controller and tuning."""
     systems = list(dict.fromkeys(b.system for b in s.leaderboard))
     fig, axes = plt.subplots(1, len(systems), figsize=(4.8 * len(systems), 4.4),
@@ -35,7 +36,7 @@ def frontier_figure(s: ArenaSummary) -> bytes:
                         mfc="none" if b.tuning == "tuned" else None,
                         label=f"{labels()[b.controller]} ({b.tuning})")
         ax.set_xscale("log")
-        ax.set_xlabel("compute time per control step [ms] (log)")
+        ax.set_xlabel("CPU time per control step [ms] (log)")
         ax.set_ylabel("safety: episodes without a crash [%]")
         ax.set_ylim(-3, 103)
         ax.set_title(arena_system(sysname).label, fontsize=10)
@@ -116,7 +117,7 @@ def leaderboard_table(s: ArenaSummary) -> list[str]:
              "uninformative" if _all_flagged(s, b.system, b.tuning) else ""]
             for b in s.leaderboard]
     return md_table(["system", "tuning", "rank", "controller", "mechanism", "episodes",
-                     "safety % [95%]", "success % [95%]", "ms / step [95%]", "note"], rows)
+                     "safety % [95%]", "success % [95%]", "CPU ms / step [95%]", "note"], rows)
 
 
 def recommendation_lines(s: ArenaSummary) -> list[str]:
@@ -141,10 +142,10 @@ def recommendation_lines(s: ArenaSummary) -> list[str]:
                 for b in rec]
         boards = [b for b in s.leaderboard if (b.system, b.tuning) == (sysname, tuning)]
         front = ", ".join(f"{labels()[b.controller]} ({100 * b.safety:.0f} % at "
-                          f"{b.mean_step_ms:.2f} ms)" for b in frontier(boards))
+                          f"{b.mean_step_ms:.2f} CPU ms)" for b in frontier(boards))
         out += [label, "", *md_table(["recommended", "mechanism", "episodes",
                                       "safety % [95%]", "success % [95%]",
-                                      "final error [m] [95%]", "ms / step [95%]"], rows), "",
+                                      "final error [m] [95%]", "CPU ms / step [95%]"], rows), "",
                 f"Safety-versus-cost frontier (no other controller is both safer and "
                 f"cheaper): {front}.", ""]
     return out
@@ -265,7 +266,7 @@ def cells_table(s: ArenaSummary) -> list[str]:
              "uninformative" if f"{c.system} / {c.disturbance} / {c.tuning}" in flags else ""]
             for c in s.cells]
     return md_table(["system", "map", "disturbance", "tuning", "controller", "n",
-                     "safety % [95%]", "success % [95%]", "final error [m]", "ms / step",
+                     "safety % [95%]", "success % [95%]", "final error [m]", "CPU ms / step",
                      "mechanism activity", "note"], rows)
 
 
@@ -277,7 +278,7 @@ def summary(finished) -> Summary:
     s = summarise(finished.config, finished.store)
     lines = tuple(f"{b.system:18s} {b.tuning:5s} #{b.rank} {b.controller:14s} safety "
                   f"{100 * b.safety:5.1f} % [{100 * b.ci_low:.0f}, {100 * b.ci_high:.0f}]  "
-                  f"success {100 * b.success:5.1f} %  {b.mean_step_ms:6.2f} ms/step"
+                  f"success {100 * b.success:5.1f} %  {b.mean_step_ms:6.2f} CPU ms/step"
                   for b in s.leaderboard)
     lines += tuple(f"{r.system} {r.disturbance} {r.tuning}: " + verdict_sentence(r)
                    for r in s.decisions)
@@ -302,7 +303,7 @@ def report(finished, summ) -> Path:
              f"after {cfg['steps']} steps.", "",
              "## Recommendation per system", "",
              "Every map and disturbance pooled; rates with Wilson 95 % intervals, final error "
-             "and compute time per step as means with 95 % t-intervals.", "",
+             "and CPU time per step as means with 95 % t-intervals.", "",
              *recommendation_lines(s),
              "## Declared comparisons and their verdicts", "",
              *design_lines(s), *decisions_table(s), "",
@@ -325,6 +326,8 @@ def report(finished, summ) -> Path:
                   *[f"- {k}: {w}" for k, w in flags.items()], ""]
     lines += ["## Leaderboards", "", "![frontier](frontier.png)", "",
               *leaderboard_table(s), "",
+              *tail_lines(finished.store.table("step_times"), ["system", "tuning", "controller"],
+                          lambda k: f"{k[0]}, {k[1]}, {labels().get(k[2], k[2])}"),
               "## Paired comparisons pooled over maps (descriptive)", "",
               f"'{ALL}' pools every disturbance (strata: map x disturbance). These are not "
               "declared comparisons: their p-values are not corrected and decide nothing.", "",

@@ -3,7 +3,9 @@
 
 Metrics, each defined once here: safety = share of episodes without a crash (Wilson 95 %
 interval); success = share of episodes that reach the goal without a crash; final error =
-distance to the goal at the episode's end; ms per step = mean compute time of a control step.
+distance to the goal at the episode's end; ms per step = mean process CPU time of a control
+step (all its threads; what other processes do does not change it, see
+:mod:`workbench.study.latency`).
 
 Paired comparisons (controller A against B, same system, disturbance and tuning, common random
 numbers): per map, the realisations where only A or only B stayed safe; pooled over maps with
@@ -62,7 +64,7 @@ class Cell:
         ok = Rate.of(rows["reached"].to_numpy(bool) & ~rows["crashed"].to_numpy(bool))
         act = {k: float(g["activity"].mean()) for k, g in activity.groupby("mechanism")}
         return cls(*key, safe.n, safe.value, safe.low, safe.high, ok.value, ok.low, ok.high,
-                   float(rows["final_error"].mean()), float(timing["mean_step_ms"].mean()),
+                   float(rows["final_error"].mean()), float(timing["mean_cpu_ms"].mean()),
                    float(rows["collision_free_fraction"].mean()),
                    float(rows["ess_mean"].mean()), act)
 
@@ -272,7 +274,7 @@ def mean_interval(x: np.ndarray) -> tuple[float, float, float]:
 
 def leaderboard(ep: pd.DataFrame, timing: pd.DataFrame) -> list[Board]:
     out = []
-    t = timing.set_index("task_id")["mean_step_ms"]
+    t = timing.set_index("task_id")["mean_cpu_ms"]
     for (system, tuning), g in ep.groupby(["system", "tuning"], sort=False):
         lines = []
         for c, gc in g.groupby("controller", sort=False):

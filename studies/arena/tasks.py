@@ -33,6 +33,7 @@ from workbench.scenarios.methods.settings import fingerprint as settings_data
 from workbench.scenarios.systems import SYSTEMS, definition
 from workbench.scenarios.tuned import ControllerSettings, check_usable, tuned
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.latency import step_table
 from workbench.study.spec import Declaration
 from workbench.validation import fail
 
@@ -125,7 +126,9 @@ def run_task(task: ArenaEpisode, ctx: TaskContext, config: ArenaConfig,
     act = out.activity
     return TaskOutput(
         tables={"episodes": {k: np.array([v]) for k, v in out.row().items()},
-                "timing": {"mean_step_ms": np.array([out.mean_step_ms])},
+                "timing": {"mean_step_ms": np.array([out.mean_step_ms]),
+                           "mean_cpu_ms": np.array([1e3 * out.step_cpu_s.mean()])},
+                "step_times": step_table(out.step_wall_s, out.step_cpu_s),
                 "activity": {"mechanism": np.array(list(act), dtype=str),
                              "activity": np.array(list(act.values()), dtype=float)}},
         arrays={"X": out.X, "U": out.U})

@@ -12,6 +12,7 @@ from studies.navigation.summary import NavigationSummary
 from studies.navigation.wording import NAMES
 from workbench.study import RunStore, fmt_rate, md_table, supported
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.latency import tail_lines
 from workbench.study.report import num, see
 
 HEADINGS = {"safer": "SA-RMPPI safer than BaS-MPPI (paired)", "rmse": "BaS-MPPI lower RMSE",
@@ -170,11 +171,15 @@ def write_report(s: NavigationSummary, store: RunStore, plan, ids: dict, scene,
               "SAIS batch (nominal samples blue, feedback samples red). Safety vs variance "
               "with 95% intervals" + (" (Table I dashed)" if with_paper else "") + ". Alpha "
               "trade-off: safety vs RMSE per rule.",
-              "", *_illustration(s), "## Assumed and sourced values", "",
+              "", *_illustration(s),
+              *tail_lines(store.table("step_times"), ["controller", "rule", "variance"],
+                          lambda k: f"{NAMES.get(k[0], k[0])} ({k[1]}), variance {k[2]:g}"),
+              "## Assumed and sourced values", "",
               *md_table(["quantity", "value", "source"],
                         [[a["name"], a["value"], a["source"]] for a in assumed]), "",
               "Data: `episodes.parquet/.csv` (one row per realisation), `velocity.parquet/.csv`"
               " (every few steps), `timing.parquet/.csv` (compute time, not reproducible), "
+              "`step_times.parquet/.csv` (wall and CPU time of every step), "
               "`tasks/*.npz` (trajectories X, U per realisation), `summary.json` (`cells`, "
               "`paired`), `map.json`, `manifest.json`, `run.json`.", ""]
     path = store.root / "report.md"

@@ -24,6 +24,7 @@ from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.latency import step_table
 from workbench.study.spec import Declaration
 
 NO_RULE = AlphaRule(kind="fixed")  # placeholder rule of the MPPI controllers (no selection)
@@ -155,7 +156,8 @@ def run_task(task: Realisation | Illustration, ctx: TaskContext, config: StudyCo
     tables = {"episodes": episode_row(ep, nav.goal, dt, config.goal_radius,
                                       scene.circle_array()),
               "velocity": velocity_rows(ep, dt, config.velocity_stride),
-              "timing": timing_row(ep)}
+              "timing": timing_row(ep),
+              "step_times": step_table(ep.step_time_s, ep.step_cpu_s)}
     return TaskOutput(tables=tables, arrays={"X": ep.X, "U": np.asarray(ep.U)})
 
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from workbench.study.report import md_table
 from workbench.validation import fail
 
 PERCENTILES = (50.0, 95.0, 99.0)
@@ -129,3 +130,18 @@ LATENCY_NOTE = ("CPU ms/step: process CPU time of a control step (all its thread
                 "of other processes). Wall p50 / p95 / p99 / max: percentiles of the wall-clock "
                 "step time over every step of every episode (they grow with the load; the first "
                 "step of an episode is included).")
+
+
+def tail_lines(steps, by: Sequence[str], label=None) -> list[str]:
+    """The report section on step cost and tail from a ``step_times`` table (columns ``by``,
+    ``wall_ms``, ``cpu_ms``): one row per group of ``by`` (``label(key)`` names it, default the
+    values joined), every step of every episode pooled; empty when the table has no rows."""
+    if steps is None or not len(steps):
+        return []
+    times = {}
+    for key, g in steps.groupby(list(by), sort=False):
+        key = key if isinstance(key, tuple) else (key,)
+        name = label(key) if label else ", ".join(str(k) for k in key)
+        times[name] = (g["wall_ms"].to_numpy(), g["cpu_ms"].to_numpy())
+    return ["## What a step costs: CPU time and the wall-clock tail", "",
+            *md_table(LATENCY_HEADER, latency_table(times)), "", LATENCY_NOTE, ""]
