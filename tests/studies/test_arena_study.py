@@ -126,7 +126,7 @@ def test_summary_is_the_data(tiny_run):
         assert (c["n"], c["safety"], c["ci_low"], c["ci_high"]) == (
             rate.n, rate.value, rate.low, rate.high)
         t = timing[timing["task_id"].isin(rows["task_id"])]
-        assert c["mean_step_ms"] == pytest.approx(t["mean_step_ms"].mean(), rel=1e-12)
+        assert c["mean_step_ms"] == pytest.approx(t["mean_cpu_ms"].mean(), rel=1e-12)
     pooled = data["pooled"]
     assert pooled
     for p in pooled:

@@ -91,7 +91,7 @@ class MPPIConfig:
     # samples in deadline_chunks chunks and stopping when the next would not fit
     # (workbench.sampling.deadline); None: no deadline, results exactly reproducible
     deadline_s: float | None = None
-    deadline_chunks: int = 8
+    deadline_chunks: int = 16
 
     def __post_init__(self) -> None:
         for name in ("n_samples", "horizon"):  # the kernels take them as a C int

@@ -220,7 +220,8 @@ def _run_line(record: dict) -> str:
         return "Report rebuilt from stored results (no run record found)."
     return (f"Wall time {wall:.1f} s ({tasks_phrase(computed, total)}; {where}; {cpu} cores, "
             f"1-min load average {load[0]:.1f} at the start and {load[1]:.1f} at the end: "
-            "compute times are wall-clock and grow with the load).")
+            "wall-clock step times grow with the load; costs per step are CPU time, which "
+            "does not).")
 
 
 def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers: int = 2,
