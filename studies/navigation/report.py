@@ -65,14 +65,15 @@ def cells_table(s: NavigationSummary) -> list[str]:
              _r(c.rmse_time), fmt_rate(c.reached, 0) if c.reached.n else f"n/a ({NO_SAFE})",
              _r(c.time_to_goal_s.median, 2, "never within the goal radius"),
              _r(c.mean_speed.mean, 2, "no episodes"),
-             _r(c.mean_step_ms, 1, "no timing"), f"{100 * c.nominal_differs_fraction:.1f}",
+             _r(c.mean_step_ms, 1, "no timing"), _r(c.cpu_ms, 1, "no timing"),
+             f"{100 * c.nominal_differs_fraction:.1f}",
              f"{100 * c.alpha_fallback_rate:.1f}", f"{100 * c.ksafe_fallback_rate:.2f}",
              f"{_r(c.ess_nom_mean, 1, 'no samples')} / "
              f"{_r(c.ess_real_mean, 1, 'no feedback samples')}"]
             for c in s.cells]
     return md_table(["controller", "alpha rule", "variance", "part", "n", "safety %",
                      "RMSE safe [m]", "RMSE all [m]", "RMSE time-avg [m]", "reached (safe)",
-                     "median time to 1 m [s]", "mean speed [m/s]", "ms/step",
+                     "median time to 1 m [s]", "mean speed [m/s]", "wall ms/step", "CPU ms/step",
                      "nominal ≠ real %",
                      "alpha fallback %", "K_safe fallback %", "ESS nom / real"], rows)
 

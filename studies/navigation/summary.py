@@ -63,6 +63,7 @@ class Cell:
     nominal_unsafe_fraction: float
     ess_nom_mean: float
     ess_real_mean: float
+    cpu_ms: float = float("nan")  # the cost: mean process CPU time per step
 
     @classmethod
     def of(cls, key: tuple[str, str, float], rows: pd.DataFrame, timing: pd.DataFrame,
@@ -90,7 +91,8 @@ class Cell:
             int(rows["ksafe_fallback_steps"].sum()) / steps,
             {r: int(rows[f"ksafe_{r}"].sum()) for r in FALLBACK_REASONS},
             int(rows["nominal_unsafe_steps"].sum()) / steps,
-            float(rows["ess_nom_mean"].mean()), float(rows["ess_real_mean"].mean()))
+            float(rows["ess_nom_mean"].mean()), float(rows["ess_real_mean"].mean()),
+            float(timing["mean_cpu_ms"].mean()))
 
 
 PAIRS = (("sa_rmppi", "bas_mppi"), ("sa_rmppi", "rmppi"), ("rmppi", "bas_mppi"),
