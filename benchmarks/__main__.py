@@ -105,6 +105,15 @@ def _fmt(v, spec: str = ".3g") -> str:
     return "—" if v is None else format(v, spec)
 
 
+def _tail(r: dict) -> str:
+    """`` p50/p95/p99/max a/b/c/d ms`` for a record with step-time percentiles, else ""."""
+    p = r.get("params") or {}
+    keys = ("p50_ms", "p95_ms", "p99_ms", "max_ms")
+    if not all(isinstance(p.get(k), int | float) for k in keys):
+        return ""
+    return "  p50/p95/p99/max " + "/".join(f"{p[k]:.2f}" for k in keys) + " ms"
+
+
 def _growth_markdown(out_dir: Path) -> str | None:
     from benchmarks.growth import markdown
 
@@ -169,7 +178,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{r['name']:52s} {_fmt(r['value'], '10.4f')} {r['unit']:12s} baseline "
               f"{r['baseline']} = {_fmt(r['baseline_value'], '.4f')}  ratio "
               f"{_fmt(r['ratio'], '.1f')}x" + (f"  [skipped: {r['skipped']}]"
-                                             if r.get("skipped") else ""))
+                                             if r.get("skipped") else "") + _tail(r))
     man = manifest()
     man["machine"] = {"cpu": cpu_model(), "cpu_flags": cpu_flags(), "cpus": os.cpu_count()}
     atomic_write_json(args.out, {"records": records, "manifest": man})

@@ -1,0 +1,44 @@
+"""make bench's step-time records: the report gives p50 / p95 / p99 / max per method with the
+tail's sources, and the deadline table; the console line of such a record prints the
+percentiles."""
+
+from __future__ import annotations
+
+from benchmarks.__main__ import _tail
+from benchmarks.latency import markdown
+from benchmarks.report import report_markdown
+from benchmarks.timing import record
+
+TAIL = {"first_step_ms": 9.0, "p99_without_first_ms": 3.5, "fallback_steps": 2,
+        "fallback_median_ms": 4.25, "other_median_ms": 2.0, "after_idle_p50_ms": 2.75,
+        "back_to_back_p50_ms": 2.0, "calibration_s": 1.5, "build_s": 0.25}
+
+
+def records() -> list[dict]:
+    lat = record("step_latency_sa_rmppi", 3.75, "ms (wall p99)", None, None,
+                 {"steps": 300, "crashed": False, "p50_ms": 2.0, "p95_ms": 3.0, "p99_ms": 3.75,
+                  "max_ms": 9.0, "mean_ms": 2.2, "cpu_mean_ms": 2.1, "variance": 100.0,
+                  "tail": TAIL})
+    dl = record("deadline_sa_rmppi_50hz", 1.5, "ms (max over budget)", None, None,
+                {"budget_ms": 20.0, "steps": 1000, "load": 2, "n_samples": 8192, "misses": 3,
+                 "p50_ms": 19.0, "p95_ms": 19.5, "p99_ms": 20.5, "max_ms": 21.5,
+                 "truncated": 1.0, "samples_mean": 2048.0, "crash_rate": 0.25, "episodes": 4,
+                 "episode_steps": 200, "variance": 100.0, "margin_ms": "one chunk"})
+    return [lat, dl]
+
+
+def test_report_has_percentiles_tail_sources_and_deadlines():
+    text = "\n".join(markdown(records()))
+    assert "| method | p50 | p95 | p99 | max |" in text
+    assert "| sa_rmppi | 2.00 | 3.00 | 3.75 | 9.00 | 2.10 | 9.00 | 3.50 | 2 (4.25) | 2.75 | " \
+           "1.50 | 0.25 |" in text
+    assert "| sa_rmppi_50hz | 20 | 1000 | 3 | 1.50 | 19.00 | 20.50 | 100 % | 2048 | " \
+           "0.25 (4 × 200 steps) |" in text
+    assert "## Deadlines under a load of 2" in report_markdown(records(), {})
+
+
+def test_console_line_prints_percentiles():
+    lat, dl = records()
+    assert _tail(lat) == "  p50/p95/p99/max 2.00/3.00/3.75/9.00 ms"
+    assert _tail(dl) == "  p50/p95/p99/max 19.00/19.50/20.50/21.50 ms"
+    assert _tail(record("other", 1.0, "ms", None, None, {})) == ""
