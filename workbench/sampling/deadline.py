@@ -2,12 +2,14 @@
 
 With a deadline, a step draws its samples in ``MPPIConfig.deadline_chunks`` chunks (each from
 its own seed) and, before each chunk after the first, checks that the time already spent plus
-the longest chunk of this step still fits: when it does not, the step stops sampling and
-weights the samples drawn so far; a further MPPI iteration starts only when one chunk of it
-fits. The first chunk always runs, so a step still returns a plan when the deadline is too
-short: the work before the samples (for the robust controllers: the selection and the
-feedback gains, never cut) plus one chunk is the least a step costs, and a step can exceed its
-deadline by about the time of a chunk (:attr:`DeadlineReport.missed` counts it).
+twice the longest chunk of this step still fits (the next chunk, and as much again in reserve
+for weighting the samples and for the jitter of a loaded machine): when it does not, the step
+stops sampling and weights the samples drawn so far; a further MPPI iteration starts only
+when one chunk of it fits. The first chunk always runs, so a step still returns a plan when
+the deadline is too short: the work before the samples (for the robust controllers: the
+selection and the feedback gains, never cut) plus one chunk is the least a step costs, and a
+step can exceed its deadline by about the time of a chunk, more when the process is preempted
+(:attr:`DeadlineReport.missed` counts it).
 
 Truncation follows the wall clock: results with a deadline depend on timing and are not
 reproducible bit for bit. Without a deadline (the default) nothing changes: one batch per
@@ -55,8 +57,9 @@ class StepClock:
         self.truncated = False
 
     def fits(self) -> bool:
-        """Whether one more chunk fits before the deadline (records a cut when it does not)."""
-        ok = time.perf_counter() - self.t0 + self.chunk_s <= self.deadline_s
+        """Whether one more chunk, with as much again in reserve, fits before the deadline
+        (records a cut when it does not)."""
+        ok = time.perf_counter() - self.t0 + 2.0 * self.chunk_s <= self.deadline_s
         self.truncated = self.truncated or not ok
         return ok
 
