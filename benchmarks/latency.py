@@ -136,7 +136,7 @@ def deadline_records(steps: int = 1000, episodes: int = 4, episode_steps: int = 
                                "crash_rate": crashes / done, "episodes": done,
                                "episode_steps": episode_steps, "variance": VARIANCE,
                                "margin_ms": "one chunk of samples (n_samples / "
-                               f"{nav.mppi.deadline_chunks}) plus the step's fixed work"}))
+                               f"{nav.mppi.chunks}) plus the step's fixed work"}))
     return out
 
 

@@ -49,12 +49,20 @@ def cfg(**kw) -> MPPIConfig:
     ({"deadline_s": math.nan}, r"^MPPIConfig\.deadline_s"),
     ({"deadline_s": math.inf}, r"^MPPIConfig\.deadline_s"),
     ({"deadline_s": True}, r"^MPPIConfig\.deadline_s"),
-    ({"deadline_chunks": 0}, r"^MPPIConfig\.deadline_chunks = 0"),
-    ({"deadline_chunks": N + 1}, rf"^MPPIConfig\.deadline_chunks = {N + 1}"),
+    ({"deadline_s": 0.05, "deadline_chunks": 0}, r"^MPPIConfig\.deadline_chunks = 0"),
+    ({"deadline_s": 0.05, "deadline_chunks": N + 1},
+     rf"^MPPIConfig\.deadline_chunks = {N + 1}"),
+    ({"deadline_chunks": 4}, r"^MPPIConfig\.deadline_chunks = 4 .*set deadline_s"),
 ])
 def test_bad_deadline_is_refused_naming_the_field(kw, match):
     with pytest.raises(ValueError, match=match):
         cfg(**kw)
+
+
+def test_a_small_batch_without_a_deadline_is_accepted_and_chunks_default_to_the_samples():
+    assert MPPIConfig(n_samples=8, horizon=5).deadline_chunks is None
+    assert MPPIConfig(n_samples=8, horizon=5, deadline_s=0.05).chunks == 8
+    assert MPPIConfig(n_samples=64, horizon=5, deadline_s=0.05).chunks == 16
 
 
 def test_chunks_cover_the_samples():

@@ -68,7 +68,8 @@ class MPPIConfig:
     numbers); ``n_samples * horizon * len(sigma) <= 2**31``; ``iterations <= 1000``.
 
     ``deadline_s`` (None or a time > 0 in seconds) bounds each step's time, ``deadline_chunks``
-    (1 .. n_samples) sets the granularity of the cut (:mod:`workbench.sampling.deadline`):
+    (1 .. n_samples, only with a deadline; default min(16, n_samples)) sets the granularity of
+    the cut (:mod:`workbench.sampling.deadline`):
     results with a deadline depend on timing and are not reproducible bit for bit. MPPI,
     BaS-MPPI and the robust controllers apply it; the controllers with their own sampling
     loops (Tube-MPPI, Shield-MPPI, CBF projection) refuse it."""
@@ -91,7 +92,7 @@ class MPPIConfig:
     # samples in deadline_chunks chunks and stopping when the next would not fit
     # (workbench.sampling.deadline); None: no deadline, results exactly reproducible
     deadline_s: float | None = None
-    deadline_chunks: int = 16
+    deadline_chunks: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("n_samples", "horizon"):  # the kernels take them as a C int
@@ -126,12 +127,21 @@ class MPPIConfig:
         one_of("MPPIConfig.precision", self.precision, ("float64", "float32"))
         if self.deadline_s is not None:
             real("MPPIConfig.deadline_s", self.deadline_s, 0.0, strict=True)
-        integer("MPPIConfig.deadline_chunks", self.deadline_chunks, 1, self.n_samples)
+        if self.deadline_chunks is not None:
+            if self.deadline_s is None:
+                raise fail("MPPIConfig.deadline_chunks", self.deadline_chunks,
+                           "is only used with a deadline: set deadline_s too, or leave it unset")
+            integer("MPPIConfig.deadline_chunks", self.deadline_chunks, 1, self.n_samples)
         if self.precision == "float32":  # the kernels' own float32 rules, checked at once
             check_scales32("MPPIConfig", self.sigma, self.lam, self.nu_mix)
             if self.crash_cost > FLOAT32_MAX:
                 raise fail("MPPIConfig.crash_cost", self.crash_cost,
                            f"must be at most {FLOAT32_MAX:.4g} for precision 'float32'")
+
+    @property
+    def chunks(self) -> int:
+        """The number of chunks a step with a deadline draws its samples in."""
+        return self.deadline_chunks or min(16, self.n_samples)
 
     def smooth(self, U: np.ndarray) -> np.ndarray:
         """Savitzky-Golay smoothing of a control sequence along time (or U unchanged): one
@@ -215,7 +225,7 @@ class MPPI(RecordsSamples, PlansToGoal):
                 def draw(n: int, seed: int, U: np.ndarray = U) -> MPPIBatch:
                     return self.sampler.mppi(xb, U, n, self.consts, seed)
 
-                got = sample_within(clock, cfg.n_samples, cfg.deadline_chunks, draw, rng,
+                got = sample_within(clock, cfg.n_samples, cfg.chunks, draw, rng,
                                     join_mppi)
                 if got is None:
                     break

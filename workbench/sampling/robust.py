@@ -353,7 +353,7 @@ class RobustMPPI(RecordsSamples):
                 def draw(n: int, seed: int, U: np.ndarray = U) -> SAISBatch:
                     return self.sampler.sais(xb, x_nom, U, K, n, consts, seed)
 
-                got = sample_within(clock, cfg.n_samples, cfg.deadline_chunks, draw, rng,
+                got = sample_within(clock, cfg.n_samples, cfg.chunks, draw, rng,
                                     join_sais)
                 if got is None:
                     break
