@@ -218,7 +218,8 @@ def test_disturbance_bound_and_d_f():
     assert d_f([0, 0, 0, 0, 9], [3, 4, 0, 0, 1], [0, 0, 1, 0, 5], D, 4) == pytest.approx(6 + D)
 
 
-def _step(F_real, F_nom, E, R, Lq, Lphi, gap, alpha=10.0, D_F=2.0, n_q=3) -> BoundStep:
+def _step(F_real, F_nom, E, R, Lq, Lphi, gap, alpha=10.0, D_F=2.0, n_q=3,
+          sampled=(0.1, 0.2, 0.15)) -> BoundStep:
     fe = [FreeEnergy(value=v, E=E, sd=0.0, bias=0.0, ess=1.0, n=2, method="delta", z=3.0)
           for v in (F_real, F_nom)]
     L = Lipschitz(L_q=Lq, L_phi=Lphi, secant_q=0.0, secant_phi=0.0, points_q=0, points_phi=0,
@@ -228,7 +229,8 @@ def _step(F_real, F_nom, E, R, Lq, Lphi, gap, alpha=10.0, D_F=2.0, n_q=3) -> Bou
                      tube=Tube(R=R, R99=R, R_position=R, R_mean_nominal=R, per_sample=np.zeros(1)),
                      local=L, global_=replace(L, L_q=10 * Lq), n_q=n_q, D=0.1, D_F=D_F,
                      t1_gap=gap, t1_gap_safe=gap, n_samples=4, n_crashed_real=0, n_crashed_nom=0,
-                     fallback_used=False, nominal_differs=True)
+                     fallback_used=False, nominal_differs=True, delta_sampled=sampled[0],
+                     delta_sampled_max=sampled[1], delta_sampled_max_safe=sampled[2])
 
 
 def test_checks_follow_spec_11_3():
@@ -246,7 +248,13 @@ def test_checks_follow_spec_11_3():
     assert c["T3d", "local"].holds and not c["T2", "local"].holds
     dg = (4.0 + 3 * 20.0) * 0.1
     assert c["T1", "global"].rhs == pytest.approx(dg)
-    assert len(episode_checks([s0, s1, s0])[0]) == 2 * 7
+    assert len(episode_checks([s0, s1, s0])[0]) == 3 * 7
+    # the sampled-tube bound: max_n δ_n in T1, its safe-pair maximum in T1s, δ_λ elsewhere
+    assert c["T1", "sampled"].rhs == pytest.approx(0.2)
+    assert c["T1s", "sampled"].rhs == pytest.approx(0.15)
+    assert c["T2", "sampled"].rhs == pytest.approx(4.0 + 0.1)
+    assert c["T3", "sampled"].rhs == pytest.approx(10 - 4 + 1.0 + 0.1 * 2.0)
+    assert c["T3d", "sampled"].rhs == pytest.approx(9.0 + 0.1 + 1.0)
 
 
 def test_summary_counts_fractions_and_ratios():

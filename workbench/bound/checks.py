@@ -2,7 +2,9 @@
 (T3-T3d).
 
 Each check reports ``holds`` (LHS <= RHS), ``slack`` = RHS − LHS, both sides, and the
-Lipschitz-dependent term of the RHS (δ or δ D_F), for local or global constants. Free energies
+Lipschitz-dependent term of the RHS (δ or δ D_F), for local or global constants, or for the
+sampled-tube bound of assumptions §11.4 (``"sampled"``: δ_λ in place of δ; in T1 and T1s the
+bound max_n δ_n on the largest per-sample gap). Free energies
 are the pure-state-cost estimates of assumptions §11.2 item 3 (``estimate="code"``: from S_real and
 S_nom as Algorithm 1 computes them). Readings (assumptions §13, L2-L3):
 
@@ -29,7 +31,7 @@ from typing import Literal
 
 import numpy as np
 
-from workbench.bound.step import BoundStep, Constants
+from workbench.bound.step import CONSTANTS, BoundStep, Constants
 from workbench.validation import fail, one_of
 
 STEP_TESTS = ("T1", "T1s", "T2", "T2E")
@@ -60,7 +62,7 @@ def _F(s: BoundStep, estimate: Estimate) -> tuple[float, float]:
     return s.F_real_code, s.F_nom_code
 
 
-def step_checks(s: BoundStep, constants: tuple[Constants, ...] = ("local", "global"),
+def step_checks(s: BoundStep, constants: tuple[Constants, ...] = CONSTANTS,
                 estimate: Estimate = "pure") -> list[Check]:
     """T1, T1s, T2 (and T2E with an independent batch) at one step, per set of constants."""
     if not isinstance(s, BoundStep):
@@ -69,8 +71,9 @@ def step_checks(s: BoundStep, constants: tuple[Constants, ...] = ("local", "glob
     out = []
     for c in constants:
         d = s.delta(c)
-        out.append(_check("T1", c, -s.t1_gap, d, d))
-        out.append(_check("T1s", c, -s.t1_gap_safe, d, d))
+        d1, d1s = s.delta_per_sample(c), s.delta_per_sample(c, safe=True)
+        out.append(_check("T1", c, -s.t1_gap, d1, d1))
+        out.append(_check("T1s", c, -s.t1_gap_safe, d1s, d1s))
         out.append(_check("T2", c, Fr, Fn + d, d))
         if np.isfinite(s.F_nom_ind) and estimate == "pure":
             out.append(_check("T2E", c, Fr, s.F_nom_ind + d + 2 * max(s.E, s.E_ind), d))
@@ -78,7 +81,7 @@ def step_checks(s: BoundStep, constants: tuple[Constants, ...] = ("local", "glob
 
 
 def transition_checks(s0: BoundStep, s1: BoundStep,
-                      constants: tuple[Constants, ...] = ("local", "global"),
+                      constants: tuple[Constants, ...] = CONSTANTS,
                       estimate: Estimate = "pure") -> list[Check]:
     """T3, T3b, T3c, T3d for consecutive steps t (``s0``) and t+1 (``s1``)."""
     for name, s in (("s0", s0), ("s1", s1)):
@@ -99,7 +102,7 @@ def transition_checks(s0: BoundStep, s1: BoundStep,
     return out
 
 
-def episode_checks(steps: list[BoundStep], constants: tuple[Constants, ...] = ("local", "global"),
+def episode_checks(steps: list[BoundStep], constants: tuple[Constants, ...] = CONSTANTS,
                    estimate: Estimate = "pure") -> list[list[Check]]:
     """Per step t: T1, T1s, T2 at t and, when t+1 exists, T3-T3d for (t, t+1)."""
     out = []

@@ -140,6 +140,40 @@ class LipschitzGrid:
                 f"over [-{self.v_max:g}, {self.v_max:g}]^2; points with min h <= 0 excluded")
 
 
+@dataclass(frozen=True)
+class Segments:
+    """Per point (k, n) of one batch, arrays (T+1, N): the maxima of ‖∇q̃‖ and ‖∇φ̃‖ at the
+    five points of the segment from x*ⁿ_k to xⁿ_k (excluded points not counted), the secant
+    slopes |q̃(x) − q̃(x*)| / ‖x − x*‖ (0 where a point is excluded or x = x*), the number of
+    excluded points, and the segment's length ‖xⁿ_k − x*ⁿ_k‖."""
+
+    grad_q: np.ndarray
+    grad_phi: np.ndarray
+    secant_q: np.ndarray
+    secant_phi: np.ndarray
+    excluded: np.ndarray
+    distance: np.ndarray
+
+    def lipschitz(self) -> Lipschitz:
+        """The local constants: maxima over k = 1..T (q) and k = T (φ), as
+        :meth:`CostGradients.local`."""
+        T1, N = self.grad_q.shape
+        ns = len(SEGMENT_POINTS)
+        return Lipschitz(L_q=float(self.grad_q[1:].max()), L_phi=float(self.grad_phi[-1].max()),
+                         secant_q=float(self.secant_q[1:].max()),
+                         secant_phi=float(self.secant_phi[-1].max()),
+                         points_q=ns * (T1 - 1) * N, points_phi=ns * N,
+                         excluded_q=int(self.excluded[1:].sum()),
+                         excluded_phi=int(self.excluded[-1].sum()))
+
+    def products(self) -> np.ndarray:
+        """Per sample n: δₙ = Σ_{k=1..T} G^q_{nk} ‖e_{nk}‖ + G^φ_{nT} ‖e_{nT}‖, the segment
+        gradient maxima times the segment lengths (the sampled-tube bound, assumptions
+        §11.4)."""
+        return (np.sum(self.grad_q[1:] * self.distance[1:], axis=0)
+                + self.grad_phi[-1] * self.distance[-1])
+
+
 class CostGradients:
     """Gradient norms of q̃, φ̃ of one sampling problem (module docstring); build once."""
 
@@ -184,6 +218,25 @@ class CostGradients:
         wphi[-1] = 1.0
         return self._run(X, X_nom, wq, wphi, self._p(p))
 
+    def segments(self, X, X_nom, p) -> Segments:
+        """Per-point results on the tube of one batch (k = 0..T, every sample): the maxima of
+        ‖∇q̃‖, ‖∇φ̃‖ over each real–nominal segment, its secants and exclusions. One
+        evaluation gives both the local constants (:meth:`Segments.lipschitz`, equal to
+        :meth:`local`) and the per-sample Lipschitz products of the sampled-tube bound."""
+        X, X_nom = check_trajectories(X, X_nom)
+        if X.shape[1] != self.sp.nx:
+            raise fail("X", X.shape, f"expected (T+1, {self.sp.nx}, N)")
+        T1, nx, N = X.shape
+        flat = [np.ascontiguousarray(np.transpose(a, (1, 0, 2)).reshape(1, nx, T1 * N))
+                for a in (X, X_nom)]  # one lane per (k, n), lane index k N + n
+        r = self._raw(flat[0], flat[1], np.ones((1, 1)), np.ones((1, 1)), self._p(p))
+        d = np.sqrt(np.sum((X[:, : self.n] - X_nom[:, : self.n]) ** 2, axis=1))
+        return Segments(grad_q=np.sqrt(r["L2_q"]).reshape(T1, N),
+                        grad_phi=np.sqrt(r["L2_phi"]).reshape(T1, N),
+                        secant_q=np.sqrt(r["sec2_q"]).reshape(T1, N),
+                        secant_phi=np.sqrt(r["sec2_phi"]).reshape(T1, N),
+                        excluded=np.asarray(r["excluded_q"]).reshape(T1, N), distance=d)
+
     def global_constant(self, grid: LipschitzGrid, p, chunk: int = 1 << 20) -> Lipschitz:
         """Global constants: the maxima over the grid's points (no secants), in chunks of
         ``chunk`` points to bound memory."""
@@ -206,6 +259,15 @@ class CostGradients:
                          points_phi=sum(q.points_phi for q in parts),
                          excluded_q=sum(q.excluded_q for q in parts),
                          excluded_phi=sum(q.excluded_phi for q in parts))
+
+    def _raw(self, X, X_nom, wq, wphi, p) -> dict[str, np.ndarray]:
+        if self.lib is not None:
+            k = self.lib.gradients if self.space == "physical" else self.lib.gradients_augmented
+            N = X.shape[2]
+            out = k(np.zeros((N, len(GRADIENT_RESULTS))), consts={"p": p},
+                    time_in={"wq": wq, "wphi": wphi}, lane_in={"x": X, "x_nom": X_nom})
+            return k.result.unpack(out.result)
+        return self._reference(X, X_nom, wq, wphi, p)
 
     def _run(self, X, X_nom, wq, wphi, p) -> Lipschitz:
         if self.lib is not None:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
+from scipy.special import logsumexp
 
 from workbench.bound.disturbance import d_f, disturbance_bound
 from workbench.bound.free_energy import (
@@ -29,7 +30,7 @@ from workbench.bound.free_energy import (
     free_energy_estimate,
     free_energy_lse,
 )
-from workbench.bound.lipschitz import CostGradients, Lipschitz, LipschitzGrid
+from workbench.bound.lipschitz import CostGradients, Lipschitz, LipschitzGrid, Segments
 from workbench.bound.tube import Tube, check_trajectories, tube_radius
 from workbench.codegen.fastcall import FastFunction
 from workbench.sampling.planning import physical_model
@@ -38,7 +39,8 @@ from workbench.sampling.sampler import SAISDiagBatch
 from workbench.sim import Disturbance
 from workbench.validation import fail, integer, one_of, real
 
-Constants = Literal["local", "global"]
+Constants = Literal["local", "global", "sampled"]
+CONSTANTS: tuple[Constants, ...] = ("local", "global", "sampled")
 
 
 @dataclass(frozen=True)
@@ -92,6 +94,10 @@ class BoundStep:
     n_crashed_nom: int
     fallback_used: bool  # no candidate was admissible
     nominal_differs: bool  # x*_0 != measured state
+    # the sampled-tube bound (assumptions §11.4): δ_λ, max_n δ_n, max_n δ_n over safe pairs
+    delta_sampled: float
+    delta_sampled_max: float
+    delta_sampled_max_safe: float
     # from an independent batch of the same step (nan without one), for T2E
     F_real_ind: float = np.nan
     F_nom_ind: float = np.nan
@@ -111,9 +117,35 @@ class BoundStep:
         return self.local if constants == "local" else self.global_
 
     def delta(self, constants: Constants = "local") -> float:
-        """δ = (L_φ + n_q L_q) R."""
+        """δ = (L_φ + n_q L_q) R for local or global constants; δ_λ for ``"sampled"``."""
+        one_of("constants", constants, CONSTANTS)
+        if constants == "sampled":
+            return self.delta_sampled
         L = self.lipschitz(constants)
         return (L.L_phi + self.n_q * L.L_q) * self.tube.R
+
+    def delta_per_sample(self, constants: Constants = "local", safe: bool = False) -> float:
+        """The bound on max_n (S_n − S*_n) (T1; ``safe``: over the safe pairs, T1s): δ, or
+        max_n δ_n for ``"sampled"``."""
+        if constants == "sampled":
+            return self.delta_sampled_max_safe if safe else self.delta_sampled_max
+        return self.delta(constants)
+
+
+def sampled_deltas(seg: Segments, S_nom, lam: float, safe=None) -> tuple[float, float, float]:
+    """(δ_λ, max_n δ_n, max_n δ_n over ``safe``) of the sampled-tube bound (assumptions
+    §11.4): δ_n = :meth:`Segments.products`, δ_λ = −λ log Σ_n w*_n exp(−δ_n/λ) with w*_n the
+    nominal batch's weights ∝ exp(−S*_n/λ) (``S_nom``: the costs F̂_nom is computed from);
+    ``safe`` a boolean mask of samples (default all; no safe sample: inf)."""
+    lam = real("lam", lam, 0.0, strict=True)
+    d = seg.products()
+    S = check_costs("S_nom", S_nom, d.size)
+    a = -S / lam
+    soft = -lam * float(logsumexp(a - d / lam) - logsumexp(a))
+    m = np.ones(d.size, bool) if safe is None else np.asarray(safe, bool)
+    if m.shape != d.shape:
+        raise fail("safe", m.shape, f"need one flag per sample {d.shape}")
+    return max(soft, 0.0), float(d.max()), float(d[m].max()) if m.any() else np.inf
 
 
 def check_batch(batch: SAISDiagBatch) -> None:
@@ -167,7 +199,8 @@ class BoundEstimator:
         # per-sample radii dropped: a record is kept per step over whole studies
         tube = replace(tube_radius(batch.X, batch.X_nom, nr, sp.model.position, cfg.quantile),
                        per_sample=None)
-        local = self.gradients.local(batch.X, batch.X_nom, self.p)
+        seg = self.gradients.segments(batch.X, batch.X_nom, self.p)
+        local = seg.lipschitz()
         xb = np.asarray(x, float).ravel()
         scene = self.ctrl.consts.scene
         if xb.size == n and sp.nx != n:
@@ -180,6 +213,7 @@ class BoundEstimator:
         gap = batch.Sx_nom - batch.Sx_real
         safe = ~(np.asarray(batch.crashed_real) | np.asarray(batch.crashed_nom))
         gap_safe = float(np.min(gap[safe])) if safe.any() else np.inf
+        soft, dmax, dmax_safe = sampled_deltas(seg, Sn, lam, safe)
         DF = d_f(xb, xn, info.x_nom, self.D, nr)
         return BoundStep(
             lam=lam, alpha=float(info.alpha), F_real=Fr, F_nom=Fn,
@@ -189,7 +223,9 @@ class BoundEstimator:
             D=self.D, D_F=DF, t1_gap=float(np.min(gap)), t1_gap_safe=gap_safe,
             n_samples=int(batch.Sx_real.size), n_crashed_real=int(batch.crashed_real.sum()),
             n_crashed_nom=int(batch.crashed_nom.sum()), fallback_used=bool(info.fallback_used),
-            nominal_differs=bool(info.nominal_differs), **self._independent(independent, lam))
+            nominal_differs=bool(info.nominal_differs), delta_sampled=soft,
+            delta_sampled_max=dmax, delta_sampled_max_safe=dmax_safe,
+            **self._independent(independent, lam))
 
     def _independent(self, b: SAISDiagBatch | None, lam: float) -> dict[str, float]:
         if b is None:
