@@ -12,8 +12,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from studies.free_energy_bound import tightness
 from studies.free_energy_bound.findings import all_claims
-from studies.free_energy_bound.paper import LEMMA, READING, assumed_values
+from studies.free_energy_bound.paper import LEMMA, READING, VARIANT, assumed_values
 from studies.free_energy_bound.summary import STRATA, BoundSummary, summarise
 from workbench.study import md_table, png_bytes, supported, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
@@ -133,11 +134,18 @@ def write_report(s: BoundSummary, df: pd.DataFrame, out: Path, assumed, no_barri
                  run_line: str) -> Path:
     out = Path(out)
     for name, fig in (("slack_over_time.png", slack_figure(df)), ("rhs_local_vs_global.png",
-                      rhs_figure(df)), ("tube_radius.png", radius_figure(df))):
+                      rhs_figure(df)), ("tube_radius.png", radius_figure(df)),
+                      ("ratio_over_episode.png", tightness.ratio_figure(df))):
         atomic_write_bytes(out / name, fig)
+    atomic_write_text(out / "tightness.csv", tightness.csv(s))
     claims = all_claims(s, no_barrier_L_q)
     lines = ["# Free-energy bound (Lemma 1): numerical check on the navigation map", "",
-             f"{run_line}", "",
+             *tightness.opening(s), "", f"{run_line}", "",
+             *tightness.tables(s),
+             "![ratio over an episode next to the distance to the nearest obstacle]"
+             "(ratio_over_episode.png)", "",
+             "## A variant that informs: the sampled-tube bound", "", VARIANT, "",
+             *(tightness.supported_variant(s) or ["- (no claim of this kind is supported)"]), "",
              "## Lemma 1 as printed", "", LEMMA, "", "## Reading used (assumptions §11, §13)", "",
              *(f"- {r}" for r in READING), "", "## Assumed values", "",
              *md_table(["what", "value", "source"],
@@ -160,6 +168,7 @@ def summary(finished) -> Summary:
     s = summarise(finished.config, finished.store.table("steps"),
                   finished.store.table("episodes"))
     claims = all_claims(s, shared.no_barrier.L_q)
+    claims["variant"] = tightness.variant_claims(s)
     data = {**to_jsonable(s), "global_constant": to_jsonable(shared.global_),
             "no_barrier_constant": to_jsonable(shared.no_barrier),
             "assumed": assumed_values(finished.config, shared),

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy.stats import norm
 
 from studies.free_energy_bound.config import CONSTANTS
 from studies.free_energy_bound.failures import (
@@ -18,6 +19,7 @@ from studies.free_energy_bound.failures import (
     t1_failures_when_safe,
 )
 from workbench.bound import CheckSummary
+from workbench.bound.tightness import Comparison, Tightness
 from workbench.study import Rate, Spread
 
 # assumptions §11.3 (a), (b) and the nominal-differs split; a transition check (t, t+1) belongs
@@ -57,11 +59,56 @@ class Row(CheckSummary):
             return None
         rate = Rate.of(d[f"{test}_{c}_holds"].to_numpy() == 1.0)
         q = np.quantile(d[f"{test}_{c}_slack"].to_numpy(float), (0.05, 0.5, 0.95))
-        loc, glo = (d[f"{test}_{k}_rhs"].to_numpy(float) for k in CONSTANTS)
-        tloc, tglo = (d[f"{test}_{k}_term"].to_numpy(float) for k in CONSTANTS)
+        loc, glo = (d[f"{test}_{k}_rhs"].to_numpy(float) for k in ("local", "global"))
+        tloc, tglo = (d[f"{test}_{k}_term"].to_numpy(float) for k in ("local", "global"))
         return cls(test, c, stratum, rate.n, rate.k, rate.value, (rate.low, rate.high),
                    *map(float, q), median_ratio(glo, loc), median_ratio(tglo, tloc),
                    variance=variance)
+
+
+@dataclass(frozen=True)
+class TightRow(Tightness):
+    """How tight one test is with one set of constants at one variance (nan: all variances
+    pooled), over the informative steps (R > 0) where it was evaluated
+    (:class:`~workbench.bound.tightness.Tightness`)."""
+
+    test: str = ""
+    constants: str = ""
+    variance: float = float("nan")
+
+    @classmethod
+    def at(cls, df: pd.DataFrame, test: str, c: str, variance: float) -> TightRow:
+        t = Tightness.of(df[f"{test}_{c}_lhs"], df[f"{test}_{c}_rhs"], df["R"])
+        return cls(**{k: getattr(t, k) for k in t.__dataclass_fields__}, test=test,
+                   constants=c, variance=variance)
+
+
+# the decided comparisons (assumptions §11.4): threshold, margin and family level
+THRESHOLD = 10.0
+MARGIN = 0.05
+LEVEL = 0.05
+
+
+@dataclass(frozen=True)
+class Decided(Comparison):
+    """A paired comparison of two sets of constants on one test, all variances pooled
+    (:class:`~workbench.bound.tightness.Comparison`; ``first`` is A, ``second`` B)."""
+
+    test: str = ""
+    first: str = ""
+    second: str = ""
+    level: float = LEVEL  # family-wise, Bonferroni over the comparisons of the run
+
+    @classmethod
+    def at(cls, df: pd.DataFrame, test: str, a: str, b: str, m: int) -> Decided | None:
+        sides = [df[f"{test}_{k}"].to_numpy(float) for k in (f"{a}_lhs", f"{a}_rhs", f"{b}_rhs")]
+        if not ((df["R"].to_numpy(float) > 0) & np.all(np.isfinite(sides), axis=0)).any():
+            return None
+        z = float(norm.ppf(1 - LEVEL / (2 * m)))
+        c = Comparison.of(df[f"{test}_{a}_lhs"], df[f"{test}_{a}_rhs"], df[f"{test}_{b}_rhs"],
+                          df["R"], THRESHOLD, z, MARGIN)
+        return cls(**{k: getattr(c, k) for k in c.__dataclass_fields__}, test=test, first=a,
+                   second=b)
 
 
 @dataclass(frozen=True)
@@ -110,6 +157,20 @@ class BoundSummary:
     t1_failures_safe: tuple[Failure, ...]
     transition_failures: tuple[TransitionFailures, ...]
     t2e_failures: tuple[T2EFailures, ...]
+    tightness: tuple[TightRow, ...] = ()
+    comparisons: tuple[Decided, ...] = ()
+
+    def tight(self, test, constants, variance=float("nan")) -> TightRow | None:
+        """The tightness row (variance nan: all variances pooled)."""
+        def same(v: float) -> bool:
+            return v == variance or (np.isnan(v) and np.isnan(variance))
+
+        return next((r for r in self.tightness if (r.test, r.constants) == (test, constants)
+                     and same(r.variance)), None)
+
+    def decided(self, test, first, second) -> Decided | None:
+        return next((d for d in self.comparisons if (d.test, d.first, d.second)
+                     == (test, first, second)), None)
 
     def row(self, test, constants, variance, stratum="all") -> Row | None:
         return next((r for r in self.rows if (r.test, r.constants, r.variance, r.stratum)
@@ -128,5 +189,12 @@ def summarise(config, steps: pd.DataFrame, episodes: pd.DataFrame) -> BoundSumma
                   for c in CONSTANTS)
     t2e = tuple(T2EFailures.of(steps[steps["variance"] == v], v) for v in config.variances
                 if "T2E" in config.tests)
+    tight = [TightRow.at(steps[steps["variance"] == v], t, c, v) for t in config.tests
+             for c in CONSTANTS for v in config.variances]
+    tight += [TightRow.at(steps, t, c, float("nan")) for t in config.tests for c in CONSTANTS]
+    pairs = (("local", "global"), ("sampled", "local"))
+    m = len(config.tests) * len(pairs)
+    dec = tuple(d for t in config.tests for a, b in pairs
+                if (d := Decided.at(steps, t, a, b, m)) is not None)
     return BoundSummary(config.as_dict(), tuple(rows), tuple(facts),
-                        tuple(t1_failures_when_safe(steps)), trans, t2e)
+                        tuple(t1_failures_when_safe(steps)), trans, t2e, tuple(tight), dec)

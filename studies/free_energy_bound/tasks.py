@@ -15,6 +15,7 @@ from workbench.bound import BoundEstimator, BoundStep, episode_checks, independe
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
 from workbench.study.spec import Declaration
+from workbench.validation import as_array
 
 
 @dataclass(frozen=True)
@@ -57,13 +58,17 @@ class Recorder:
         return state, u, replace(info, batch=None)
 
 
-def step_rows(records: list[BoundStep]) -> dict[str, np.ndarray]:
+def step_rows(records: list[BoundStep], clearance=None) -> dict[str, np.ndarray]:
     """One row per step: estimator values, strata flags and every check's holds (1/0, nan where
     not evaluated: T3* at an episode's last step, T2E without an independent batch, T1s when no
-    sample pair stayed safe), slack, lhs, rhs and Lipschitz term, local and global."""
+    sample pair stayed safe), slack, lhs, rhs and Lipschitz term, per set of constants (local,
+    global, sampled tube); ``clearance`` (one per step: the measured position's distance to the
+    nearest obstacle's edge) or nan."""
     n = len(records)
     checks = episode_checks(records)
     col = {"step": np.arange(n)}
+    col["clearance"] = (np.full(n, np.nan) if clearance is None
+                        else as_array("clearance", clearance, (n,)))
 
     def put(name, f, dtype=float):
         col[name] = np.array([f(s) for s in records], dtype=dtype)
@@ -78,7 +83,8 @@ def step_rows(records: list[BoundStep]) -> dict[str, np.ndarray]:
         "secant_phi": lambda s: s.local.secant_phi, "L_q_global": lambda s: s.global_.L_q,
         "L_phi_global": lambda s: s.global_.L_phi, "D": lambda s: s.D, "D_F": lambda s: s.D_F,
         "delta_local": lambda s: s.delta("local"), "delta_global": lambda s: s.delta("global"),
-        "F_nom_ind": lambda s: s.F_nom_ind,
+        "F_nom_ind": lambda s: s.F_nom_ind, "delta_sampled": lambda s: s.delta_sampled,
+        "delta_sampled_max": lambda s: s.delta_sampled_max,
     }.items():
         put(name, f)
     for name, f in {"n_q": lambda s: s.n_q, "n_samples": lambda s: s.n_samples,
@@ -124,11 +130,14 @@ def run_task(task: Episode, ctx: TaskContext, config: StudyConfig, shared: Share
     rec = Recorder(est, ctx.rng(2), config.independent)
     ep = closed_loop(rec, nav.plant, nav.x0, task.steps, ctx.rng(0), ctx.rng(1), dist,
                      keep_infos=False)
+    P = ep.X[: len(rec.records), :2]
+    clear = np.min([np.linalg.norm(P - np.asarray(o.center), axis=1) - o.radius
+                    for o in nav.plant.obstacles], axis=0) if nav.plant.obstacles else None
     row = {"crashed": bool(ep.crashed), "n_steps": len(rec.records),
            "final_distance": float(np.linalg.norm(ep.X[-1, :2] - nav.goal[:2]))}
     meta = {"step_ms_median": float(1e3 * np.median(rec.step_s)),  # timing: not a result
             "bound_ms_median": float(1e3 * np.median(rec.bound_s))}
-    return TaskOutput(tables={"steps": step_rows(rec.records),
+    return TaskOutput(tables={"steps": step_rows(rec.records, clear),
                               "episodes": {k: np.array([v]) for k, v in row.items()}},
                       arrays={"path": ep.X[:, :2]}, meta=meta)
 

@@ -129,7 +129,7 @@ def test_summary_rows_recomputed_from_the_table(tiny):
         got = np.nan if r["rhs_ratio"] is None else r["rhs_ratio"]
         assert got == pytest.approx(ratio, nan_ok=True)
         seen += 1
-    n_tests = len(cfg.tests) * 2 * len(cfg.variances)
+    n_tests = len(cfg.tests) * 3 * len(cfg.variances)  # local, global, sampled
     assert sum(r["stratum"] == "all" for r in s["rows"]) == n_tests and seen > n_tests
     for v in s["variances"]:
         d = df[df["variance"] == v["variance"]]
@@ -137,6 +137,49 @@ def test_summary_rows_recomputed_from_the_table(tiny):
         assert v["n_nominal_differs"] == int(d["nominal_differs"].sum())
         assert v["n_all_real_safe"] == int(d["all_real_safe"].sum())
         assert v["n_fallback"] == int(d["fallback_used"].sum())
+
+
+def test_sampled_checks_and_tightness_recomputed_from_the_table(tiny):
+    """The sampled-tube bound's columns (δ_λ <= max_n δ_n <= δ_local), its checks, the
+    tightness rows (ratios over steps with R > 0 and LHS > 0), the comparisons' counts, and
+    the report's opening (one sentence per test) and new outputs."""
+    cfg, out, _ = tiny
+    df = pd.read_parquet(out / "steps.parquet")
+    tol = 1e-12
+    assert np.all(df["delta_sampled"] <= df["delta_sampled_max"] * (1 + tol))
+    assert np.all(df["delta_sampled_max"] <= df["delta_local"] * (1 + tol))
+    assert np.all(df.loc[df["R"] == 0, "delta_sampled_max"] == 0.0)
+    np.testing.assert_allclose(df["T2_sampled_rhs"], df["F_nom"] + df["delta_sampled"],
+                               rtol=1e-12)
+    np.testing.assert_allclose(df["T1_sampled_rhs"], df["delta_sampled_max"], rtol=1e-12)
+    assert np.all(np.isfinite(df["clearance"]))
+    s = json.loads((out / "summary.json").read_text())
+    assert len(s["tightness"]) == len(cfg.tests) * 3 * (len(cfg.variances) + 1)
+    for r in s["tightness"]:
+        d = df if r["variance"] is None else df[df["variance"] == r["variance"]]
+        p = f"{r['test']}_{r['constants']}_"
+        d = d[(d["R"] > 0) & d[p + "lhs"].notna() & d[p + "rhs"].notna()]
+        lhs, rhs = d[p + "lhs"].to_numpy(), d[p + "rhs"].to_numpy()
+        assert (r["n"], r["n_lhs_nonpositive"], r["n_holding"]) == (
+            len(d), int(np.sum(lhs <= 0)), int(np.sum(lhs <= rhs)))
+        ratio = rhs[lhs > 0] / lhs[lhs > 0]
+        want = [np.quantile(ratio, q) for q in (0.05, 0.25, 0.5, 0.75, 0.95)] if ratio.size \
+            else [None] * 5
+        got = r["ratio_quantiles"]
+        assert [np.nan if g is None else g for g in got] == pytest.approx(
+            [np.nan if w is None else w for w in want], rel=1e-12, nan_ok=True)
+        assert r["n_informative"] == [int(np.sum((ratio >= 1) & (ratio <= c)))
+                                      for c in (2.0, 10.0, 100.0)]
+    assert s["comparisons"], "no comparison on the tiny run"
+    for c in s["comparisons"]:
+        assert c["verdict"] in ("better", "worse", "equivalent", "undecided")
+        assert c["low"] <= c["difference"] <= c["high"]
+    report = (out / "report.md").read_text()
+    opening = report.split("\n\n")[1].splitlines()
+    assert [line.split("**")[1] for line in opening] == list(cfg.tests)
+    for name in ("tightness.csv", "ratio_over_episode.png"):
+        assert (out / name).stat().st_size > 0
+    assert "Lemma 1' (the sampled-tube bound)" in report
 
 
 def test_claims_printed_iff_they_hold(tiny):
