@@ -112,6 +112,35 @@ class Decided(Comparison):
 
 
 @dataclass(frozen=True)
+class VariantFailures:
+    """Where the sampled-tube bound fails on one test, over the informative steps (R > 0) where
+    it was evaluated, all variances pooled: failures, those at a step where some real sample
+    crashed (outside the lemma's premise of a forward-invariant safe set), those whose
+    nominal state was not admissible (F̂_nom > alpha; at t+1 for T3c, T3d), and the check
+    over the informative steps where every real sample stayed safe."""
+
+    test: str
+    n: int
+    n_failed: int
+    n_failed_crashed: int
+    n_failed_premise: int
+    n_safe: int
+    n_safe_holding: int
+
+    @classmethod
+    def of(cls, df: pd.DataFrame, test: str) -> VariantFailures:
+        h = df[f"{test}_sampled_holds"].to_numpy(float)
+        use = np.isfinite(h) & (df["R"].to_numpy(float) > 0)
+        bad = use & (h == 0.0)
+        safe = df["all_real_safe"].to_numpy(bool)
+        adm = df["nominal_admissible_next" if test in ("T3c", "T3d")
+                 else "nominal_admissible"].to_numpy(bool)
+        return cls(test, int(use.sum()), int(bad.sum()), int((bad & ~safe).sum()),
+                   int((bad & ~adm).sum()), int((use & safe).sum()),
+                   int((use & safe & (h == 1.0)).sum()))
+
+
+@dataclass(frozen=True)
 class VarianceFacts:
     """Counts and magnitudes at one variance (medians over steps unless said)."""
 
@@ -159,6 +188,7 @@ class BoundSummary:
     t2e_failures: tuple[T2EFailures, ...]
     tightness: tuple[TightRow, ...] = ()
     comparisons: tuple[Decided, ...] = ()
+    variant_failures: tuple[VariantFailures, ...] = ()
 
     def tight(self, test, constants, variance=float("nan")) -> TightRow | None:
         """The tightness row (variance nan: all variances pooled)."""
@@ -197,4 +227,5 @@ def summarise(config, steps: pd.DataFrame, episodes: pd.DataFrame) -> BoundSumma
     dec = tuple(d for t in config.tests for a, b in pairs
                 if (d := Decided.at(steps, t, a, b, m)) is not None)
     return BoundSummary(config.as_dict(), tuple(rows), tuple(facts),
-                        tuple(t1_failures_when_safe(steps)), trans, t2e, tuple(tight), dec)
+                        tuple(t1_failures_when_safe(steps)), trans, t2e, tuple(tight), dec,
+                        tuple(VariantFailures.of(steps, t) for t in config.tests))
