@@ -77,27 +77,29 @@ def assumed_values(config: StudyConfig, shared: Shared) -> list[dict[str, str]]:
         {"name": "global grid", "value": shared.grid, "source": "[A] workbench.bound"},
     ]
 
-VARIANT = r"""**Lemma 1' (the sampled-tube bound).** For sample $n$ of a batch let $e_{nk} = x^n_k -
-x^{*n}_k$ and let $G^q_{nk}$, $G^\phi_{nT}$ be the largest $\|\nabla\tilde q\|$, $\|\nabla\tilde
-\phi\|$ on the segment from $x^{*n}_k$ to $x^n_k$. With
-$\delta_n = \sum_{k=1}^{T} G^q_{nk}\|e_{nk}\| + G^\phi_{nT}\|e_{nT}\|$ and the nominal batch's
-weights $w^*_n \propto \exp(-S^*_n/\lambda)$,
-
-$$S_n \le S^*_n + \delta_n \ \text{for every } n, \qquad
-\hat F_{real} \le \hat F_{nom} + \delta_\lambda, \quad
-\delta_\lambda = -\lambda \log \sum_n w^*_n e^{-\delta_n/\lambda}
-\le \sum_n w^*_n \delta_n \le \max_n \delta_n \le (L_\phi + T L_q) R .$$
-
-*Derivation.* (i) On each segment the mean-value theorem gives
-$|q(x^n_k) - q(x^{*n}_k)| \le G^q_{nk}\|e_{nk}\|$ (and likewise for $\phi$); summing over the
-$T$ running terms and the terminal term gives $S_n - S^*_n \le \delta_n$ (the likelihood ratio is
-the same for both systems, so it cancels). (ii) $\hat F(S) = -\lambda\log\frac1N\sum_n
-e^{-S_n/\lambda}$ is increasing in every $S_n$, so $\hat F_{real} \le \hat F(S^* + \delta) =
-\hat F_{nom} - \lambda\log\sum_n w^*_n e^{-\delta_n/\lambda}$. (iii) By Jensen's inequality
-($e^{-x}$ is convex) the last term is at most $\sum_n w^*_n\delta_n$, and each $\delta_n \le
-(L_\phi + T L_q) R$ because $G_{nk} \le L$ and $\|e_{nk}\| \le R$: the variant is never looser than
-the proof's $\delta$. The checks T1-T3d are repeated with $\delta_\lambda$ in place of $\delta$
-(T1, T1s: $\max_n \delta_n$ bounds the largest per-sample gap); as for the local constants, the
-segment maxima are taken at five points per segment, points inside obstacles excluded.
-It localises twice: per segment rather than over the tube, and weighted by the samples that
-carry the free energy rather than by the worst one."""
+VARIANT = "\n".join((
+    r"**Lemma 1' (the sampled-tube bound).** For sample $n$ of a batch let "
+    r"$e_{nk} = x^n_k - x^{*n}_k$ and let $G^q_{nk}$, $G^\phi_{nT}$ be the largest "
+    r"$\|\nabla\tilde q\|$, $\|\nabla\tilde\phi\|$ on the segment from $x^{*n}_k$ to $x^n_k$. "
+    r"With $\delta_n = \sum_{k=1}^{T} G^q_{nk}\|e_{nk}\| + G^\phi_{nT}\|e_{nT}\|$ and the "
+    r"nominal batch's weights $w^*_n \propto \exp(-S^*_n/\lambda)$,",
+    "",
+    r"$$S_n \le S^*_n + \delta_n \ \text{for every } n, \qquad \hat F_{real} \le \hat F_{nom} + "
+    r"\delta_\lambda, \quad \delta_\lambda = -\lambda \log \sum_n w^*_n e^{-\delta_n/\lambda} "
+    r"\le \sum_n w^*_n \delta_n \le \max_n \delta_n \le (L_\phi + T L_q) R .$$",
+    "",
+    r"**Derivation.** (i) On each segment the mean-value theorem gives "
+    r"$|q(x^n_k) - q(x^{*n}_k)| \le G^q_{nk}\|e_{nk}\|$ (and likewise for $\phi$); summing over "
+    r"the $T$ running terms and the terminal term gives $S_n - S^*_n \le \delta_n$ (the "
+    r"likelihood ratio is the same for both systems, so it cancels). (ii) "
+    r"$\hat F(S) = -\lambda\log\frac1N\sum_n e^{-S_n/\lambda}$ is increasing in every $S_n$, so "
+    r"$\hat F_{real} \le \hat F(S^* + \delta) = \hat F_{nom} - \lambda\log\sum_n w^*_n "
+    r"e^{-\delta_n/\lambda}$. (iii) By Jensen's inequality ($e^{-x}$ is convex) the last term is "
+    r"at most $\sum_n w^*_n\delta_n$, and each $\delta_n \le (L_\phi + T L_q) R$ because "
+    r"$G_{nk} \le L$ and $\|e_{nk}\| \le R$: the variant is never looser than the proof's "
+    r"$\delta$. The checks T1-T3d are repeated with $\delta_\lambda$ in place of $\delta$ (T1, "
+    r"T1s: $\max_n \delta_n$ bounds the largest per-sample gap); as for the local constants, "
+    "the segment maxima are taken at five points per segment, points inside obstacles "
+    "excluded. It localises twice: per segment rather than over the tube, and weighted by the "
+    "samples that carry the free energy rather than by the worst one.",
+))

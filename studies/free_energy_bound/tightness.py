@@ -64,7 +64,7 @@ def opening(s: BoundSummary) -> list[str]:
 
 def tables(s: BoundSummary) -> list[str]:
     def label(v: float) -> str:
-        return "all" if np.isnan(v) else f"{v:g}"
+        return 'all' if np.isnan(v) else f"{v:g}"
 
     tight = md_table(
         ["variance", "test", "constants", "informative steps", "LHS <= 0", "holds",
@@ -86,17 +86,17 @@ def tables(s: BoundSummary) -> list[str]:
     return ["## How tight: right-hand side over left-hand side", "",
             "Informative steps: R > 0 (nominal and real samples differ, so the Lipschitz term "
             "is not zero). The ratio RHS/LHS is taken where LHS > 0; steps with LHS <= 0 are "
-            "counted apart. A bound is *informative at c* on a step when LHS > 0 and "
+            "counted apart. A bound is 'informative at c' on a step when LHS > 0 and "
             "LHS <= RHS <= c LHS; shares are of all informative steps, with Wilson 95 % "
-            "intervals. Variance *all*: every variance pooled.", "", *tight, "",
+            "intervals. Variance 'all': every variance pooled.", "", *tight, "",
             "## Local against global constants, and the sampled-tube bound against the "
             "local form (decided)", "",
             f"Paired by step over the informative steps, every variance pooled: the share "
             f"informative at {THRESHOLD:g} with A minus that with B, Tango's score interval; "
             f"the median of RHS_B / RHS_A with the sign test's interval. The {m} comparisons "
-            f"share a family-wise level of 0.05 (Bonferroni). Verdict: *better* (interval "
-            f"above 0), *worse* (below 0), *equivalent* (inside ±{100 * MARGIN:g} points), "
-            "else *undecided*. The intervals treat steps as independent; consecutive steps "
+            f"share a family-wise level of 0.05 (Bonferroni). Verdict: 'better' (interval "
+            f"above 0), 'worse' (below 0), 'equivalent' (inside ±{100 * MARGIN:g} points), "
+            "else 'undecided'. The intervals treat steps as independent; consecutive steps "
             "of an episode are not, so they are narrower than a clustered interval would be.",
             "", *comp, ""]
 

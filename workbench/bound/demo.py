@@ -84,7 +84,7 @@ def main(argv=None) -> None:
     print(f"\n{'test':5} {'const':6} {'n':>3} {'holds':>5} {'95% interval':>13} {'med slack':>10} "
           f"{'5% slack':>10} {'glob/loc term':>13} | holds: all real safe, nominal differs")
     for r in (r for r in rows if r.stratum == "all"):
-        ratio = "" if r.constants == "local" else f"{r.term_ratio:.3g}"
+        ratio = "" if r.constants != "global" else f"{r.term_ratio:.3g}"
         extra = [get.get((r.test, r.constants, k)) for k in ("all_real_safe", "nominal_differs")]
         extra_s = ", ".join(f"{e.fraction_holding:.2f} of {e.n_steps}" if e else "-"
                             for e in extra)
