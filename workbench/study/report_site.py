@@ -200,7 +200,7 @@ def markdown_html(text: str, docs: str | None = None) -> str:
     body = markdown.markdown(_link_refs(text, docs), extensions=[*MD_EXTENSIONS, NoRawHtml()])
     body = _SHORT_CELL.sub(r'<\1 class="nw">\2</\1>', body)
     body = re.sub(rf"WBMATH{tag}N(\d+)X",
-                  lambda m: clean_html(formulas[int(m.group(1))], MATHML_TAGS), body)
+                  lambda m: clean_html(formulas[int(m.group(1))], MATHML_TAGS | {"code"}), body)
     return clean_html(body).replace("<table>", "<div class=\"wide\"><table>").replace(
         "</table>", "</table></div>")
 
