@@ -161,5 +161,5 @@ def test_circle_scene_checks_its_input():
         CircleScene([(1, 2, 0.5), (5, 5, 1.0)], goal=(5.2, 5.0))
     with pytest.raises(ValueError, match=r"CircleScene.circles\[0\]"):
         CircleScene([(1, 2)])
-    with pytest.raises(ValueError, match=r"Circle\.radius"):
+    with pytest.raises(ValueError, match=r"CircleScene\.circles\[0\] .*radius .* must be > 0"):
         CircleScene([(1, 2, -1)])

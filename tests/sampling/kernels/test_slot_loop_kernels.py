@@ -43,11 +43,11 @@ def _problems() -> dict:
     c, r = sc[k, :2], sc[k, 2]
     d = np.array([-1.0, -0.4]) / np.hypot(1.0, 0.4)
     out["nav30"] = (sp, sp.model.scene_value, np.r_[c + (r + 0.3) * d, -0.5 * d], nav.goal)
-    # 9 slots (odd): 4 pairs in the loop and a last slot; an empty slot (radius 0) near the path
-    # and an inert one far away between real circles; gamma != 0 (the sums at x_k as well)
+    # 9 slots (odd): 4 pairs in the loop and a last slot; a small circle near the path and an
+    # unused (inert) slot between real circles; gamma != 0 (the sums at x_k as well)
     di = double_integrator(obstacles=(Circle((2.0, 2.0), 0.8),), u_limit=5.0, scene_capacity=9)
     sp9 = navigation_costs(embed_barrier(di, BarrierOptions(gamma=0.4)))
-    scene9 = _scene([(2.0, 2.0, 0.8), (3.2, 1.0, 0.5), (1.5, 1.5, 0.0),
+    scene9 = _scene([(2.0, 2.0, 0.8), (3.2, 1.0, 0.5), (1.5, 1.5, 0.05),
                      (1.0, 3.0, 0.6), (INERT_CENTER, INERT_CENTER, 0.0), (3.0, 3.0, 0.7),
                      (2.4, 0.5, 0.4), (0.4, 2.3, 0.3), (2.0, 3.6, 0.5)])
     out["odd9_gamma"] = (sp9, scene9, np.array([0.9, 0.9, 0.8, 0.8]),
