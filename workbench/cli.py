@@ -160,7 +160,8 @@ def cmd_show_config(args) -> int:
 
 def cmd_run(args) -> int:
     from workbench.study.execute import check_timeout
-    from workbench.study.runner import dry_manifest, resolve_config
+    from workbench.study.runner import declare, resolve_config
+    from workbench.study.store import study_manifest
     from workbench.validation import writable_dir
 
     entry = _entry(args.study)
@@ -176,12 +177,13 @@ def cmd_run(args) -> int:
     if args.dry_run:
         from workbench.study.io import dumps_json
 
-        manifest = dry_manifest(entry, cfg)
+        declared = declare(entry, cfg)  # once: a large study declares in seconds
+        manifest = study_manifest(declared[0])
         print(dumps_json({"profile": profile, **manifest}, indent=1, sort_keys=True))
         out = args.out or entry.default_out
-        print(estimate(entry, cfg, manifest["n_tasks"], out, args.workers, args.scheduler),
-              file=sys.stderr)
-        staged = staged_estimate(entry, cfg, args.workers, args.scheduler)
+        print(estimate(entry, cfg, manifest["n_tasks"], out, args.workers, args.scheduler,
+                       declared), file=sys.stderr)
+        staged = staged_estimate(entry, cfg, args.workers, args.scheduler, declared)
         if staged:
             print(staged, file=sys.stderr)
         return 0
@@ -229,24 +231,26 @@ def _record(d: Path, study: str) -> dict | None:
     return rec if ok else None
 
 
-def _stored(entry, cfg, out: Path) -> int:
+def _stored(entry, cfg, out: Path, declared=None) -> int:
     """How many of the config's tasks ``out`` already holds a file for (read only: nothing is
-    created; a file that later proves corrupt is counted)."""
+    created; a file that later proves corrupt is counted). ``declared``: the config's
+    (study, plan) when already declared."""
     from workbench.study.runner import declare
 
     tasks = Path(out) / "tasks"
     if not tasks.is_dir():
         return 0
     present = {p.stem for p in tasks.glob("*.npz")}
-    return len(present.intersection(declare(entry, cfg)[0].task_ids()))
+    study = (declared or declare(entry, cfg))[0]
+    return len(present.intersection(study.task_ids()))
 
 
 def estimate(entry, cfg, n_tasks: int, out: Path, workers: int,
-             scheduler: str | None) -> str:
+             scheduler: str | None, declared=None) -> str:
     """One line for a dry run: the task count, how many are stored already, and the time the
     rest would take, estimated from the last run's wall time per task (run.json in ``out`` or
     in the study's default folder) scaled to ``workers``; "unknown" without such a record."""
-    stored = _stored(entry, cfg, out)
+    stored = _stored(entry, cfg, out, declared)
     todo = n_tasks - stored
     head = (f"dry run: {n_tasks} tasks" + (f" ({stored} already stored in {out}, {todo} to "
                                             "compute)" if stored else ""))
@@ -270,14 +274,15 @@ def estimate(entry, cfg, n_tasks: int, out: Path, workers: int,
             f"{entry.default_out} to time a task)")
 
 
-def staged_estimate(entry, cfg, workers: int, scheduler: str | None) -> str | None:
+def staged_estimate(entry, cfg, workers: int, scheduler: str | None,
+                    declared=None) -> str | None:
     """For a study that runs in rounds (group-sequential): the tasks of its first round and
     of every round, and, when the study's plan has a cost model (``plan.cost_s(task)``:
     seconds of one core per task), the time of each on ``workers``; None for a study
     without rounds."""
     from workbench.study.runner import declare
 
-    study, plan = declare(entry, cfg)
+    study, plan = declared or declare(entry, cfg)
     if study.stages is None:
         return None
     first = study.stage(lambda task: None)

@@ -65,9 +65,12 @@ def columns(task: Any) -> dict[str, Any]:
     return out
 
 
+def _json(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=True)
+
+
 def _digest(obj: Any) -> str:
-    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=True)
-    return hashlib.sha256(text.encode()).hexdigest()
+    return hashlib.sha256(_json(obj).encode()).hexdigest()
 
 
 def stream_key(task: Any) -> tuple[int, ...]:
@@ -167,25 +170,34 @@ class Study:
             except Exception as exc:
                 raise fail(name, obj, "must be picklable (a module-level function or a "
                            "functools.partial of one)") from exc
+        for name in ("fingerprint", "config"):
+            try:
+                json.dumps(getattr(self, name), sort_keys=True)
+            except (TypeError, ValueError) as exc:
+                raise fail(name, getattr(self, name), "must be JSON-serialisable") from exc
+        # the id's JSON up to the task (keys sorted: fingerprint, seed, study, task, version),
+        # written once; every task's id is then hashed once (a large study's fingerprint was
+        # serialised again for each of its tasks, at every call)
+        object.__setattr__(self, "_id_head", ('{"fingerprint":' + _json(self.fingerprint)
+                                              + ',"seed":' + _json(self.seed) + ',"study":'
+                                              + _json(self.name) + ',"task":').encode())
+        object.__setattr__(self, "_ids", tuple(self.task_id(t) for t in self.tasks))
         ids = self.task_ids()
         if len(set(ids)) != len(ids):
             seen: set[str] = set()
             dup = next(t for t, i in zip(self.tasks, ids, strict=True)
                        if i in seen or seen.add(i))
             raise fail("tasks", dup, "declared twice; each task must be unique")
-        for name in ("fingerprint", "config"):
-            try:
-                json.dumps(getattr(self, name), sort_keys=True)
-            except (TypeError, ValueError) as exc:
-                raise fail(name, getattr(self, name), "must be JSON-serialisable") from exc
 
     def task_id(self, task: Any) -> str:
         """16 hex digits naming a task's result: study, version, seed, fingerprint, task."""
-        return _digest({"study": self.name, "version": self.version, "seed": self.seed,
-                        "fingerprint": self.fingerprint, "task": describe(task)})[:16]
+        h = hashlib.sha256(self._id_head)  # type: ignore[attr-defined]
+        h.update(f'{_json(describe(task))},"version":{_json(self.version)}}}'.encode())
+        return h.hexdigest()[:16]
 
     def task_ids(self) -> list[str]:
-        return [self.task_id(t) for t in self.tasks]
+        """Every task's id, in the order of ``tasks`` (computed once)."""
+        return list(self._ids)  # type: ignore[attr-defined]
 
     def stage(self, outputs: Outputs) -> list[Any]:
         """The tasks to have finished now, in dispatch order: every task without ``stages``;
