@@ -151,5 +151,6 @@ def embed_barrier(model: Model, options: BarrierOptions | None = None) -> Model:
         scene=model.scene,
         scene_value=model.scene_value,
         scene_capacity=model.scene_capacity,
+        scene_layout=model.scene_layout,
         state_units=None if model.state_units is None else model.state_units + ("",) * len(names),
     )

@@ -36,6 +36,7 @@ from workbench.problem.obstacles import (
     slot_margins,
     slots_valid,
 )
+from workbench.problem.scene_layout import SceneLayout
 from workbench.validation import (
     as_array,
     bounds,
@@ -82,8 +83,9 @@ class Model:
     lift_expr: ca.SX | None = field(default=None, repr=False)  # full state in physical symbols
     scene: ca.SX = field(default_factory=lambda: ca.SX(0, 1), repr=False)
     scene_value: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
-    scene_capacity: int = 0  # circle slots of the scene (0: no circle slots)
+    scene_capacity: int = 0  # circle slots of a circle-only scene (0: none, or a layout)
     state_units: tuple[str, ...] | None = None
+    scene_layout: SceneLayout | None = None  # obstacles of several kinds (scene_capacity 0)
 
     def __post_init__(self) -> None:
         _check_sizes(self.x, self.u, "Model.")
@@ -114,6 +116,8 @@ class Model:
             return self.scene_value
         if self.scene_capacity:
             return scene_vector(scene, self.scene_capacity)
+        if self.scene_layout is not None:
+            return self.scene_layout.vector(scene)
         v = as_array("scene", scene, (self.n_scene,))
         return v.copy()
 
@@ -126,7 +130,8 @@ class Model:
             return self.scene_value
         if (isinstance(scene, np.ndarray) and scene.dtype == np.float64
                 and scene.shape == (self.n_scene,) and np.isfinite(scene).all()
-                and (not self.scene_capacity or slots_valid(scene))):
+                and (not self.scene_capacity or slots_valid(scene))
+                and (self.scene_layout is None or self.scene_layout.valid(scene))):
             return scene
         return self.scene_vector(scene)
 
@@ -150,6 +155,7 @@ class Model:
         scene_value=None,
         scene_capacity: int = 0,
         state_units: tuple[str, ...] | None = None,
+        scene_layout: SceneLayout | None = None,
     ) -> Model:
         """Validate and wrap user CasADi expressions into a Model (the user-model entry point).
 
@@ -157,7 +163,10 @@ class Model:
         ``scene_value`` by default and changed per call by the controllers; with
         ``scene_capacity`` slots the default has every slot unused); build a circle scene
         with :func:`~workbench.problem.obstacles.scene_symbol` and
-        :func:`~workbench.problem.obstacles.slot_margins` (``scene_capacity`` = its slots).
+        :func:`~workbench.problem.obstacles.slot_margins` (``scene_capacity`` = its slots),
+        or obstacles of several kinds with a
+        :class:`~workbench.problem.scene_layout.SceneLayout` (``scene_layout``; ``scene`` its
+        ``symbol()``, ``h`` from its ``margins``; the default has every slot unused).
         ``state_units``: one string per state ("" for a state without a unit), used to label
         plots; None (default) labels them by name alone."""
         for fname, sym in (("x", x), ("u", u)):
@@ -178,7 +187,18 @@ class Model:
         if scene_capacity and 3 * scene_capacity != scene.numel():
             raise fail("scene_capacity", scene_capacity,
                        f"a circle scene has 3 entries per slot; the scene has {scene.numel()}")
-        if scene_capacity:  # circles, or every slot unused (never a point at the origin)
+        if scene_layout is not None:
+            if not isinstance(scene_layout, SceneLayout):
+                raise fail("scene_layout", scene_layout, "must be a SceneLayout")
+            if scene_capacity:
+                raise fail("scene_capacity", scene_capacity, "give either scene_capacity "
+                           "(circles) or scene_layout (its circles are SceneLayout slots)")
+            if scene_layout.size != scene.numel():
+                raise fail("scene_layout", scene_layout, f"describes {scene_layout.size} "
+                           f"scene entries; the scene has {scene.numel()}")
+            sv = (scene_layout.inert() if scene_value is None
+                  else scene_layout.vector(scene_value, "scene_value"))
+        elif scene_capacity:  # circles, or every slot unused (never a point at the origin)
             sv = (np.tile(INERT_SLOT, scene_capacity) if scene_value is None
                   else _circle_scene_value(scene_value, scene_capacity))
         else:
@@ -220,6 +240,7 @@ class Model:
             state_names=tuple(sn), control_names=tuple(cn), position=position,
             obstacles=tuple(obstacles), n_physical=nx, lift_expr=x, scene=scene,
             scene_value=sv, scene_capacity=int(scene_capacity), state_units=state_units,
+            scene_layout=scene_layout,
         )
 
     @functools.cached_property
@@ -273,7 +294,9 @@ def margin_violation(model: Model, h: np.ndarray, eps: float = 0.0) -> str | Non
         return None
     i = int(bad[np.argmin(np.nan_to_num(h[bad], nan=-np.inf))])
     v = h[i]
-    obstacle = i < (model.scene_capacity or len(model.obstacles))
+    n_obstacles = (model.scene_layout.n_margins if model.scene_layout is not None
+                   else model.scene_capacity or len(model.obstacles))
+    obstacle = i < n_obstacles
     what = (f"obstacle {i}" if obstacle else
             f"constraint h[{i}] > 0 of the model (a state limit or a constraint of its h(x))")
     if np.isnan(v):
@@ -322,11 +345,13 @@ def double_integrator(
     inflation: float = 0.0,
     scene_capacity: int | None = None,
     runtime_obstacles: bool = True,
+    scene_layout: SceneLayout | None = None,
 ) -> Model:
     """Planar double integrator x = [px, py, vx, vy], u = [ax, ay] (assumptions §2.1-§2.2).
 
     The obstacles are the default scene of ``scene_capacity`` circle slots (default: one per
-    obstacle); ``runtime_obstacles=False`` bakes them in as constants."""
+    obstacle); ``runtime_obstacles=False`` bakes them in as constants; ``scene_layout`` holds
+    obstacles of several kinds (half-planes, capsules, a signed-distance grid, ...)."""
     one_of("integrator", integrator, INTEGRATORS)
     x = ca.SX.sym("x", 4)
     u = ca.SX.sym("u", 2)
@@ -338,7 +363,8 @@ def double_integrator(
         "double_integrator", x, u, x_next, dt=dt, u_min=lo, u_max=hi,
         state_names=("px", "py", "vx", "vy"), control_names=("ax", "ay"),
         position=(0, 1), state_units=("m", "m", "m/s", "m/s"),
-        **circle_scene(p, obstacles, h_form, inflation, scene_capacity, runtime_obstacles),
+        **circle_scene(p, obstacles, h_form, inflation, scene_capacity, runtime_obstacles,
+                       scene_layout),
     )
 
 
@@ -351,6 +377,7 @@ def single_integrator(
     inflation: float = 0.0,
     scene_capacity: int | None = None,
     runtime_obstacles: bool = True,
+    scene_layout: SceneLayout | None = None,
 ) -> Model:
     """Planar single integrator x = [px, py], u = [vx, vy] (assumptions §2.4); obstacles as in
     :func:`double_integrator`."""
@@ -361,18 +388,36 @@ def single_integrator(
         "single_integrator", x, u, x + dt * u, dt=dt, u_min=lo, u_max=hi,
         state_names=("px", "py"), control_names=("vx", "vy"), position=(0, 1),
         state_units=("m", "m"),
-        **circle_scene(x, obstacles, h_form, inflation, scene_capacity, runtime_obstacles),
+        **circle_scene(x, obstacles, h_form, inflation, scene_capacity, runtime_obstacles,
+                       scene_layout),
     )
 
 
 def circle_scene(p, obstacles, h_form: HForm = "squared", inflation: float = 0.0,
-                 scene_capacity: int | None = None, runtime_obstacles: bool = True) -> dict:
+                 scene_capacity: int | None = None, runtime_obstacles: bool = True,
+                 scene_layout: SceneLayout | None = None) -> dict:
     """Keyword arguments of :meth:`Model.from_expressions` for circular obstacles around the
     position ``p`` (2 SX entries): ``h``, ``obstacles`` and, with run-time obstacles, the
     ``scene`` symbol of ``scene_capacity`` slots (default: one per obstacle; at most
-    :data:`MAX_SCENE_SLOTS`) and its value."""
-    obstacles = tuple(obstacles)
+    :data:`MAX_SCENE_SLOTS`) and its value. With ``scene_layout`` the scene holds obstacles of
+    several kinds (``obstacles`` then any that fit it, see
+    :class:`~workbench.problem.scene_layout.SceneLayout`)."""
     flag("runtime_obstacles", runtime_obstacles)
+    if scene_layout is not None:
+        if not isinstance(scene_layout, SceneLayout):
+            raise fail("scene_layout", scene_layout, "must be a SceneLayout")
+        if scene_capacity is not None or not runtime_obstacles:
+            raise fail("scene_layout", scene_layout, "is a run-time scene: give it without "
+                       "scene_capacity and with runtime_obstacles=True")
+        if p.numel() != scene_layout.dim:
+            raise fail("scene_layout.dim", scene_layout.dim,
+                       f"must be the position's dimension, {p.numel()}")
+        s = scene_layout.symbol()
+        value = scene_layout.vector(list(obstacles), "obstacles")
+        return {"h": scene_layout.margins(p, s, h_form, inflation),
+                "obstacles": tuple(o for o in obstacles if isinstance(o, Circle)),
+                "scene": s, "scene_value": value, "scene_layout": scene_layout}
+    obstacles = tuple(obstacles)
     if not runtime_obstacles:
         if scene_capacity is not None:
             raise fail("scene_capacity", scene_capacity,

@@ -14,6 +14,7 @@ import numpy as np
 
 from workbench.problem.models import Model, circle_scene
 from workbench.problem.obstacles import Circle, HForm
+from workbench.problem.scene_layout import SceneLayout
 from workbench.validation import as_array, fail, flag, real
 
 # safe-control-gym, utiasDSL/safe-control-gym at commit e39a569 (2025-11-06):
@@ -59,15 +60,17 @@ def _limit(name: str, value) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def _scene(p, obstacles, h_form, inflation, scene_capacity, runtime_obstacles) -> dict:
+def _scene(p, obstacles, h_form, inflation, scene_capacity, runtime_obstacles,
+           scene_layout=None) -> dict:
     return circle_scene(p, tuple(obstacles), h_form, inflation, scene_capacity,
-                        runtime_obstacles)
+                        runtime_obstacles, scene_layout)
 
 
 def unicycle(*, dt: float = 0.02, obstacles: tuple[Circle, ...] = (),
              v_limit: float | tuple[float, float] = (-0.5, 2.0), omega_limit: float = 2.0,
              h_form: HForm = "squared", inflation: float = 0.0,
-             scene_capacity: int | None = None, runtime_obstacles: bool = True) -> Model:
+             scene_capacity: int | None = None, runtime_obstacles: bool = True,
+             scene_layout: SceneLayout | None = None) -> Model:
     """Kinematic unicycle (Dubins-type car with reverse) x = [px, py, theta], u = [v, omega]:
     px+ = px + dt v cos(theta), py+ = py + dt v sin(theta), theta+ = theta + dt omega.
 
@@ -83,14 +86,16 @@ def unicycle(*, dt: float = 0.02, obstacles: tuple[Circle, ...] = (),
         "unicycle", x, u, x_next, dt=dt, u_min=[vlo, -w], u_max=[vhi, w],
         state_names=("px", "py", "theta"), control_names=("v", "omega"), position=(0, 1),
         state_units=("m", "m", "rad"),
-        **_scene(x[:2], obstacles, h_form, inflation, scene_capacity, runtime_obstacles))
+        **_scene(x[:2], obstacles, h_form, inflation, scene_capacity, runtime_obstacles,
+                 scene_layout))
 
 
 def kinematic_bicycle(*, dt: float = 0.02, wheelbase: float = 0.5, a_limit: float = 3.0,
                       steer_limit: float = 0.5, obstacles: tuple[Circle, ...] = (),
                       h_form: HForm = "squared", inflation: float = 0.0,
                       scene_capacity: int | None = None,
-                      runtime_obstacles: bool = True) -> Model:
+                      runtime_obstacles: bool = True,
+                      scene_layout: SceneLayout | None = None) -> Model:
     """Kinematic bicycle about the rear axle, x = [px, py, theta, v], u = [a, delta]:
     px' = v cos(theta), py' = v sin(theta), theta' = v tan(delta) / L, v' = a (Euler, L the
     ``wheelbase``). |a| <= ``a_limit``, |delta| <= ``steer_limit`` < pi/2.
@@ -111,12 +116,14 @@ def kinematic_bicycle(*, dt: float = 0.02, wheelbase: float = 0.5, a_limit: floa
         "kinematic_bicycle", x, u, x_next, dt=dt, u_min=[-a, -d], u_max=[a, d],
         state_names=("px", "py", "theta", "v"), control_names=("a", "delta"), position=(0, 1),
         state_units=("m", "m", "rad", "m/s"),
-        **_scene(x[:2], obstacles, h_form, inflation, scene_capacity, runtime_obstacles))
+        **_scene(x[:2], obstacles, h_form, inflation, scene_capacity, runtime_obstacles,
+                 scene_layout))
 
 
 def planar_quadrotor(*, dt: float = 0.02, obstacles: tuple[Circle, ...] = (),
                      h_form: HForm = "squared", inflation: float = 0.0,
                      scene_capacity: int | None = None, runtime_obstacles: bool = True,
+                     scene_layout: SceneLayout | None = None,
                      state_limits: bool = True, hover_offset: bool = False) -> Model:
     """The 2D quadrotor of safe-control-gym (Yuan et al. 2022, arXiv:2109.06325; quadrotor.py,
     QuadType.TWO_D symbolic model): x = [x, x_dot, z, z_dot, theta, theta_dot] (pitch theta),
@@ -152,7 +159,7 @@ def planar_quadrotor(*, dt: float = 0.02, obstacles: tuple[Circle, ...] = (),
     xdot = ca.vertcat(x[1], ca.sin(th) * thrust / m, x[3], ca.cos(th) * thrust / m - g, x[5],
                       QUAD_ARM * (T2 - T1) / QUAD_IYY / np.sqrt(2))
     kw = _scene(ca.vertcat(x[0], x[2]), obstacles, h_form, inflation, scene_capacity,
-                runtime_obstacles)
+                runtime_obstacles, scene_layout)
     if state_limits:
         kw["h"] = ca.vertcat(kw["h"], box_margins(x, QUAD_STATE_LIMITS))
     return Model.from_expressions(

@@ -87,6 +87,7 @@ def physical_model(m: Model) -> Model:
         u_max=m.u_max, h=m.h if m.nh else None, state_names=m.state_names[:n],
         control_names=m.control_names, position=m.position, obstacles=m.obstacles,
         scene=m.scene, scene_value=m.scene_value, scene_capacity=m.scene_capacity,
+        scene_layout=m.scene_layout,
         state_units=None if m.state_units is None else m.state_units[:n])
 
 

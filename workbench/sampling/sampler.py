@@ -358,5 +358,7 @@ def check_batch(sp: SamplingProblem, N: int, U,
         s = as_array("SamplerConstants.scene", c.scene, (ns,))
         if sp.model.scene_capacity:
             check_slots("SamplerConstants.scene", s)
+        elif sp.model.scene_layout is not None:
+            sp.model.scene_layout.check("SamplerConstants.scene", s)
         c.__dict__["_scene_ok"] = True
     return U, c

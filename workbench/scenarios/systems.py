@@ -68,6 +68,7 @@ from workbench.problem.vehicles import (
     planar_quadrotor,
     unicycle,
 )
+from workbench.registry import Registry
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.methods.gatekeeper import (
     BackupPolicy,
@@ -75,7 +76,6 @@ from workbench.sampling.methods.gatekeeper import (
     braking_backup,
 )
 from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_costs
-from workbench.scenarios.registry import Registry
 from workbench.scenarios.scenes import CircleScene
 from workbench.validation import MAX_BATCH, as_array, fail, integer, one_of, real, scale
 

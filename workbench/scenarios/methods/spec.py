@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from workbench.filters.ecbf import unreached_margins
-from workbench.scenarios.registry import Registry
+from workbench.registry import Registry
 from workbench.sim import Controller
 from workbench.study.tuning import Param
 from workbench.validation import fail

@@ -1,4 +1,5 @@
-"""One mechanism for the workbench's registries of named records (the methods, the systems):
+"""One mechanism for the workbench's registries of named records (the methods, the systems,
+the scene kinds):
 a dict in registration order that looks names up, registers and unregisters with errors that
 name the field."""
 
