@@ -31,6 +31,10 @@ _EXPORTS = {
                                  "single_integrator"),
     "workbench.problem.obstacles": ("Circle", "circle_margins", "circles_from_arrays",
                                     "scene_symbol", "scene_vector", "slot_margins"),
+    "workbench.problem.scene_kinds": ("Capsule", "HalfSpace", "MovingCircle", "SCENE_KINDS",
+                                      "SceneKind", "Sphere", "register_scene_kind"),
+    "workbench.problem.scene_layout": ("SceneLayout",),
+    "workbench.problem.sdf_grid": ("SignedDistanceGrid",),
     "workbench.codegen.cache": ("build_counts",),
     "workbench.problem.costs": ("Cost", "quadratic_tracking"),
     "workbench.problem.problem": ("Problem",),
@@ -137,6 +141,17 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
         slot_margins,
     )
     from workbench.problem.problem import Problem
+    from workbench.problem.scene_kinds import (
+        SCENE_KINDS,
+        Capsule,
+        HalfSpace,
+        MovingCircle,
+        SceneKind,
+        Sphere,
+        register_scene_kind,
+    )
+    from workbench.problem.scene_layout import SceneLayout
+    from workbench.problem.sdf_grid import SignedDistanceGrid
     from workbench.problem.vehicles import kinematic_bicycle, planar_quadrotor, unicycle
     from workbench.sampling.calibration import calibrate, calibration_trace
     from workbench.sampling.feedback import FeedbackWeights, ILQGFeedback
