@@ -23,7 +23,9 @@ def records() -> list[dict]:
                 {"budget_ms": 20.0, "steps": 1000, "load": 2, "n_samples": 8192, "misses": 3,
                  "p50_ms": 19.0, "p95_ms": 19.5, "p99_ms": 20.5, "max_ms": 21.5,
                  "truncated": 1.0, "samples_mean": 2048.0, "crash_rate": 0.25, "episodes": 4,
-                 "episode_steps": 200, "variance": 100.0, "margin_ms": "one chunk"})
+                 "episode_steps": 200, "variance": 100.0, "stated_margin_ms": 5.0,
+                 "holds": True, "beyond_margin_steps": 0, "beyond_margin_cpu_max_ms": None,
+                 "cpu_p50_ms": 9.0})
     return [lat, dl]
 
 
@@ -32,8 +34,11 @@ def test_report_has_percentiles_tail_sources_and_deadlines():
     assert "| method | p50 | p95 | p99 | max |" in text
     assert "| sa_rmppi | 2.00 | 3.00 | 3.75 | 9.00 | 2.10 | 9.00 | 3.50 | 2 (4.25) | 2.75 | " \
            "1.50 | 0.25 |" in text
-    assert "| sa_rmppi_50hz | 20 | 1000 | 3 | 1.50 | 19.00 | 20.50 | 100 % | 2048 | " \
-           "0.25 (4 × 200 steps) |" in text
+    assert "| sa_rmppi_50hz | 20 | 1000 | 3 | 1.50 | 5.0 | yes | 0 | 19.00 | 20.50 | 100 % | " \
+           "2048 | 0.25 (4 × 200 steps) |" in text
+    broken = records()[1]
+    broken["params"].update(holds=False, beyond_margin_steps=2, beyond_margin_cpu_max_ms=4.5)
+    assert "| 5.0 | **no** | 2 (4.5) |" in "\n".join(markdown([broken]))
     assert "## Deadlines under a load of 2" in report_markdown(records(), {})
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import math
+import time
 
 import numpy as np
 import pytest
@@ -14,7 +15,14 @@ import pytest
 from workbench.problem.barrier import embed_barrier
 from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
-from workbench.sampling.deadline import chunk_sizes
+from workbench.sampling import deadline
+from workbench.sampling.deadline import (
+    DeadlineHistory,
+    StepClock,
+    chunk_sizes,
+    least_chunk,
+    sample_within,
+)
 from workbench.sampling.methods.cbf_projection import CBFProjectionConfig, CBFProjectionMPPI
 from workbench.sampling.methods.shield import ShieldConfig, ShieldMPPI
 from workbench.sampling.methods.tube import TubeMPPI
@@ -92,14 +100,62 @@ def test_loose_deadline_draws_every_sample_in_chunks(problems):
     np.testing.assert_allclose(u, U[0], rtol=RTOL, atol=0)
 
 
-def test_tight_deadline_draws_one_chunk_and_says_so(problems):
+def test_tight_deadline_draws_the_least_chunk_and_says_so(problems):
+    """A deadline no step can meet: one iteration of the least chunk (an eighth of the
+    first), from the second step on too (its history says no more fits)."""
     bas, _ = problems
     ctrl = MPPI(bas, GOAL, cfg(deadline_s=1e-9, deadline_chunks=CHUNKS, iterations=3))
-    _, u, info = ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(5))
-    d = info.deadline
-    assert d.truncated and d.missed and d.iterations == 1
-    assert d.samples == info.stats.n_samples == chunk_sizes(N, CHUNKS)[0]
-    assert np.all(np.isfinite(u))
+    st = ctrl.initial_state(X0)
+    for _ in range(2):
+        st, u, info = ctrl.step(st, X0, np.random.default_rng(5))
+        d = info.deadline
+        assert d.truncated and d.missed and d.iterations == 1
+        assert d.samples == info.stats.n_samples == least_chunk(chunk_sizes(N, CHUNKS)[0]) == 7
+        assert np.all(np.isfinite(u))
+
+
+class FakeClock:
+    """time.perf_counter for the deadline module: advanced by the draws (1 ms per sample)."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkeypatch):
+    """Each sample costs 1 ms: a 100 ms deadline (90 ms after the guard) fits 90 samples:
+    a chunk of 51, then 39 (the rest of 90), then sampling stops; the next step, whose
+    history now holds a 5 ms tail, fits 85."""
+    fake = FakeClock()
+    monkeypatch.setattr(deadline, "time", fake)
+    hist, steps = DeadlineHistory(), []
+    for _ in range(2):
+        clock = StepClock(0.1, fake.now, hist)
+        sizes: list[int] = []
+
+        def draw(n: int, seed: int, sizes: list[int] = sizes) -> int:
+            sizes.append(n)
+            fake.now += n * 1e-3
+            return n
+
+        got = sample_within(clock, N, CHUNKS, draw, np.random.default_rng(0), sum)
+        assert got == sum(sizes) and clock.truncated
+        fake.now += 5e-3  # the step's tail
+        assert not clock.report(N).missed
+        steps.append(sizes)
+    assert steps == [[51, 39], [51, 34]]
+
+
+def test_no_room_for_a_later_iteration_returns_none():
+    hist = DeadlineHistory()
+    hist.per_sample.append(1.0)  # one second per sample: nothing fits a 10 ms deadline
+    clock = StepClock(0.01, time.perf_counter(), hist)
+    clock.iterations = 1
+    assert sample_within(clock, 64, 4, lambda n, s: n, np.random.default_rng(0), sum) is None
+    clock.iterations = 0  # the first chunk of a step always runs, shortened
+    assert sample_within(clock, 64, 4, lambda n, s: n, np.random.default_rng(0), sum) == 2
 
 
 def test_robust_controller_applies_the_deadline(problems):
@@ -108,7 +164,8 @@ def test_robust_controller_applies_the_deadline(problems):
                        RMPPIConfig(), threshold=ConstantThreshold(-1e9))
     tight = RobustMPPI(bas, GOAL, cfg(deadline_s=1e-9, deadline_chunks=CHUNKS),
                        RMPPIConfig(), threshold=ConstantThreshold(-1e9))
-    for ctrl, n, cut in ((loose, N, False), (tight, chunk_sizes(N, CHUNKS)[0], True)):
+    for ctrl, n, cut in ((loose, N, False),
+                         (tight, least_chunk(chunk_sizes(N, CHUNKS)[0]), True)):
         _, u, info = ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(2))
         assert info.deadline.truncated is cut and info.deadline.samples == n
         assert info.stats.n_samples == n and np.all(np.isfinite(u))

@@ -22,7 +22,12 @@ from typing import Literal
 import numpy as np
 from scipy.signal import savgol_filter
 
-from workbench.sampling.deadline import DeadlineReport, StepClock, sample_within
+from workbench.sampling.deadline import (
+    DeadlineHistory,
+    DeadlineReport,
+    StepClock,
+    sample_within,
+)
 from workbench.sampling.kernels.constants import FLOAT32_MAX, check_scales32
 from workbench.sampling.planning import (
     PlansToGoal,
@@ -205,6 +210,7 @@ class MPPI(RecordsSamples, PlansToGoal):
             raise fail("MPPIConfig.sigma", config.sigma, f"need {sp.nu} entries")
         self.sp, self.cfg = sp, config
         self.sampler = Sampler(sp, config.backend, config.precision)
+        self._deadline_history = DeadlineHistory()  # recent chunk and tail times
         self._plan_to(goal, config)
 
     def initial_state(self, x0=None) -> MPPIState:
@@ -216,7 +222,8 @@ class MPPI(RecordsSamples, PlansToGoal):
         U = state.U
         check_plan(U, self.cfg.horizon, self.sp.nu)
         cfg = self.cfg
-        clock = None if cfg.deadline_s is None else StepClock(cfg.deadline_s, t0)
+        clock = (None if cfg.deadline_s is None
+                 else StepClock(cfg.deadline_s, t0, self._deadline_history))
         for _ in range(cfg.iterations):
             if clock is None:
                 batch = self.sampler.mppi(xb, U, cfg.n_samples, self.consts,

@@ -21,7 +21,12 @@ from typing import Literal
 import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
-from workbench.sampling.deadline import DeadlineReport, StepClock, sample_within
+from workbench.sampling.deadline import (
+    DeadlineHistory,
+    DeadlineReport,
+    StepClock,
+    sample_within,
+)
 from workbench.sampling.feedback.base import FeedbackLaw, Gains
 from workbench.sampling.feedback.effect import differs
 from workbench.sampling.feedback.ilqg import ILQGFeedback
@@ -212,6 +217,7 @@ class RobustMPPI(RecordsSamples):
         self.goal = self.mppi.goal  # read-only, as given
         self.sp, self.cfg, self.rcfg = sp, config, robust
         self.sampler = self.mppi.sampler
+        self._deadline_history = DeadlineHistory()  # recent chunk and tail times
         self.consts = replace(self.mppi.consts, alpha=robust.alpha,
                               clip_in_cost=bool(robust.clip_in_cost))
         self.feedback = feedback or ILQGFeedback(sp.model, config.horizon, sp.nx)
@@ -343,7 +349,8 @@ class RobustMPPI(RecordsSamples):
         U_real = U
         first = None
         lam, M = cfg.lam, self._smooth
-        clock = None if cfg.deadline_s is None else StepClock(cfg.deadline_s, t0)
+        clock = (None if cfg.deadline_s is None
+                 else StepClock(cfg.deadline_s, t0, self._deadline_history))
         for it in range(cfg.iterations):
             diag = self.rcfg.diagnostics and it == 0
             if clock is None:
