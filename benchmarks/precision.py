@@ -91,6 +91,7 @@ def _batch_records(repeats: int) -> list[dict]:
             "same_batch_float64_ms", 1e3 * t["64"]["wall"],
             {"N": N, "T": T, "threads": 1, "goal_ratio": GOAL if kind == "sais" else None,
              "kernel_ratio": t["k64"]["wall"] / t["k32"]["wall"],
+             "kernel64_ms": 1e3 * t["k64"]["wall"], "kernel32_ms": 1e3 * t["k32"]["wall"],
              "alternated_ratio": alt["64"]["wall"] / alt["32"]["wall"],
              "alternated_kernel_ratio": alt["k64"]["wall"] / alt["k32"]["wall"],
              "timing": "blocks of 4 timed calls after 1 untimed, the calls in turn",
