@@ -18,6 +18,7 @@ from studies.free_energy_bound.paper import LEMMA, READING, VARIANT, assumed_val
 from studies.free_energy_bound.summary import STRATA, BoundSummary, summarise
 from workbench.study import md_table, png_bytes, supported, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.latency import tail_lines
 from workbench.study.report import num
 from workbench.study.spec import Summary
 
@@ -130,8 +131,19 @@ def tables(s: BoundSummary) -> list[str]:
             *strata, "", "## Magnitudes", "", *mags, ""]
 
 
+def step_cost(steps) -> list[str]:
+    """The section on what a controller step costs (SA-RMPPI alone, the bound's evaluation
+    left out), per variance; empty for runs stored before step times were kept."""
+    lines = tail_lines(steps, ["variance"], label=lambda k: f"SA-RMPPI, variance {k[0]:g}")
+    if lines:
+        lines.insert(2, "Times of the controller's step alone; evaluating the bound's terms "
+                        "after each step is not included.")
+        lines.insert(3, "")
+    return lines
+
+
 def write_report(s: BoundSummary, df: pd.DataFrame, out: Path, assumed, no_barrier_L_q: float,
-                 run_line: str) -> Path:
+                 run_line: str, steps=None) -> Path:
     out = Path(out)
     for name, fig in (("slack_over_time.png", slack_figure(df)), ("rhs_local_vs_global.png",
                       rhs_figure(df)), ("tube_radius.png", radius_figure(df)),
@@ -154,6 +166,7 @@ def write_report(s: BoundSummary, df: pd.DataFrame, out: Path, assumed, no_barri
     for key, title in TITLES.items():
         said = supported(claims[key])
         lines += [f"## {title}", "", *(said or ["- (no claim of this kind is supported)"]), ""]
+    lines += step_cost(steps)
     lines += ["## Figures", "", "![slack over time](slack_over_time.png)", "",
               "![local vs global right-hand side](rhs_local_vs_global.png)", "",
               "![tube radius vs variance](tube_radius.png)", ""]
@@ -178,6 +191,9 @@ def summary(finished) -> Summary:
 
 def report(finished, summary) -> Path:
     """The framework's report step: figures and report.md from a finished run."""
-    return write_report(summary.value, finished.store.table("steps"), finished.out,
+    store = finished.store
+    steps = (store.table("step_times") if (store.root / "step_times.parquet").exists()
+             else None)
+    return write_report(summary.value, store.table("steps"), finished.out,
                         summary.data["assumed"], finished.prepared.no_barrier.L_q,
-                        finished.run_line)
+                        finished.run_line, steps)

@@ -14,6 +14,7 @@ from studies.free_energy_bound.shared import Shared, bound_config, controller, g
 from workbench.bound import BoundEstimator, BoundStep, episode_checks, independent_batch
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.latency import step_table
 from workbench.study.spec import Declaration
 from workbench.validation import as_array
 
@@ -37,16 +38,17 @@ class Recorder:
     def __init__(self, est: BoundEstimator, rng: np.random.Generator, independent: bool):
         self.est, self.ctrl, self.rng, self.independent = est, est.ctrl, rng, independent
         self.records: list[BoundStep] = []
-        self.step_s: list[float] = []
+        self.step_s: list[float] = []  # the controller's step alone: wall and process CPU
+        self.cpu_s: list[float] = []
         self.bound_s: list[float] = []
 
     def initial_state(self, x0):
         return self.ctrl.initial_state(x0)
 
     def step(self, state, x, rng):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         state, u, info = self.ctrl.step(state, x, rng)
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         ind = None
         if self.independent:
             seed = int(self.rng.integers(2**31))
@@ -54,6 +56,7 @@ class Recorder:
                                     else seed + 1)
         self.records.append(self.est.step(info.batch, info, x, u, independent=ind))
         self.step_s.append(t1 - t0)
+        self.cpu_s.append(c1 - c0)
         self.bound_s.append(time.perf_counter() - t1)
         return state, u, replace(info, batch=None)
 
@@ -138,7 +141,8 @@ def run_task(task: Episode, ctx: TaskContext, config: StudyConfig, shared: Share
     meta = {"step_ms_median": float(1e3 * np.median(rec.step_s)),  # timing: not a result
             "bound_ms_median": float(1e3 * np.median(rec.bound_s))}
     return TaskOutput(tables={"steps": step_rows(rec.records, clear),
-                              "episodes": {k: np.array([v]) for k, v in row.items()}},
+                              "episodes": {k: np.array([v]) for k, v in row.items()},
+                              "step_times": step_table(rec.step_s, rec.cpu_s)},
                       arrays={"path": ep.X[:, :2]}, meta=meta)
 
 

@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field, replace
 from workbench.validation import MAX_TASKS, at_most, fail, flag, integer, one_of, real
 
 METHODS: tuple[str, ...] = ("ecbf", "al", "bas")
-RESULT_VERSION = 1  # bump when the meaning of stored task results changes
+RESULT_VERSION = 2  # bump when the meaning of stored task results changes
 MAX_ROLLOUTS = 10**6  # rollouts of one task (n_rollouts, sweep_rollouts)
 SWEPT = ("q_beta", "pole", "q_scale", "ecbf_noise", "noise_std")
 NOISE_PLACEMENTS = ("before", "after")

@@ -25,6 +25,7 @@ from studies.tracking_comparison.wording import NAMES, PARAM_NAMES
 from workbench.scenarios.scenes import TrackingScene
 from workbench.study import RunStore, fmt_rate, md_table, png_bytes, supported, to_jsonable
 from workbench.study.io import atomic_write_bytes, atomic_write_text
+from workbench.study.latency import tail_lines
 from workbench.study.spec import Summary
 
 COLORS = {"ecbf": "tab:blue", "al": "tab:red", "bas": "tab:green"}
@@ -246,6 +247,23 @@ def _ours(s: TrackingSummary) -> list[str]:
                      for o in s.methods])
 
 
+def _step_cost(store: RunStore) -> list[str]:
+    """The online cost of one robot's control step per method (the nominal loop, zero noise):
+    the affine feedback law (with BaS's barrier-state lift) or the feedback law and the
+    ECBF-QP; empty for runs stored before step times were kept."""
+    if not (store.root / "step_times.parquet").exists():
+        return []
+    steps = store.table("step_times")
+    lines = tail_lines(steps, ["method"], label=lambda k: NAMES[k[0]])
+    if lines:
+        lines.insert(2, "One robot's control step online, on the nominal loop (no noise): the "
+                        "feedback law u = ū + K (x − x̄) (BaS: with its barrier-state lift), "
+                        "and for ECBF the filter's QP after it. The trajectory optimisation "
+                        "runs once before the loop; its solve time is in the details above.")
+        lines.insert(3, "")
+    return lines
+
+
 def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene: TrackingScene,
                  assumed: list[dict], run_line: str, provenance=None) -> Path:
     """Write the figures and report.md into the run directory. ``provenance`` (from
@@ -289,7 +307,7 @@ def write_report(s: TrackingSummary, store: RunStore, main: pd.DataFrame, scene:
         "## Success radius and noise level", "",
         "Failure rate against the assumed success radius (same rollouts), beside the rates "
         "against the control-noise level:", "", *_radius_table(s), "", "![radius](radius.png)",
-        "", "## Details", "", *_details(s), "",
+        "", "## Details", "", *_details(s), "", *_step_cost(store),
         "![min h](min_h_hist.png)", "", "![final distance](final_distance_hist.png)", "",
         "## Trajectories (paper Figs. 1-3)", "",
         *[f"![{NAMES[m]}](trajectories_{m}.png)" for m in s.mc_paths], "",

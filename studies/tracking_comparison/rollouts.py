@@ -9,6 +9,7 @@ CasADi expressions, mapped over the N rollouts in one call per step.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -87,19 +88,40 @@ def lift_function(embedded: Model) -> ca.Function:
     return ca.Function("lift", [xp], [ca.densify(lift)])
 
 
+class StepClock:
+    """Wall and process CPU seconds of each timed section (``start`` .. ``stop``)."""
+
+    def __init__(self) -> None:
+        self.wall: list[float] = []
+        self.cpu: list[float] = []
+        self._t = (0.0, 0.0)
+
+    def start(self) -> None:
+        self._t = (time.perf_counter(), time.process_time())
+
+    def stop(self) -> None:
+        self.wall.append(time.perf_counter() - self._t[0])
+        self.cpu.append(time.process_time() - self._t[1])
+
+
 def feedback_rollouts(dyn: LinearDynamics, x0, Xbar, Ubar, K, noise, u_min, u_max,
-                      lift: ca.Function | None = None) -> np.ndarray:
+                      lift: ca.Function | None = None,
+                      clock: StepClock | None = None) -> np.ndarray:
     """u_k = clip(ubar_k + K_k (xact_k - xbar_k) + eps_k); xact includes the actual barrier
-    state when ``lift`` is given (BaS, assumptions §5.6). Returns physical states (N, T+1, n)."""
+    state when ``lift`` is given (BaS, assumptions §5.6). Returns physical states (N, T+1, n).
+    ``clock`` times the control computation of each step (not the plant's step)."""
     N, T, _ = noise.shape
     n = dyn.A.shape[0]
     X = np.empty((N, T + 1, n))
     X[:, 0] = x0
     lift_n = batched(lift, N) if lift is not None else None
+    clock = clock or StepClock()
     for k in range(T):
         xa = X[:, k]
+        clock.start()
         full = lift_n(xa) if lift_n is not None else xa
         u = np.clip(Ubar[k] + (full - Xbar[k]) @ K[k].T + noise[:, k], u_min, u_max)
+        clock.stop()
         X[:, k + 1] = dyn.step(xa, u)
     return X
 
@@ -115,16 +137,20 @@ class ECBFRollouts:
 
 
 def ecbf_rollouts(dyn: LinearDynamics, x0, Xbar, Ubar, K, noise, filt: ECBFFilter,
-                  noise_after: bool = False) -> ECBFRollouts:
+                  noise_after: bool = False, clock: StepClock | None = None) -> ECBFRollouts:
     """u_ref = ubar + K (x - xbar) + eps (noise before the filter, assumptions §6.3), u = ECBF-QP;
-    with ``noise_after`` the plant gets clip(ECBF-QP(ubar + K (x - xbar)) + eps) instead."""
+    with ``noise_after`` the plant gets clip(ECBF-QP(ubar + K (x - xbar)) + eps) instead.
+    ``clock`` times the control computation of each step (feedback and filter)."""
     N, T, _ = noise.shape
     X = np.empty((N, T + 1, dyn.A.shape[0]))
     X[:, 0] = x0
     infeasible, fallback, qp = (np.zeros(N, dtype=np.int64) for _ in range(3))
+    clock = clock or StepClock()
     for k in range(T):
+        clock.start()
         u_ref = Ubar[k] + (X[:, k] - Xbar[k]) @ K[k].T
         res = filt.filter_batch(X[:, k], u_ref if noise_after else u_ref + noise[:, k])
+        clock.stop()
         infeasible += res.infeasible
         fallback += res.fallback_used
         qp += res.qp_solved

@@ -13,6 +13,7 @@ from studies.tracking_comparison.config import METHODS, RESULT_VERSION, StudyCon
 from studies.tracking_comparison.methods import Nominal, Setup, solve_nominal
 from studies.tracking_comparison.rollouts import (
     LinearDynamics,
+    StepClock,
     control_noise,
     ecbf_rollouts,
     feedback_rollouts,
@@ -24,6 +25,7 @@ from studies.tracking_comparison.rollouts import (
 from workbench.filters.ecbf import ECBFFilter
 from workbench.problem.barrier import embed_barrier
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.latency import step_table
 from workbench.study.spec import Declaration
 
 
@@ -64,8 +66,9 @@ def _nominal(method: str, variant: Variant, setup: Setup) -> Nominal:
 
 
 def closed_loop(method: str, variant: Variant, setup: Setup, nom: Nominal,
-                noise: np.ndarray) -> dict[str, np.ndarray]:
-    """Run one batch of closed loops under ``noise`` (N, T, nu) and measure each rollout."""
+                noise: np.ndarray, clock: StepClock | None = None) -> dict[str, np.ndarray]:
+    """Run one batch of closed loops under ``noise`` (N, T, nu) and measure each rollout
+    (``clock``: times each step's control computation)."""
     model = setup.model()
     dyn = LinearDynamics.from_model(model)
     x0 = np.array(setup.scene.start)
@@ -74,14 +77,14 @@ def closed_loop(method: str, variant: Variant, setup: Setup, nom: Nominal,
     if method == "ecbf":
         r = ecbf_rollouts(dyn, x0, nom.X, nom.U, nom.K, noise,
                           ECBFFilter(model, setup.ecbf_for(variant)),
-                          noise_after=variant.ecbf_noise == "after")
+                          noise_after=variant.ecbf_noise == "after", clock=clock)
         X = r.X
         counts = {"infeasible_qp_steps": r.infeasible_steps, "fallback_steps": r.fallback_steps,
                   "qp_steps": r.qp_steps}
     else:
         lift = lift_function(embed_barrier(model, setup.barrier)) if method == "bas" else None
         X = feedback_rollouts(dyn, x0, nom.X, nom.U, nom.K, noise, model.u_min, model.u_max,
-                              lift)
+                              lift, clock)
     min_h, final = rollout_metrics(X, margins_function(model), np.array(setup.scene.target[:2]))
     return {"X": X, "min_h": min_h, "final_distance": final, **counts}
 
@@ -91,11 +94,13 @@ def run_task(task: Rollouts | NominalLoop, ctx: TaskContext, setup: Setup) -> Ta
     nom = nominal(task.method, task.variant, setup)
     T = setup.scene.horizon
     if isinstance(task, NominalLoop):
-        cl = closed_loop(task.method, task.variant, setup, nom, np.zeros((1, T, 2)))
+        clock = StepClock()  # one robot's control step, online (the solve above is offline)
+        cl = closed_loop(task.method, task.variant, setup, nom, np.zeros((1, T, 2)), clock)
         meta = {**nom.info, "closed_loop_min_h": float(cl["min_h"][0]),
                 "closed_loop_final_distance": float(cl["final_distance"][0]),
                 "closed_loop_infeasible_qp_steps": int(cl["infeasible_qp_steps"][0])}
-        return TaskOutput(arrays={"path": cl["X"][0, :, :2]}, meta=meta)
+        return TaskOutput(tables={"step_times": step_table(clock.wall, clock.cpu)},
+                          arrays={"path": cl["X"][0, :, :2]}, meta=meta)
     noise = control_noise(ctx.rng(), task.n_rollouts, T, 2, task.variant.noise_std)
     res = closed_loop(task.method, task.variant, setup, nom, noise)
     rows = {"rollout": np.arange(task.n_rollouts), "min_h": res["min_h"],

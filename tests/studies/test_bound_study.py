@@ -79,6 +79,24 @@ def test_tiny_runs_and_table_is_per_step(tiny):
         assert (out / name).stat().st_size > 0
 
 
+def test_report_gives_the_controller_step_tail_per_variance(tiny):
+    """One timing row per step of the controller alone (CPU <= wall on one thread), and the
+    report's p50 / p95 / p99 / max per variance from those rows."""
+    cfg, out, _ = tiny
+    st = pd.read_parquet(out / "step_times.parquet")
+    ep = pd.read_parquet(out / "episodes.parquet")
+    assert len(st) == ep["n_steps"].sum() and (st["wall_ms"] > 0).all()
+    text = (out / "report.md").read_text()
+    assert "## What a step costs: CPU time and the wall-clock tail" in text
+    for v in cfg.variances:
+        w = st.loc[st["variance"] == v, "wall_ms"].to_numpy()
+        row = next(line for line in text.splitlines()
+                   if line.startswith(f"| SA-RMPPI, variance {v:g} |"))
+        cells = [c.strip() for c in row.split("|")[1:-1]]
+        assert cells[3] == f"{np.percentile(w, 50):.2f}" and cells[6] == f"{w.max():.2f}"
+        assert cells[7] == str(w.size)
+
+
 def test_checks_recomputed_from_the_table_columns(tiny):
     _, out, _ = tiny
     df = pd.read_parquet(out / "steps.parquet")

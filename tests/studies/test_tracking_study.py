@@ -188,6 +188,24 @@ def test_tiny_run_writes_the_tidy_data_figures_and_report(tiny_run):
     assert manifest["config"]["n_rollouts"] == 6 and manifest["git_revision"]
 
 
+def test_report_gives_each_methods_online_step_tail(tiny_run):
+    """One timing row per step of each method's nominal loop (the online control step), and
+    the report's p50 / max per method from those rows."""
+    cfg, out, outcome = tiny_run
+    st = RunStore(out).table("step_times")
+    text = outcome.report.read_text()
+    assert "## What a step costs: CPU time and the wall-clock tail" in text
+    for m in ("ecbf", "al", "bas"):
+        w = st.loc[st["method"] == m, "wall_ms"].to_numpy()
+        assert w.size == Setup().scene.horizon and (w > 0).all()
+        row = next(ln for ln in text.splitlines() if ln.startswith(f"| {NAMES[m]} | ")
+                   and ln.count("|") == 9)
+        cells = [c.strip() for c in row.split("|")[1:-1]]
+        assert cells[3] == f"{np.percentile(w, 50):.2f}" and cells[6] == f"{w.max():.2f}"
+    ecbf, bas = (st.loc[st["method"] == m, "cpu_ms"].mean() for m in ("ecbf", "bas"))
+    assert ecbf > bas  # the QP costs more than the affine law
+
+
 def _independent_rates(cfg, out):
     """Unsafe and failure counts of the main rollouts, recomputed from the Parquet table."""
     rows = RunStore(out).table("rollouts")
