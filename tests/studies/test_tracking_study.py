@@ -191,7 +191,7 @@ def test_tiny_run_writes_the_tidy_data_figures_and_report(tiny_run):
 def test_report_gives_each_methods_online_step_tail(tiny_run):
     """One timing row per step of each method's nominal loop (the online control step), and
     the report's p50 / max per method from those rows."""
-    cfg, out, outcome = tiny_run
+    _, out, outcome = tiny_run
     st = RunStore(out).table("step_times")
     text = outcome.report.read_text()
     assert "## What a step costs: CPU time and the wall-clock tail" in text
