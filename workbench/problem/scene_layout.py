@@ -311,3 +311,21 @@ def _items(scene, field: str) -> list:
             if not hasattr(o, "__dataclass_fields__") and np.shape(o) == (3,)
             and not isinstance(o, str | bytes) and np.all(np.isfinite(np.asarray(o, float)))
             and float(o[2]) > 0 else o for o in items]
+
+
+def anchor_points(layout: SceneLayout, v) -> np.ndarray:
+    """Points (m, dim) that place the used obstacles of a scene vector: centres, capsule ends,
+    the point of each half-space's boundary nearest the origin, the grid's corners (unused
+    slots left out)."""
+    pts: list = []
+    for obj in layout.objects(v):
+        if isinstance(obj, SignedDistanceGrid):
+            x0, x1, y0, y1 = obj.extent()
+            pts += [(x0, y0), (x1, y1)]
+        elif hasattr(obj, "center"):
+            pts.append(obj.center)
+        elif hasattr(obj, "normal"):
+            pts.append(tuple(obj.offset * np.asarray(obj.normal)))
+        elif hasattr(obj, "a"):
+            pts += [obj.a, obj.b]
+    return np.array(pts, dtype=float).reshape(-1, layout.dim)
