@@ -5,17 +5,18 @@ Float32 resolves about 7 significant digits, so a map far from the origin (a sce
 crash test needs micrometres. A float32 sampler therefore runs its rollouts in a frame whose
 origin is the position of the batch's start state: it subtracts that position from the
 position states of every start (real and nominal), from the goal's position in the cost
-parameter and from the circle centres of the scene. The samples' costs, crash flags and
-controls do not change under that translation when the problem is translation invariant,
-which :func:`local_frame` checks on the problem's own functions (dynamics, margins, q, phi)
-before the frame is used.
+parameter and from the obstacles of the scene (circle centres; with a scene layout every
+kind's positions, :meth:`~workbench.problem.scene_layout.SceneLayout.translate`). The
+samples' costs, crash flags and controls do not change under that translation when the
+problem is translation invariant, which :func:`local_frame` checks on the problem's own
+functions (dynamics, margins, q, phi) before the frame is used.
 
 The goal stays where it is: a goal beyond :data:`GOAL_LIMIT32` from the start leaves float32
 too coarse to tell the samples' costs apart, and :func:`check_goal` refuses the batch.
 
 A problem that is not translation invariant (obstacles compiled into the model, costs of
 absolute positions, no declared position) runs float32 only where its coordinates are small:
-:func:`check_coordinates` refuses start states and circles beyond :data:`COORDINATE_LIMIT32`.
+:func:`check_coordinates` refuses start states and obstacles beyond :data:`COORDINATE_LIMIT32`.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from itertools import pairwise
 import numpy as np
 
 from workbench.problem.obstacles import SLOT
+from workbench.problem.scene_layout import SceneLayout, anchor_points
 from workbench.sampling.problem import SamplingProblem
 from workbench.validation import fail
 
@@ -52,11 +54,13 @@ _RTOL = 1e-9  # its relative tolerance per element, scaled by (1 + |shift|)^2
 class LocalFrame:
     """Which entries move with a translation of the position: state indices ``state``, the
     same axes' indices ``param`` in the cost parameter p (empty: p does not move) and whether
-    the scene's circle centres move (axes ``state[0]``, ``state[1]``)."""
+    the scene's obstacles move (circle centres: axes ``state[0]``, ``state[1]``; with a scene
+    ``layout``, its translation along every axis of ``state``)."""
 
     state: tuple[int, ...]
     param: tuple[int, ...]
     scene: bool
+    layout: SceneLayout | None = None
     # the state's position entries as a slice when they are adjacent (faster than a list)
     _sel: slice | list[int] = field(init=False, repr=False, compare=False)
 
@@ -88,10 +92,16 @@ class LocalFrame:
             p[list(self.param)] -= o
             out["p"] = p
         if self.scene:
-            s = np.array(consts["scene"], dtype=float).reshape(-1, SLOT)
-            s[:, :2] -= o[:2]
-            out["scene"] = s.reshape(-1)
+            out["scene"] = self.scene_at(consts["scene"], -o)
         return out
+
+    def scene_at(self, scene: np.ndarray, shift: np.ndarray) -> np.ndarray:
+        """The scene with its obstacles moved by ``shift`` (a copy)."""
+        if self.layout is not None:
+            return self.layout.translate(scene, -np.asarray(shift, dtype=float))
+        s = np.array(scene, dtype=float).reshape(-1, SLOT)
+        s[:, :2] += shift[:2]
+        return s.reshape(-1)
 
 
 class FrameConsts:
@@ -119,15 +129,18 @@ class FrameConsts:
             moves = []
             if self.frame.param:
                 moves.append((p0[list(self.frame.param)], out["p"], list(self.frame.param)))
+            circles = self.frame.scene and self.frame.layout is None
             self._sets[tid] = (p0, s0, out, moves,
                                (s0.reshape(-1, SLOT)[:, :2], out["scene"].reshape(-1, SLOT)[:, :2])
-                               if self.frame.scene else None)
+                               if circles else None)
             return out
         _, _, out, moves, scene = got
         for src, dst, idx in moves:
             dst[idx] = src - o
         if scene is not None:
             np.subtract(scene[0], o[:2], out=scene[1])
+        elif self.frame.scene:
+            out["scene"][:] = self.frame.scene_at(s0, -o)
         return out
 
 
@@ -169,9 +182,7 @@ def _invariant(sp: SamplingProblem, frame: LocalFrame, rng: np.random.Generator)
         if frame.param:
             ps[list(frame.param)] += d
         if frame.scene:
-            ss = ss.reshape(-1, SLOT)
-            ss[:, :2] += d[:2]
-            ss = ss.reshape(-1)
+            ss = frame.scene_at(scene, d)
         nxt, nxt_s = np.asarray(f["dyn"](x, u, scene)), np.asarray(f["dyn"](xs, u, ss))
         nxt_s[idx] -= d[:, None]
         shift = float(np.max(np.abs(d)))
@@ -186,14 +197,17 @@ def _invariant(sp: SamplingProblem, frame: LocalFrame, rng: np.random.Generator)
 def local_frame(sp: SamplingProblem) -> LocalFrame | None:
     """The problem's local frame, or None when it has none: the model declares no position,
     or dynamics, margins or costs change under a translation of the position (with the goal's
-    position in p, which is tried when p has the state's size, and the circle centres).
+    position in p, which is tried when p has the state's size, and the scene's obstacles).
     Checked numerically at random points of a fixed seed (relative tolerance 1e-9)."""
     m = sp.model
     if m.position is None:
         return None
-    scene = m.scene_capacity > 0
-    tries = [LocalFrame(m.position, m.position, scene)] if sp.n_p == m.nx else []
-    tries.append(LocalFrame(m.position, (), scene))
+    layout = m.scene_layout
+    if layout is not None and layout.dim != len(m.position):
+        return None
+    scene = m.scene_capacity > 0 or layout is not None
+    tries = [LocalFrame(m.position, m.position, scene, layout)] if sp.n_p == m.nx else []
+    tries.append(LocalFrame(m.position, (), scene, layout))
     for frame in tries:
         if _invariant(sp, frame, np.random.default_rng(20260)):
             return frame
@@ -202,9 +216,10 @@ def local_frame(sp: SamplingProblem) -> LocalFrame | None:
 
 def check_coordinates(sp: SamplingProblem, carry: dict, scene: np.ndarray | None) -> None:
     """Refuse a float32 batch of a problem without a local frame whose start positions (all
-    physical states when the model declares no position) or circle centres exceed
-    :data:`COORDINATE_LIMIT32` in magnitude: float32 cannot resolve its crash decisions.
-    ``scene`` None: the circles were checked before."""
+    physical states when the model declares no position) or obstacles (circle centres; the
+    places of a layout's obstacles: centres, capsule ends, the boundary points of half-spaces
+    nearest the origin, grid corners) exceed :data:`COORDINATE_LIMIT32` in magnitude: float32
+    cannot resolve its crash decisions. ``scene`` None: the obstacles were checked before."""
     m = sp.model
     idx = list(m.position) if m.position is not None else list(range(m.n_physical))
     for name in _CARRY_STATES:
@@ -215,13 +230,19 @@ def check_coordinates(sp: SamplingProblem, carry: dict, scene: np.ndarray | None
                 which = "position" if m.position is not None else "physical state"
                 raise fail(f"{name} ({which} entries)", big, _limit_text(
                     f"at most {COORDINATE_LIMIT32:g} in magnitude"))
-    if m.scene_capacity and scene is not None:
+    if scene is None or not (m.scene_capacity or m.scene_layout is not None):
+        return
+    if m.scene_layout is not None:
+        used = anchor_points(m.scene_layout, scene)
+        what = "scene (obstacle positions)"
+    else:
         s = np.asarray(scene, dtype=float).reshape(-1, SLOT)
         used = s[s[:, 2] > 0, :2]
-        big = float(np.max(np.abs(used))) if used.size else 0.0
-        if big > COORDINATE_LIMIT32:
-            raise fail("scene (circle centres)", big, _limit_text(
-                f"at most {COORDINATE_LIMIT32:g} m from the origin"))
+        what = "scene (circle centres)"
+    big = float(np.max(np.abs(used))) if used.size else 0.0
+    if big > COORDINATE_LIMIT32:
+        raise fail(what, big, _limit_text(
+            f"at most {COORDINATE_LIMIT32:g} m from the origin"))
 
 
 def _limit_text(allowed: str) -> str:
