@@ -12,8 +12,11 @@ without a model are planar positions, "x [m]" and "y [m]". Two states that share
 an equal aspect. A projection that came from ``states`` or a model is remembered on the axes:
 later helpers on the same axes use it unless given their own.
 
-**Constraints.** A model's circle obstacles are drawn as discs when the projection is its
-planar position. Every other margin of its h(x) is drawn as the zero level set
+**Constraints.** A model's obstacles are drawn as shapes when the projection is its planar
+position: discs, moving discs with a velocity arrow, half-planes, capsules, a signed-distance
+grid's zero level set (:mod:`workbench.plot.obstacles`); spheres and the obstacles of 3-D
+scenes are drawn through the level set below (their section in the plane drawn, or their
+surfaces in 3-D). Every other margin of its h(x) is drawn as the zero level set
 min_i h_i(x) = 0 in the projection (gid "constraint"; the unsafe side shaded lightly, gid
 "unsafe"; in 3-D a surface coloured by the active margin), computed on a grid over the view
 with the states not drawn fixed at a reference state: ``reference``, else the start (scene:
@@ -25,9 +28,11 @@ Every helper takes an optional ``ax`` (a new figure's axes when None, through
 ``matplotlib.pyplot``) and returns the axes it drew on. Each widens the axes' limits to all the
 data it drew (and keeps what was already there), so helpers stack (a scene, then paths, then
 samples); the level set covers the view at the time it is drawn. Rates are drawn in percent.
-Artists carry a ``gid`` naming what they show ("obstacle", "constraint", "unsafe", "start",
-"goal", "path", "crash", "sample", "sample-crashed", "nominal", "nominal-crashed", "body",
-"rate", "interval"). matplotlib is imported on first use, so ``import workbench`` stays fast.
+Artists carry a ``gid`` naming what they show ("obstacle", "moving-obstacle", "velocity",
+"half-plane", "half-plane-boundary", "capsule", "grid-boundary", "grid-unsafe", "constraint",
+"unsafe", "start", "goal", "path", "crash", "sample", "sample-crashed", "nominal",
+"nominal-crashed", "body", "rate", "interval"). matplotlib is imported on first use, so
+``import workbench`` stays fast.
 
 A model without a position, drawn in the plane of two of its states::
 
@@ -45,8 +50,11 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from workbench.plot import obstacles as shapes
 from workbench.problem.models import Model
 from workbench.problem.obstacles import Circle, scene_circles
+from workbench.problem.scene_kinds import Capsule, HalfSpace, MovingCircle, Sphere
+from workbench.problem.sdf_grid import SignedDistanceGrid
 from workbench.validation import as_array, fail, flag, integer
 from workbench.validation import real as real_number
 
@@ -57,6 +65,7 @@ _PLANAR = ("x [m]", "y [m]", "z [m]")  # labels of data drawn without a model
 _REMEMBERED = "_workbench_projection"  # the attribute of the axes holding their projection
 _GRID = {2: 201, 3: 36}  # default grid points per axis of the level set
 _MAX_GRID = {2: 2000, 3: 160}
+_KINDS = (MovingCircle, HalfSpace, Capsule, Sphere)
 
 
 @dataclass(frozen=True)
@@ -159,20 +168,26 @@ def _axes(ax, dims: int = 2):
     return ax
 
 
-def _circle_array(obj) -> tuple[np.ndarray, Any, Any]:
-    """(circles (n, 3), start, goal) of a scene-like object (see :func:`scene`)."""
+def _scene_objects(obj, model: Model | None) -> tuple[list, Any, Any]:
+    """(obstacles, start, goal) of a scene-like object (see :func:`scene`): circles, and the
+    other kinds of a scene layout (unused slots left out)."""
     start = goal = None
     if obj is None:
-        return np.zeros((0, 3)), None, None
+        return [], None, None
+    layout = model.scene_layout if model is not None else None
     if hasattr(obj, "plant") and hasattr(obj, "scene"):  # a NavigationSetup
         obj = obj.scene
     if callable(getattr(obj, "obstacles", None)):  # NavigationScene, CircleScene
         start, goal = getattr(obj, "start", None), getattr(obj, "goal", None)
         obj = obj.obstacles()
     elif hasattr(obj, "scene_value") and hasattr(obj, "obstacles"):  # a Model
+        if obj.scene_layout is not None:
+            return obj.scene_layout.objects(obj.scene_value), None, None
         obj = obj.scene_value if getattr(obj, "scene_capacity", 0) else obj.obstacles
-    if isinstance(obj, Circle):
+    if isinstance(obj, Circle | SignedDistanceGrid) or isinstance(obj, _KINDS):
         obj = (obj,)
+    if isinstance(obj, np.ndarray) and obj.ndim == 1 and layout is not None:
+        return layout.objects(layout.vector(obj)), None, None
     try:  # numbers only: a flat scene vector or (n, 3) rows
         a = np.array(obj, dtype=float)
     except (TypeError, ValueError):
@@ -181,17 +196,15 @@ def _circle_array(obj) -> tuple[np.ndarray, Any, Any]:
         v = as_array("scene", a, (None,))
         if v.size % 3:
             raise fail("scene", v, "a flat scene vector has 3 entries (x, y, radius) per slot")
-        circles = list(scene_circles(v))  # inert slots (radius 0) left out
-    else:
-        circles = []
-        for i, c in enumerate(obj):
-            if isinstance(c, Circle):
-                circles.append(c)
-            else:
-                xyr = as_array(f"scene[{i}]", c, (3,))
-                circles.append(Circle((xyr[0], xyr[1]), xyr[2]))
-    arr = np.array([(*c.center, c.radius) for c in circles], dtype=float).reshape(-1, 3)
-    return arr, start, goal
+        return list(scene_circles(v)), start, goal  # inert slots (radius 0) left out
+    out: list = []
+    for i, c in enumerate(obj):
+        if isinstance(c, Circle | SignedDistanceGrid) or isinstance(c, _KINDS):
+            out.append(c)
+        else:
+            xyr = as_array(f"scene[{i}]", c, (3,))
+            out.append(Circle((xyr[0], xyr[1]), xyr[2]))
+    return out, start, goal
 
 
 def _limits(ax, dims: int) -> list[tuple[Any, Any]]:
@@ -276,7 +289,9 @@ def scene(ax=None, circles_or_scene=None, *, start=None, goal=None, bounds=None,
     """Draw obstacles and a model's constraints, with start (square) and goal (cross) markers.
 
     ``circles_or_scene``: circles (:class:`~workbench.problem.Circle` objects, (x, y, radius)
-    triples or an (n, 3) array), a flat scene vector (unused slots, radius 0, are skipped), a
+    triples or an (n, 3) array), obstacles of any planar kind (half-planes, capsules, moving
+    circles, a signed-distance grid), a flat scene vector (of the model's scene layout, or of
+    circle slots; unused slots are skipped), a
     scene (:class:`~workbench.scenarios.scenes.NavigationScene` or ``CircleScene``: its start
     and goal are drawn unless given), a navigation set-up (its scene and plant) or a model
     (its scene, and its constraints). ``model``: the model whose names, units and h(x) are
@@ -312,26 +327,26 @@ def _draw_scene(ax, proj: _Projection, circles_or_scene, *, model: Model | None 
     """The scene, the markers, ``extra`` points (n, dims) the caller draws next fitted into
     the view, then the level set of the model's margins over it."""
     fresh = _fresh(ax)
-    from matplotlib.patches import Circle as Disc
-
     discs = _discs_drawable(proj, model)
     flat = isinstance(circles_or_scene, np.ndarray) and circles_or_scene.ndim == 1
-    if model is not None and flat and not model.scene_capacity:
-        circles, s0, g0 = np.zeros((0, 3)), None, None  # a scene vector that holds no circles
+    if (model is not None and flat and not model.scene_capacity
+            and model.scene_layout is None):
+        objs: list = []  # a scene vector that holds no circles
+        s0 = g0 = None
     else:
-        circles, s0, g0 = _circle_array(circles_or_scene)
-    if len(circles) and not discs:
+        objs, s0, g0 = _scene_objects(circles_or_scene, model)
+    spatial = model is not None and model.scene_layout is not None and \
+        model.scene_layout.dim == 3
+    if objs and (not discs or spatial):
         if model is None:
-            raise fail("scene", circles, f"circles are planar positions; the projection draws "
+            raise fail("scene", objs, f"obstacles are planar positions; the projection draws "
                        f"{proj.dims} states: draw them on planar axes")
-        circles = np.zeros((0, 3))  # drawn through the model's level set instead
+        objs = []  # drawn through the model's level set instead
+    if model is None:
+        shapes.check_planar("scene", objs)
     start = s0 if start is None else start
     goal = g0 if goal is None else goal
-    pts: list[np.ndarray] = []
-    for cx, cy, r in circles:
-        ax.add_patch(Disc((cx, cy), r, facecolor=color, edgecolor="0.45", lw=0.6, zorder=0,
-                          gid="obstacle"))
-        pts.append(np.array([[cx - r, cy - r], [cx + r, cy + r]]))
+    pts: list[np.ndarray] = shapes.draw_bounded(ax, objs, color)
     marks = []
     for name, p, marker, col in (("start", start, "s", "tab:blue"),
                                  ("goal", goal, "X", "tab:green")):
@@ -352,6 +367,7 @@ def _draw_scene(ax, proj: _Projection, circles_or_scene, *, model: Model | None 
         allp = np.concatenate(pts)
         _fit(ax, [allp[:, d] for d in range(proj.dims)], fresh)
     _frame(ax, proj)
+    shapes.draw_half_planes(ax, objs, color)
     if model is not None and constraints:
         ref = reference
         if ref is None and start is not None and np.size(start) in (model.n_physical,
@@ -359,7 +375,10 @@ def _draw_scene(ax, proj: _Projection, circles_or_scene, *, model: Model | None 
             ref = start
         if ref is None and isinstance(getattr(circles_or_scene, "x0", None), np.ndarray):
             ref = circles_or_scene.x0  # a navigation set-up's start state
-        skip = (model.scene_capacity or len(model.obstacles)) if discs else 0
+        skip = 0
+        if discs and not spatial:
+            skip = (model.scene_layout.n_margins if model.scene_layout is not None
+                    else model.scene_capacity or len(model.obstacles))
         _level_set(ax, proj, model, ref, h_scene, skip=skip)
     for name, q, marker, col in marks:  # on top of the level set
         _plot(ax, q[None, :], marker, color=col, ms=8, zorder=5, gid=name, label=name)
