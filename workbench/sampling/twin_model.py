@@ -112,7 +112,7 @@ def numpy_navigation_twin(model: Model, weights: dict[str, np.ndarray], function
     layout = model.scene_layout
     d = 2 if layout is None else layout.dim
     if (model.n_physical != 2 * d or model.position != tuple(range(d))
-            or np.shape(weights.get("Qp")) != (d,)):
+            or np.shape(weights.get("Qp", ())) != (d,)):
         return None
     if layout is None and (not model.obstacles
                            or model.nh != (model.scene_capacity or len(model.obstacles))):
