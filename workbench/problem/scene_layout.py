@@ -18,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem import sdf_grid
-from workbench.problem.obstacles import Circle, slot_margins
+from workbench.problem.obstacles import Circle, HForm, slot_margins
 from workbench.problem.scene_kinds import SCENE_KINDS, SceneKind
 from workbench.problem.sdf_grid import SignedDistanceGrid
 from workbench.validation import as_array, fail, integer
@@ -117,7 +117,7 @@ class SceneLayout:
     def symbol(self) -> ca.SX:
         return ca.SX.sym("scene", self.size)
 
-    def margins(self, p, scene: ca.SX, h_form: str = "squared", inflation: float = 0.0):
+    def margins(self, p, scene: ca.SX, h_form: HForm = "squared", inflation: float = 0.0):
         """Margins of position ``p`` (dim SX entries), one per slot then the grid's."""
         out = []
         for b in self.blocks():
