@@ -8,8 +8,8 @@ end caps), on the grid's nodes, cell edges and beyond the grid, and at random, e
 twin (:class:`~workbench.sampling.twin_model.NumpyNavigation`, margins from
 :meth:`~workbench.problem.scene_layout.SceneLayout.numpy_margins`) per element to 1e-12
 relative (unused slots included); the crash flags are equal. The sampler kernels' crash flags
-and costs equal the twin's rollouts fed the same noise. The tests count that the states reach
-every branch.
+and costs, and the safe-sampling kernel's (DCBF projection and cost), equal their twins'
+rollouts fed the same noise. The tests count that the states reach every branch.
 
 The sampler kernels of a grid model fall back to the CasADi virtual machine (a RuntimeWarning)
 until their C emitter reads the grid: that one comparison is skipped then, with the reason.
@@ -32,6 +32,8 @@ from workbench.problem.scene_kinds import Capsule, HalfSpace, MovingCircle, Sphe
 from workbench.problem.scene_layout import SceneLayout
 from workbench.problem.sdf_grid import SignedDistanceGrid
 from workbench.sampling.kernels.constants import SamplerConstants
+from workbench.sampling.methods.sampler import SafeOptions, SafeSampler
+from workbench.sampling.methods.twin import safe_twin
 from workbench.sampling.problem import SamplingProblem, navigation_costs
 from workbench.sampling.sampler import Sampler
 from workbench.sampling.twin import mppi_twin
@@ -129,7 +131,7 @@ def double_integrator_3d(layout: SceneLayout, scene, h_form: str) -> Model:
 def navigation_3d(model: Model) -> SamplingProblem:
     """The navigation costs (assumptions §8.2) in space, with the twin's weights."""
     w = {"Qp": np.ones(3), "Qv": 0.1 * np.ones(3), "q_beta": 1.0,
-         "S": np.array([10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 1.0])}
+         "S": np.array([10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 1.0])[:model.nx]}
     x, g = model.x, ca.SX.sym("goal", model.nx)
     ep, v, eb, e = x[:3] - g[:3], x[3:6], x[6:] - g[6:], x - g
     q = ca.dot(w["Qp"] * ep, ep) + ca.dot(w["Qv"] * v, v) + w["q_beta"] * ca.dot(eb, eb)
@@ -263,14 +265,21 @@ def test_the_casadi_path_equals_the_twin(case):
         assert rel_err(nxt, twin.step(case.X, case.V)) <= RTOL
 
 
-def test_sampler_kernel_crash_flags_and_costs_equal_the_twin(case):
-    sp = case.sp
+def compiled_or_skip(make):
+    """``make()``'s sampler; the test is skipped, with the warning's reason, when it has no
+    compiled kernels (no C compiler, or an operation its C emitter does not support)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
-        sampler = Sampler(sp, backend="auto")
+        sampler = make()
     if sampler.lib is None:
         reasons = "; ".join(str(w.message) for w in caught) or "no C compiler"
         pytest.skip(f"the sampler kernels run on the CasADi virtual machine: {reasons}")
+    return sampler
+
+
+def test_sampler_kernel_crash_flags_and_costs_equal_the_twin(case):
+    sp = case.sp
+    sampler = compiled_or_skip(lambda: Sampler(sp, backend="auto"))
     nu = sp.nu
     goal = sp.model.lift(np.concatenate([case.start[:nu] + 2.0, np.zeros(nu)]), case.scenes[0])
     c = SamplerConstants(sigma=np.full(nu, 2.5), lam=1.0, nu_mix=0.0, u_min=sp.model.u_min,
@@ -283,3 +292,29 @@ def test_sampler_kernel_crash_flags_and_costs_equal_the_twin(case):
     assert 0 < ref["crashed"].sum() < N  # some samples crash, most do not
     np.testing.assert_array_equal(batch.crashed, ref["crashed"])
     assert rel_err(batch.S, ref["S"]) <= KERNEL_RTOL
+
+
+def test_safe_kernel_equals_its_twin(case):
+    """The DCBF projection and cost of the safe-sampling methods (CBF projection, Shield-MPPI)
+    on the physical model: crash flags, projected and infeasible step counts equal, costs,
+    controls and DCBF violations per element (KERNEL_RTOL)."""
+    plain = case.plain
+    sp = (navigation_3d(plain) if case.name == "space"
+          else navigation_costs(plain, S=(10.0, 10.0, 1.0, 1.0)))
+    sampler = compiled_or_skip(lambda: SafeSampler(sp, backend="auto"))
+    nu = sp.nu
+    c = SamplerConstants(sigma=np.full(nu, 2.5), lam=1.0, nu_mix=0.0, u_min=plain.u_min,
+                         u_max=plain.u_max, crash_cost=1e6,
+                         p=np.concatenate([case.start[:nu] + 2.0, np.zeros(nu)]),
+                         scene=case.scenes[0])
+    U = np.random.default_rng(9).normal(0.0, 1.0, (T, nu))
+    opts = SafeOptions(project=True, w_dcbf=1e3, gamma=0.9)
+    batch = sampler.batch(case.start, U, N, c, opts, 21)
+    Z = np.transpose(sampler.lib.normals(N, T, nu, 21), (2, 0, 1))
+    ref = safe_twin(sp, np.tile(case.start, (N, 1)), U, Z, c, True, 1e3, 0.9, "numpy")
+    assert 0 < (ref["projected"] > 0).sum() < N and 0 < ref["crashed"].sum() < N
+    for k in ("crashed", "projected", "infeasible"):
+        np.testing.assert_array_equal(getattr(batch, k), ref[k], err_msg=k)
+    assert rel_err(batch.S, ref["S"]) <= KERNEL_RTOL
+    assert rel_err(batch.dcbf, ref["dcbf"]) <= KERNEL_RTOL
+    assert rel_err(batch.v, np.transpose(ref["v"], (1, 2, 0))) <= KERNEL_RTOL
