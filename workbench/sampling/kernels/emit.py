@@ -51,6 +51,13 @@ from importlib import resources
 import casadi as ca
 
 from workbench.sampling.kernels.flags import LANES, PRECISIONS, lane_count
+from workbench.sampling.kernels.grid_lookup import (
+    UnsupportedCall,
+    called_functions,
+    grid_calls,
+    grid_shape,
+    lookup_c,
+)
 
 ROLES = ("carry", "noise", "lane", "time", "const")
 # OpenMP schedule of the block loop: equal shares per thread (busy machines are handled by the
@@ -114,15 +121,21 @@ def op_name(op: int) -> str:
 
 
 def supported_operations() -> tuple[str, ...]:
-    """Names of the CasADi operations the emitter writes as C."""
+    """Names of the CasADi operations the emitter writes as C (and calls of the
+    signed-distance grid's interpolant, :mod:`.grid_lookup`)."""
     return tuple(sorted(op_name(op) for op in (*_UNARY, *_BINARY)))
 
 
 def unsupported_operations(f: ca.Function) -> tuple[str, ...]:
-    """Names of the operations of SX Function ``f`` the emitter cannot write (empty if none)."""
+    """Names of the operations of SX Function ``f`` the emitter cannot write (empty if none);
+    a call of a Function other than a grid interpolant is named ``call (<function>)``."""
     ops = {f.instruction_id(k) for k in range(f.n_instructions())}
-    bad = ops - set(_UNARY) - set(_BINARY) - set(_STRUCTURAL)
-    return tuple(sorted(op_name(op) for op in bad))
+    bad = ops - set(_UNARY) - set(_BINARY) - set(_STRUCTURAL) - {ca.OP_CALL}
+    names = [op_name(op) for op in bad]
+    if ca.OP_CALL in ops:
+        names += [f"call ({n})" for n in set(called_functions(f).values())
+                  if grid_shape(n) is None]
+    return tuple(sorted(names))
 
 
 class EmitError(ValueError):
@@ -147,7 +160,9 @@ def _literal_f(v: float) -> str:
 
 
 def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
-                  load_f=None, level=None, hoisted: list[list[str]] | None = None) -> list[str]:
+                  load_f=None, level=None, hoisted: list[list[str]] | None = None,
+                  array=None, tables: set[int] | None = None,
+                  loaded: dict[int, int] | None = None) -> list[str]:
     """C statements evaluating SX Function ``f``: ``load(i, nz)`` gives the C expression of
     input i element nz, ``store(o, nz, expr)`` the statement writing output o element nz.
     Outputs are collected and written after every load. ``load_f(i, nz)`` (optional) gives a
@@ -162,14 +177,26 @@ def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
     0 shared by every sample and step, 1 by every sample of a step, 2 per sample; literals are
     0 and an operation takes its operands' highest rank. Statements of rank 0 and 1 are
     appended to ``hoisted[0]`` and ``hoisted[1]`` (to be emitted outside the time loop and the
-    lane loop) instead of being returned: the same operations, evaluated once."""
+    lane loop) instead of being returned: the same operations, evaluated once.
+
+    Calls of the signed-distance grid's interpolant (:mod:`.grid_lookup`) are written as
+    bilinear lookups into ``array(i)``, the C pointer of input i's doubles when they are
+    shared by every sample (None: not indexable, an error); their values are not loaded one
+    by one. ``tables`` (optional) collects the inputs indexed so, ``loaded`` the number of
+    leading entries of each input loaded one by one (one past the last)."""
     if not f.is_a("SXFunction"):
         raise EmitError(f"{f.name()}: only SX Functions can be emitted")
     bad = unsupported_operations(f)
     if bad:
         raise EmitError(f"{f.name()} uses the CasADi operation{'s' if len(bad) > 1 else ''} "
                         f"{', '.join(bad)}, which the sampler's C emitter does not support; "
-                        f"supported: {', '.join(supported_operations())}")
+                        f"supported: {', '.join(supported_operations())} and calls of the "
+                        "signed-distance grid's interpolant")
+    try:
+        grids, skip = grid_calls(f)
+    except UnsupportedCall as exc:
+        raise EmitError(f"{f.name()}: {exc}, which the sampler's C emitter does not "
+                        "support") from exc
     typed = kind is not None
     work: dict[int, str] = {}
     typ: dict[str, str] = {}
@@ -200,7 +227,33 @@ def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
             stores.append(store(outs[0], outs[1], operand(src, "d")))
             continue
         name = f"{prefix}{k}"
+        if k in skip:  # a grid's value, read by its lookups
+            continue
+        if k in grids:
+            g = grids[k]
+            table = array(g.input) if array is not None else None
+            if table is None:
+                raise EmitError(f"{f.name()}: a signed-distance grid's values must be an "
+                                "input shared by every sample (the run-time scene)")
+            if tables is not None:
+                tables.add(g.input)
+            uv = [work[g.u], work[g.v]]
+            rank[name] = max(*(rank[a] for a in uv), level(g.input, g.start) if split else 2)
+            kinds = {typ.get(a, "d") for a in uv}
+            t = "d" if "d" in kinds or not typed else "f" if "f" in kinds else "p"
+            ud, vd = (operand(a, "d") for a in uv)
+            stmt = lookup_c(name, ud, vd, table, g, "double")
+            if t != "d":  # "p": both types, the double one named <name>_d
+                stmt = lookup_c(name, uv[0], uv[1], table, g, "float") + (
+                    " " + lookup_c(name + "_d", ud, vd, table, g, "double") if t == "p" else "")
+            key[name] = (k, 0, k)
+            typ[name] = t
+            body.append((key[name], rank[name], stmt))
+            work[outs[0]] = name
+            continue
         if op == ca.OP_INPUT:
+            if loaded is not None:
+                loaded[ins[0]] = max(loaded.get(ins[0], 0), ins[1] + 1)
             t = kind(ins[0], ins[1]) if typed else "d"
             rank[name] = level(ins[0], ins[1]) if split else 2
             expr_d = load(ins[0], ins[1])
@@ -414,11 +467,32 @@ def emit_kernel(spec: KernelSpec) -> str:
         role = spec.roles[step.name_in(i)]
         return 0 if role == "const" else 1 if role == "time" else 2
 
+    def array_of(fn: ca.Function):
+        """The const inputs' arrays, which a grid lookup indexes."""
+
+        def array(i: int) -> str | None:
+            name = fn.name_in(i)
+            return f"cin{const.index(name)}" if spec.roles.get(name) == "const" else None
+
+        return array
+
     hoisted: list[list[str]] = [[], []]
+    tables: dict[str, set[int]] = {"s": set(), "f": set()}
+    loaded: dict[str, dict[int, int]] = {"s": {}, "f": {}}
     step_body = straight_line(step, load_step, store_step, "s", kind_of(step), load_step_f,
-                              level_step, hoisted)
+                              level_step, hoisted, array_of(step), tables["s"], loaded["s"])
     final_body = straight_line(final, load_final, store_final, "f", kind_of(final),
-                               load_final_f)
+                               load_final_f, array=array_of(final), tables=tables["f"],
+                               loaded=loaded["f"])
+
+    def float_copy(name: str) -> int:
+        """Entries of the float copy of const input ``name``: all of them, or, when a grid
+        lookup reads the input (its values as doubles), those loaded one by one."""
+        fns = (("s", step), ("f", final))
+        ids = [(t, fn.index_in(name)) for t, fn in fns if fn.has_in(name)]
+        if not any(i in tables[t] for t, i in ids):
+            return step.numel_in(name)
+        return max(1, *(loaded[t].get(i, 0) for t, i in ids))
     n_lout = step.n_out() - 1
     ind = "        "
 
@@ -443,7 +517,7 @@ def emit_kernel(spec: KernelSpec) -> str:
     out += [f"    const double* cin{j} = const_in[{j}];" for j in range(len(const))]
     if f32:  # float copies of the shared inputs: converted once, alias-free
         for j, n in enumerate(const):
-            m = step.numel_in(n)
+            m = float_copy(n)
             out += [f"    float cf{j}[{m}];",
                     f"    for (int k = 0; k < {m}; ++k) cf{j}[k] = (float)cin{j}[k];"]
     out += [f"    double* lout{j} = lane_out[{j}];" for j in range(n_lout)]
