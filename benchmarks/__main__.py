@@ -79,7 +79,7 @@ def bench_ilqg_iteration(repeats: int) -> dict:
 
 def optional_records(repeats: int) -> list[dict]:
     """Records of the optional benchmark modules (precision, threads, the robust step, the
-    sequential comparison's operating characteristics) when
+    sequential comparison's operating characteristics, the scene kinds' margins) when
     they exist; a module that fails leaves a record naming the error (and its traceback on
     stderr)."""
     out = []
@@ -87,7 +87,8 @@ def optional_records(repeats: int) -> list[dict]:
                        ("benchmarks.threads", "bench_threads"),
                        ("benchmarks.robust_step", "records"),
                        ("benchmarks.sequential_operating", "records"),
-                       ("benchmarks.latency", "records")):
+                       ("benchmarks.latency", "records"),
+                       ("benchmarks.scene_margins", "records")):
         if importlib.util.find_spec(module) is None:
             print(f"{module}: not present, skipped")
             continue

@@ -52,11 +52,13 @@ import casadi as ca
 
 from workbench.sampling.kernels.flags import LANES, PRECISIONS, lane_count
 from workbench.sampling.kernels.grid_lookup import (
+    Program,
     UnsupportedCall,
     called_functions,
     grid_calls,
     grid_shape,
     lookup_c,
+    program,
 )
 
 ROLES = ("carry", "noise", "lane", "time", "const")
@@ -126,14 +128,16 @@ def supported_operations() -> tuple[str, ...]:
     return tuple(sorted(op_name(op) for op in (*_UNARY, *_BINARY)))
 
 
-def unsupported_operations(f: ca.Function) -> tuple[str, ...]:
-    """Names of the operations of SX Function ``f`` the emitter cannot write (empty if none);
-    a call of a Function other than a grid interpolant is named ``call (<function>)``."""
-    ops = {f.instruction_id(k) for k in range(f.n_instructions())}
+def unsupported_operations(f: ca.Function, prog: Program | None = None) -> tuple[str, ...]:
+    """Names of the operations of SX Function ``f`` (its instructions ``prog`` when read
+    already) the emitter cannot write (empty if none); a call of a Function other than a grid
+    interpolant is named ``call (<function>)``."""
+    ops = ({op for op, _, _ in prog} if prog is not None
+           else {f.instruction_id(k) for k in range(f.n_instructions())})
     bad = ops - set(_UNARY) - set(_BINARY) - set(_STRUCTURAL) - {ca.OP_CALL}
     names = [op_name(op) for op in bad]
     if ca.OP_CALL in ops:
-        names += [f"call ({n})" for n in set(called_functions(f).values())
+        names += [f"call ({n})" for n in set(called_functions(f, prog).values())
                   if grid_shape(n) is None]
     return tuple(sorted(names))
 
@@ -186,14 +190,15 @@ def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
     leading entries of each input loaded one by one (one past the last)."""
     if not f.is_a("SXFunction"):
         raise EmitError(f"{f.name()}: only SX Functions can be emitted")
-    bad = unsupported_operations(f)
+    prog = program(f)
+    bad = unsupported_operations(f, prog)
     if bad:
         raise EmitError(f"{f.name()} uses the CasADi operation{'s' if len(bad) > 1 else ''} "
                         f"{', '.join(bad)}, which the sampler's C emitter does not support; "
                         f"supported: {', '.join(supported_operations())} and calls of the "
                         "signed-distance grid's interpolant")
     try:
-        grids, skip = grid_calls(f)
+        grids, skip = grid_calls(f, prog)
     except UnsupportedCall as exc:
         raise EmitError(f"{f.name()}: {exc}, which the sampler's C emitter does not "
                         "support") from exc
@@ -219,9 +224,7 @@ def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
             return f"const float {name} = {expr_f};"
         return f"const float {name} = {expr_f}; const double {name}_d = {expr_d};"
 
-    for k in range(f.n_instructions()):
-        op = f.instruction_id(k)
-        ins, outs = f.instruction_input(k), f.instruction_output(k)
+    for k, (op, ins, outs) in enumerate(prog):
         if op == ca.OP_OUTPUT:
             src = work[ins[0]]
             stores.append(store(outs[0], outs[1], operand(src, "d")))

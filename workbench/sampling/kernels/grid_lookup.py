@@ -37,9 +37,20 @@ def grid_shape(name: str) -> tuple[int, int] | None:
     return (int(m[1]), int(m[2])) if m else None
 
 
-def called_functions(f: ca.Function) -> dict[int, str]:
+Program = list[tuple[int, list[int], list[int]]]
+
+
+def program(f: ca.Function) -> Program:
+    """(operation, inputs, outputs) of every instruction of SX Function ``f``, read once."""
+    return [(f.instruction_id(k), f.instruction_input(k), f.instruction_output(k))
+            for k in range(f.n_instructions())]
+
+
+def called_functions(f: ca.Function, prog: Program | None = None) -> dict[int, str]:
     """Names of the Functions called by SX Function ``f``, by instruction index."""
-    ks = [k for k in range(f.n_instructions()) if f.instruction_id(k) == ca.OP_CALL]
+    ops = ((k, op) for k, (op, _, _) in enumerate(prog)) if prog is not None else (
+        (k, f.instruction_id(k)) for k in range(f.n_instructions()))
+    ks = [k for k, op in ops if op == ca.OP_CALL]
     if not ks:
         return {}
     ins = f.instructions_sx()
@@ -58,19 +69,17 @@ class GridCall:
     start: int
 
 
-def grid_calls(f: ca.Function) -> tuple[dict[int, GridCall], set[int]]:
-    """The grid lookups of ``f`` by instruction index, and the input instructions whose values
-    only serve as a lookup's table (not loaded one by one)."""
-    names = called_functions(f)
+def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[int]]:
+    """The grid lookups of ``f`` (its :func:`program` ``prog``) by instruction index, and the
+    input instructions whose values only serve as a lookup's table (not loaded one by one)."""
+    names = called_functions(f, prog)
     if not names:
         return {}, set()
     producer: dict[int, int] = {}  # work entry -> instruction that last wrote it
     plain: set[int] = set()  # instructions used other than as table entries
     table_use: set[int] = set()
     calls: dict[int, GridCall] = {}
-    for k in range(f.n_instructions()):
-        op = f.instruction_id(k)
-        ins, outs = f.instruction_input(k), f.instruction_output(k)
+    for k, (op, ins, outs) in enumerate(prog):
         if op == ca.OP_CALL:
             shape = grid_shape(names[k])
             if shape is None or len(ins) != 2 + shape[0] * shape[1] or len(outs) != 1:
@@ -80,9 +89,8 @@ def grid_calls(f: ca.Function) -> tuple[dict[int, GridCall], set[int]]:
                 raise UnsupportedCall(f"a call of {names[k]} with a structurally zero argument")
             plain.update(producer[w] for w in ins[:2])
             src = [producer[w] for w in ins[2:]]
-            first = f.instruction_input(src[0])
-            if not all(f.instruction_id(s) == ca.OP_INPUT
-                       and f.instruction_input(s) == [first[0], first[1] + n]
+            first = prog[src[0]][1]
+            if not all(prog[s][0] == ca.OP_INPUT and prog[s][1] == [first[0], first[1] + n]
                        for n, s in enumerate(src)):
                 raise UnsupportedCall(f"a call of {names[k]} whose values are not one "
                                       "contiguous run of an input (a grid compiled into the "
@@ -94,8 +102,9 @@ def grid_calls(f: ca.Function) -> tuple[dict[int, GridCall], set[int]]:
             plain.add(producer[ins[0]])
         elif op not in (ca.OP_INPUT, ca.OP_CONST):
             plain.update(producer[w] for w in ins[:2] if w in producer)
-        for w in outs if op != ca.OP_OUTPUT else ():
-            producer[w] = k
+        if op != ca.OP_OUTPUT:
+            for w in outs:
+                producer[w] = k
     return calls, table_use - plain
 
 
