@@ -93,7 +93,7 @@ class SceneBenchConfig:
 def goal_problem(model: Model) -> SamplingProblem:
     """Squared distance to the goal position, per step and (x10) at the end."""
     g = ca.SX.sym("goal", model.nx)
-    d = len(model.position)
+    d = len(model.position or ())
     e = model.x[:d] - g[:d]
     return SamplingProblem.from_costs(model, q=ca.dot(e, e), phi=10.0 * ca.dot(e, e), p=g)
 
@@ -138,7 +138,7 @@ class Kernel:
         sp, k = self.sp, self.k
         N, T = cfg.samples, cfg.horizon
         m = sp.model
-        d = len(m.position)
+        d = len(m.position or ())
         x0 = np.zeros(m.nx)
         x0[:d], x0[d:2 * d] = 1.0, 2.0  # from (1, 1[, 1]) at 2 m/s per axis
         goal = np.zeros(m.nx)
@@ -228,6 +228,7 @@ def measure(cfg: SceneBenchConfig) -> dict:
     maps = {"few": circles_grid(s, FEW),
             "many": circles_grid(s, many_circles(cfg.many_obstacles, cfg.seed))}
     lay = k.sp.model.scene_layout
+    assert lay is not None
     med, low = _timed({name: k.call(cfg, lay.vector([g])) for name, g in maps.items()}, cfg)
     out["occupancy"] = {name: {"ms": med[name], "ms_min": low[name],
                                "occupied_share": float(np.mean(g.values < 0)),
