@@ -4,8 +4,9 @@ Every figure is the bare SAIS kernel (its noise drawn inside, no Python wrapping
 function on prepared buffers) on N = 1024 samples and T = 100 steps of a double integrator with
 a goal cost and no barrier state, so the difference between two models is their margins and
 crash tests alone. A SAIS sample-step advances two systems (real and nominal), so it evaluates
-every margin twice. The calls of one figure are timed in turn; medians, and minima (the least
-disturbed calls, for a loaded machine) beside them.
+every margin twice. The calls of one figure are timed in turn; figures on three bases: the
+median thread CPU time (the records' values: the time the kernel ran, robust when other
+processes share the cores), the median wall time and the fastest call.
 
 * ``grid_vs_circle``: the cost per sample-step of one signed-distance grid margin (100 x 100
   nodes) and of one circle margin, each minus the same model without obstacles; their ratio.
@@ -29,6 +30,7 @@ writes their JSON.
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +39,7 @@ import casadi as ca
 import numpy as np
 
 from benchmarks.split import machine
-from benchmarks.timing import pinned_threads, prepared_kernel, record, round_robin
+from benchmarks.timing import pinned_threads, prepared_kernel, record, samples_in_turn
 from workbench.codegen import build_library
 from workbench.problem.models import Model, double_integrator
 from workbench.problem.obstacles import Circle
@@ -172,15 +174,24 @@ def sais_kernel(model: Model, tag: str) -> Kernel:
     return Kernel(sp, k, time.perf_counter() - t0)
 
 
-def _timed(fns: dict, cfg: SceneBenchConfig) -> tuple[dict[str, float], dict[str, float]]:
-    """(medians, minima) in ms of the calls timed in turn: ``cfg.repeats`` rounds of 5 timed
-    calls of each after 1 untimed (a controller calls one kernel over and over)."""
-    med, low = round_robin(fns, cfg.repeats, block=5, warm=1, with_min=True)
-    return {k: 1e3 * v for k, v in med.items()}, {k: 1e3 * v for k, v in low.items()}
+BASES = ("cpu", "wall", "wall_min")
+
+
+def _timed(fns: dict, cfg: SceneBenchConfig) -> dict[str, dict[str, float]]:
+    """ms per call of each function, by basis: ``cpu`` the median thread CPU time (the time
+    the kernel ran: robust when other processes share the cores), ``wall`` the median wall
+    time, ``wall_min`` the fastest call. The functions are timed in turn: ``cfg.repeats``
+    rounds of 5 timed calls of each after 1 untimed (a controller calls one kernel over and
+    over)."""
+    t = samples_in_turn(fns, cfg.repeats, block=5, warmup=1, warm=1)
+    return {"cpu": {k: 1e3 * statistics.median(c) for k, (_, c) in t.items()},
+            "wall": {k: 1e3 * statistics.median(w) for k, (w, _) in t.items()},
+            "wall_min": {k: 1e3 * min(w) for k, (w, _) in t.items()}}
 
 
 def measure(cfg: SceneBenchConfig) -> dict:
-    """Every figure of the module docstring (ms per kernel call, ns per sample-step)."""
+    """Every figure of the module docstring, per timing basis (:func:`_timed`): ms per
+    kernel call, ns per sample-step, ratios."""
     steps = cfg.samples * cfg.horizon
     builds: dict[str, float] = {}
 
@@ -193,34 +204,34 @@ def measure(cfg: SceneBenchConfig) -> dict:
         return (double_integrator(obstacles=(), u_limit=U_LIMIT) if layout is None else
                 double_integrator(scene_layout=layout, obstacles=objs, u_limit=U_LIMIT))
 
-    out: dict = {}
+    def ns(ms: float) -> float:
+        return 1e6 * ms / steps
+
+    out: dict = {"build_s": builds}
     # (a) one grid margin against one circle margin, above the obstacle-free model
     n = cfg.grid_vs_circle_size
     none = kernel(planar(None, []), "none")
     circle = kernel(planar(SceneLayout.of(circles=1), [Circle(FEW[0][:2], FEW[0][2])]),
                     "circles_1")
     grid = kernel(planar(SceneLayout.of(grid=(n, n)), [circles_grid(n, FEW)]), f"grid_{n}")
-    med, low = _timed({"none": none.call(cfg), "circle": circle.call(cfg),
-                       "grid": grid.call(cfg)}, cfg)
-    per = {k: 1e6 * (med[k] - med["none"]) / steps for k in ("circle", "grid")}
-    per_min = {k: 1e6 * (low[k] - low["none"]) / steps for k in ("circle", "grid")}
-    out["grid_vs_circle"] = {"ms": med, "ms_min": low, "ns_per_sample_step": per,
-                             "ns_per_sample_step_min": per_min, "grid_nodes": [n, n],
-                             "grid_over_circle": per["grid"] / per["circle"],
-                             "grid_over_circle_min": per_min["grid"] / per_min["circle"]}
-    # (b) grid size, and occupancy at one size
+    t = _timed({"none": none.call(cfg), "circle": circle.call(cfg), "grid": grid.call(cfg)},
+               cfg)
+    a: dict = {"grid_nodes": [n, n]}
+    for b, ms in t.items():
+        per = {k: ns(ms[k] - ms["none"]) for k in ("circle", "grid")}
+        a[b] = {"ms": ms, "ns_per_sample_step": per, "grid_over_circle": per["grid"]
+                / per["circle"]}
+    out["grid_vs_circle"] = a
+    # (b) grid size (samples starting together or spread over the map), occupancy at one size
     kernels = {s: grid if s == n else kernel(planar(SceneLayout.of(grid=(s, s)),
                                                     [circles_grid(s, FEW)]), f"grid_{s}")
                for s in cfg.grid_sizes}
-    fns = {f"{s}{tag}": k.call(cfg, spread=bool(tag)) for s, k in kernels.items()
-           for tag in ("", "_spread")}
-    med, low = _timed(fns, cfg)
-    out["grid_sizes"] = {str(s): {"ms": med[str(s)], "ms_min": low[str(s)],
-                                  "spread_ms": med[f"{s}_spread"],
-                                  "spread_ms_min": low[f"{s}_spread"],
-                                  "table_kB": 8 * s * s / 1024,
+    t = _timed({f"{s}{tag}": k.call(cfg, spread=bool(tag)) for s, k in kernels.items()
+                for tag in ("", "_spread")}, cfg)
+    out["grid_sizes"] = {str(s): {"table_kB": 8 * s * s / 1024,
                                   "resolution_m": EXTENT / (s - 1),
-                                  "ns_per_sample_step": 1e6 * med[str(s)] / steps}
+                                  **{b: {"ms": ms[str(s)], "spread_ms": ms[f"{s}_spread"]}
+                                     for b, ms in t.items()}}
                          for s in cfg.grid_sizes}
     s = cfg.occupancy_size
     k = kernels.get(s) or kernel(planar(SceneLayout.of(grid=(s, s)), [circles_grid(s, FEW)]),
@@ -229,14 +240,13 @@ def measure(cfg: SceneBenchConfig) -> dict:
             "many": circles_grid(s, many_circles(cfg.many_obstacles, cfg.seed))}
     lay = k.sp.model.scene_layout
     assert lay is not None
-    med, low = _timed({name: k.call(cfg, lay.vector([g])) for name, g in maps.items()}, cfg)
-    out["occupancy"] = {name: {"ms": med[name], "ms_min": low[name],
-                               "occupied_share": float(np.mean(g.values < 0)),
-                               "obstacles": len(FEW) if name == "few" else cfg.many_obstacles}
-                        for name, g in maps.items()}
-    out["occupancy"]["grid_nodes"] = [s, s]
-    out["occupancy"]["many_over_few"] = med["many"] / med["few"]
-    out["occupancy"]["many_over_few_min"] = low["many"] / low["few"]
+    t = _timed({name: k.call(cfg, lay.vector([g])) for name, g in maps.items()}, cfg)
+    out["occupancy"] = {
+        "grid_nodes": [s, s],
+        "maps": {name: {"occupied_share": float(np.mean(g.values < 0)),
+                        "obstacles": len(FEW) if name == "few" else cfg.many_obstacles}
+                 for name, g in maps.items()},
+        **{b: {"ms": ms, "many_over_few": ms["many"] / ms["few"]} for b, ms in t.items()}}
     # (c) 3-D spheres against planar circles
     rng = np.random.default_rng(cfg.seed + 1)
     calls, cnt = {}, cfg.obstacles
@@ -248,49 +258,45 @@ def measure(cfg: SceneBenchConfig) -> dict:
                                           [Sphere(tuple(r[:3]), r[3]) for r in cs]),
                      f"spheres_{m}")
         calls[f"circles_{m}"], calls[f"spheres_{m}"] = circ.call(cfg), sph.call(cfg)
-    med, low = _timed(calls, cfg)
-
-    def slope(t: dict, kind: str) -> float:
-        return 1e6 * (t[f"{kind}_{cnt[1]}"] - t[f"{kind}_{cnt[0]}"]) / (cnt[1] - cnt[0]) / steps
-
-    sl = {kind: slope(med, kind) for kind in ("circles", "spheres")}
-    sl_min = {kind: slope(low, kind) for kind in ("circles", "spheres")}
-    out["spheres_vs_circles"] = {
-        "ms": med, "ms_min": low, "ns_per_obstacle_sample_step": sl,
-        "ns_per_obstacle_sample_step_min": sl_min,
-        "sphere_over_circle_per_obstacle": sl["spheres"] / sl["circles"],
-        "sphere_over_circle_per_obstacle_min": sl_min["spheres"] / sl_min["circles"],
-        "sphere_over_circle_total": {str(m): med[f"spheres_{m}"] / med[f"circles_{m}"]
-                                     for m in cnt}}
-    out["build_s"] = builds
+    t = _timed(calls, cfg)
+    c: dict = {"counts": list(cnt)}
+    for b, ms in t.items():
+        sl = {kind: ns(ms[f"{kind}_{cnt[1]}"] - ms[f"{kind}_{cnt[0]}"]) / (cnt[1] - cnt[0])
+              for kind in ("circles", "spheres")}
+        c[b] = {"ms": ms, "ns_per_obstacle_sample_step": sl,
+                "sphere_over_circle_per_obstacle": sl["spheres"] / sl["circles"],
+                "sphere_over_circle_total": {str(m): ms[f"spheres_{m}"] / ms[f"circles_{m}"]
+                                             for m in cnt}}
+    out["spheres_vs_circles"] = c
     return out
 
 
 def records(repeats: int = 7, cfg: SceneBenchConfig | None = None) -> list[dict]:
-    """The records of ``make bench`` (1 thread)."""
+    """The records of ``make bench`` (1 thread): values and baselines on the CPU-time basis,
+    every basis in the params."""
     cfg = cfg or SceneBenchConfig(repeats=repeats)
     with pinned_threads(1):
         m = measure(cfg)
-    common = {"N": cfg.samples, "T": cfg.horizon, "threads": 1, "kernel": "SAIS, bare C call"}
+    common = {"N": cfg.samples, "T": cfg.horizon, "threads": 1, "kernel": "SAIS, bare C call",
+              "basis": "median thread CPU time (wall medians and minima in the params)"}
     g, sizes, occ, sph = (m["grid_vs_circle"], m["grid_sizes"], m["occupancy"],
                           m["spheres_vs_circles"])
     first = str(cfg.grid_sizes[0])
-    out = [record("scene_grid_margin_ns_per_sample_step", g["ns_per_sample_step"]["grid"],
-                  "ns/sample-step", "circle_margin_ns_per_sample_step",
-                  g["ns_per_sample_step"]["circle"], {**common, **g,
-                                                       "kernel_build_s": m["build_s"]}),
-           record("scene_grid_occupancy_many_vs_few", occ["many"]["ms"], "ms",
-                  "few_obstacles_ms", occ["few"]["ms"], {**common, **occ}),
+    per, sl = g["cpu"]["ns_per_sample_step"], sph["cpu"]["ns_per_obstacle_sample_step"]
+    out = [record("scene_grid_margin_ns_per_sample_step", per["grid"], "ns/sample-step",
+                  "circle_margin_ns_per_sample_step", per["circle"],
+                  {**common, **g, "kernel_build_s": m["build_s"]}),
+           record("scene_grid_occupancy_many_vs_few", occ["cpu"]["ms"]["many"], "ms",
+                  "few_obstacles_ms", occ["cpu"]["ms"]["few"], {**common, **occ}),
            record(f"scene_spheres_vs_circles_per_obstacle_n{cfg.obstacles[1]}",
-                  sph["ns_per_obstacle_sample_step"]["spheres"], "ns/obstacle/sample-step",
-                  "circle_ns_per_obstacle_sample_step",
-                  sph["ns_per_obstacle_sample_step"]["circles"], {**common, **sph})]
+                  sl["spheres"], "ns/obstacle/sample-step", "circle_ns_per_obstacle_sample_step",
+                  sl["circles"], {**common, **sph})]
     for s, v in sizes.items():
-        out.append(record(f"scene_grid_sais_{s}x{s}", v["ms"], "ms", f"grid_{first}_ms",
-                          sizes[first]["ms"], {**common, **v}))
-        out.append(record(f"scene_grid_sais_{s}x{s}_spread", v["spread_ms"], "ms",
-                          f"grid_{first}_spread_ms", sizes[first]["spread_ms"],
-                          {**common, **v, "starts": "uniform over the map"}))
+        for tag, key in (("", "ms"), ("_spread", "spread_ms")):
+            out.append(record(f"scene_grid_sais_{s}x{s}{tag}", v["cpu"][key], "ms",
+                              f"grid_{first}{tag}_ms", sizes[first]["cpu"][key],
+                              {**common, **v, "starts": "uniform over the map" if tag else
+                               "one place"}))
     return out
 
 

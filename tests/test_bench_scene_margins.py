@@ -62,5 +62,5 @@ def test_the_benchmark_writes_every_record(tmp_path, monkeypatch):
     for r in data["records"]:
         assert r["value"] is not None and r["value"] == r["value"], r["name"]
     occ = next(r for r in data["records"] if r["name"].endswith("many_vs_few"))["params"]
-    assert occ["many"]["occupied_share"] >= occ["few"]["occupied_share"]
+    assert occ["maps"]["many"]["occupied_share"] >= occ["maps"]["few"]["occupied_share"]
     assert data["machine"]["cpu"]
