@@ -11,9 +11,6 @@ a new grid of the same shape) is applied (the next step differs) and builds noth
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
@@ -117,13 +114,10 @@ def test_bas_ilqg_and_the_ecbf_filter_take_every_kind_at_run_time(models):
 
 
 def test_a_new_grid_of_the_same_shape_builds_nothing(models):
-    """The sampler kernels of a grid model fall back to the CasADi virtual machine (with a
-    RuntimeWarning) until their C emitter reads the grid; BaS-iLQG and the filter compile it."""
+    """The sampler kernels, BaS-iLQG and the filter all compile the grid."""
     gplain, gbas = models[2], models[3]
     sp = navigation_costs(gbas)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        ctrl = MPPI(sp, GOAL, replace(CFG, backend="auto"))
+    ctrl = MPPI(sp, GOAL, CFG)
     weights = wb.TrackingWeights(Q=(1, 1, 0.1, 0.1), R=(0.1, 0.1), S=(10, 10, 1, 1))
     problem = wb.tracking_problem(gbas, weights)
     T = 20
