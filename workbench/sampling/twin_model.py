@@ -166,8 +166,12 @@ def _box(model: Model, d: int) -> tuple[np.ndarray, np.ndarray]:
 def model_twin(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
     """Model evaluation for the twin in ``scene`` (empty: the model's own): plain NumPy for
     the built-in navigation problem (unless ``model_backend == "casadi"``), otherwise the CasADi
-    virtual machine mapped over samples."""
+    virtual machine mapped over samples (always for a scene with moving circles, whose rollout
+    step k is evaluated in the scene predicted to (k + 1) dt: call ``at`` before each step)."""
     scene = sp.model.scene_vector(scene if np.size(scene) else None)
+    layout = sp.model.scene_layout
+    if layout is not None and layout.moves:  # predicted per step (CasadiModelTwin.at)
+        return CasadiModelTwin(sp, N, scene)
     if model_backend != "casadi" and sp.weights is not None:
         twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
         if twin is not None:
@@ -185,7 +189,16 @@ class CasadiModelTwin:
         self.margins = (f["margins"].map("margins", "serial", N, [1], []) if sp.model.nh
                         else None)
         self.q, self.phi = f["q"].map(N), f["phi"].map(N)
-        self.scene = scene
+        self.scene = self.present = scene
+        layout = sp.model.scene_layout
+        self._layout = layout if layout is not None and layout.moves else None
+
+    def at(self, t: float) -> None:
+        """Evaluate the next steps in the scene predicted to time ``t`` from now (moving circles
+        at c + v t, :meth:`~workbench.problem.scene_layout.SceneLayout.predicted`); nothing
+        changes for a scene without moving circles."""
+        if self._layout is not None:
+            self.scene = self._layout.predicted(self.present, t)
 
     def step(self, X, V):
         return np.asarray(self.dyn(X.T, V.T, self.scene)).T
@@ -204,6 +217,9 @@ class NumpyModelTwin:
         self.twin = twin
         self.q, self.phi = twin.q, twin.phi
         self.name = "numpy"
+
+    def at(self, t: float) -> None:
+        """Nothing: the NumPy navigation twin serves scenes without moving circles only."""
 
     def step(self, X, V):
         return self.twin.step(X, V)
