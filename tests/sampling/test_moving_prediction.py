@@ -211,3 +211,25 @@ def _still_layout_problem():
     x, g = emb.x, ca.SX.sym("goal", emb.nx)
     return wb.SamplingProblem.from_costs(emb, q=ca.dot(x - g, x - g), phi=ca.dot(x - g, x - g),
                                          p=g)
+
+
+def test_float32_and_diagnostics_kernels_predict_too(setup):
+    """The float32 kernels (crash flags those of float64, guard band included) and the SAIS
+    diagnostics kernel (trajectories equal the twin's) take the same step times."""
+    sp, sampler = setup
+    c = _consts(sp, SCENE, sigma=4.0)
+    x0 = _start(sp)
+    U = np.zeros((T, 2))
+    s32 = Sampler(sp, backend="compiled", precision="float32")
+    assert s32.precision == "float32"
+    b64, b32 = sampler.mppi(x0, U, N, c, seed=9), s32.mppi(x0, U, N, c, seed=9)
+    np.testing.assert_array_equal(b32.crashed, b64.crashed)
+    assert 0 < b64.crashed.sum() < N
+    np.testing.assert_allclose(b32.S, b64.S, rtol=1e-4)
+    K = np.zeros((T, 2, sp.nx))
+    d = sampler.sais(x0, x0, U, K, N, c, seed=9, diagnostics=True)
+    Z = sample_major(sampler.lib.normals(N, T, 2, 9))
+    ref = sais_twin(sp, np.tile(x0, (N, 1)), np.tile(x0, (N, 1)), U, K, Z, c,
+                    model_backend="casadi", pure_costs=True)
+    _close(sample_major(d.X), ref["X"])
+    np.testing.assert_array_equal(d.crashed_real, ref["crashed_real"])
