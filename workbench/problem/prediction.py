@@ -11,9 +11,12 @@ moving slots gets its scene unchanged (the same array).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from workbench.problem.models import Model
+if TYPE_CHECKING:
+    from workbench.problem.models import Model
 
 
 def predicts(model: Model) -> bool:
