@@ -23,6 +23,7 @@ from workbench.sampling.kernels.safe import safe_spec
 from workbench.sampling.methods.sampler import SafeOptions, SafeSampler
 from workbench.sampling.methods.twin import safe_twin
 from workbench.sampling.sampler import Sampler
+from workbench.sampling.samples import Rollout
 from workbench.sampling.twin import mppi_twin, sais_twin, sample_major
 
 LAYOUT = SceneLayout.of(circles=1, moving=3)
@@ -233,3 +234,14 @@ def test_float32_and_diagnostics_kernels_predict_too(setup):
                     model_backend="casadi", pure_costs=True)
     _close(sample_major(d.X), ref["X"])
     np.testing.assert_array_equal(d.crashed_real, ref["crashed_real"])
+
+
+def test_recorded_sample_trajectories_step_in_the_predicted_scenes(setup):
+    sp, _ = setup
+    rollout = Rollout(sp)
+    assert rollout.lib is None  # the compiled rollout holds one scene
+    V = np.random.default_rng(6).normal(0, 2.0, (3, T, 2))
+    x0 = _start(sp)
+    X = rollout(x0, V, sp.model.scene_value)
+    for i in range(3):
+        np.testing.assert_allclose(X[i], sp.problem.rollout(x0, V[i]), rtol=1e-12, atol=0)
