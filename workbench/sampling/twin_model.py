@@ -88,7 +88,11 @@ class NumpyNavigation:
         with np.errstate(divide="ignore", invalid="ignore"):
             beta = self._beta(self.margins(x_next))
             if o.gamma != 0.0:
-                beta = beta - o.gamma * (X[:, 4:] - self._beta(self.margins(X)))
+                h_now = self.margins(X)
+                if self.layout is not None and self.layout.moves:  # x_k's time: c - v dt
+                    h_now = self.layout.numpy_margins(
+                        X[:, :d], self.layout.predicted(self.scene, -dt), self.h_form)
+                beta = beta - o.gamma * (X[:, 4:] - self._beta(h_now))
         return np.hstack([x_next, beta])
 
     def crashed(self, X, eps_h) -> np.ndarray:
@@ -166,19 +170,16 @@ def _box(model: Model, d: int) -> tuple[np.ndarray, np.ndarray]:
 def model_twin(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
     """Model evaluation for the twin in ``scene`` (empty: the model's own): plain NumPy for
     the built-in navigation problem (unless ``model_backend == "casadi"``), otherwise the CasADi
-    virtual machine mapped over samples (always for a scene with moving circles, whose rollout
-    step k is evaluated in the scene predicted to (k + 1) dt: call ``at`` before each step)."""
+    virtual machine mapped over samples. With moving circles in the scene, rollout step k is
+    evaluated in the scene predicted to (k + 1) dt: call ``at((k + 1) dt)`` before each step."""
     scene = sp.model.scene_vector(scene if np.size(scene) else None)
-    layout = sp.model.scene_layout
-    if layout is not None and layout.moves:  # predicted per step (CasadiModelTwin.at)
-        return CasadiModelTwin(sp, N, scene)
     if model_backend != "casadi" and sp.weights is not None:
         twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
         if twin is not None:
             if sp.model.scene_capacity or sp.model.scene_layout is not None:
                 # (else the twin holds the baked circles)
                 twin.set_scene(scene)
-            return NumpyModelTwin(twin)
+            return NumpyModelTwin(twin, scene)
     return CasadiModelTwin(sp, N, scene)
 
 
@@ -213,13 +214,18 @@ class CasadiModelTwin:
 
 
 class NumpyModelTwin:
-    def __init__(self, twin):
+    def __init__(self, twin, scene: np.ndarray | None = None):
         self.twin = twin
         self.q, self.phi = twin.q, twin.phi
         self.name = "numpy"
+        self.present = scene
+        layout = twin.layout
+        self._layout = layout if layout is not None and layout.moves else None
 
     def at(self, t: float) -> None:
-        """Nothing: the NumPy navigation twin serves scenes without moving circles only."""
+        """As :meth:`CasadiModelTwin.at`: the scene predicted to time ``t`` from now."""
+        if self._layout is not None and self.present is not None:
+            self.twin.set_scene(self._layout.predicted(self.present, t))
 
     def step(self, X, V):
         return self.twin.step(X, V)
