@@ -7,6 +7,8 @@ before prediction existed."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -245,3 +247,24 @@ def test_recorded_sample_trajectories_step_in_the_predicted_scenes(setup):
     X = rollout(x0, V, sp.model.scene_value)
     for i in range(3):
         np.testing.assert_allclose(X[i], sp.problem.rollout(x0, V[i]), rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("gamma", [0.0, 0.4])
+def test_numpy_and_casadi_twins_predict_alike(gamma):
+    """The plain-NumPy navigation twin (moving circles predicted per step, x_k's barrier term
+    at c - v dt when gamma != 0) equals the CasADi one per element."""
+    from workbench.sampling.twin_model import NumpyModelTwin, model_twin
+
+    model = wb.double_integrator(dt=DT, scene_layout=LAYOUT, obstacles=SCENE, u_limit=4.0)
+    sp = wb.navigation_costs(wb.embed_barrier(model, wb.BarrierOptions(gamma=gamma)))
+    assert isinstance(model_twin(sp, N, sp.model.scene_value), NumpyModelTwin)
+    c = _consts(sp, SCENE, sigma=4.0)
+    c = replace(c, p=sp.model.lift(np.array([2.0, 0.0, 0.0, 0.0]), sp.model.scene_value))
+    Z = np.random.default_rng(8).standard_normal((N, T, 2))
+    x0 = np.tile(_start(sp), (N, 1))
+    a = mppi_twin(sp, x0, np.zeros((T, 2)), Z, c)
+    b = mppi_twin(sp, x0, np.zeros((T, 2)), Z, c, model_backend="casadi")
+    _close(a["X"], b["X"])
+    _close(a["S"], b["S"])
+    np.testing.assert_array_equal(a["crashed"], b["crashed"])
+    assert 0 < a["crashed"].sum() < N
