@@ -13,7 +13,10 @@ the README shows. A third run, ``bas_mppi_blind``, is BaS-MPPI never told that t
 (it plans in the scene of time 0): the crash check against the moving scene catches it. The
 controllers hold the current scene fixed over their horizon (no prediction of the obstacle's
 motion): they react to a moving obstacle, they do not anticipate it, so a fast one can still
-hit them (at 0.5-0.7 m/s some seeds crash). Outcomes vary with the seed: over the 12 seeds
+hit them (at 0.5-0.7 m/s some seeds crash). A model with a moving slot instead of a circle slot
+for it (``wb.SceneLayout``, ``wb.MovingCircle``) is told its velocity and predicts it over the
+horizon: ``python -m workbench.scenarios.moving_prediction`` runs this scene at 0.7 m/s with
+and without prediction on 30 paired seeds. Outcomes vary with the seed: over the 12 seeds
 3, 5, ..., 25 the blind run crashed in 8 episodes, BaS-MPPI in none and SA-RMPPI in 1; the
 default seed 5 shows the typical case (the blind run crashes, the two told runs do not).
 

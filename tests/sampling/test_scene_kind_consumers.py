@@ -100,7 +100,12 @@ def test_bas_ilqg_and_the_ecbf_filter_take_every_kind_at_run_time(models):
     T = 20
     x_ref = np.linspace(REST, GOAL, T + 1)
     P = wb.tracking_params(problem, x_ref, GOAL)
-    opts = wb.ILQGOptions(backend="compiled", max_iter=5)
+    # moving circles are predicted per step, on the NumPy passes (the compiled ones hold one
+    # scene over the horizon): "compiled" is refused for this layout
+    with pytest.raises(ValueError, match="compiled iLQG passes hold one scene"):
+        wb.ilqg(problem, REST, np.zeros((T, 2)), P,
+                wb.ILQGOptions(backend="compiled", max_iter=5))
+    opts = wb.ILQGOptions(backend="auto", max_iter=5)
     a = wb.ilqg(problem, REST, np.zeros((T, 2)), P, opts)
     filt = wb.ECBFFilter(plain)
     x, u = np.array([0.9, 0.3, 1.0, 0.5]), np.array([4.0, 3.0])

@@ -26,6 +26,7 @@ import numpy as np
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.problem.costs import Cost
 from workbench.problem.models import Model
+from workbench.problem.prediction import predicts, scene_at
 from workbench.problem.problem import Problem
 from workbench.validation import fail, integer, one_of, real
 
@@ -70,7 +71,8 @@ class ALProblem:
     """The inner problem (built once) and what the outer loop needs around it.
 
     problem: Problem on the margin-free model, parameters [base p; lam (nh); mu (nh); scene]
-    (the scene enters the penalty through h, so it rides in the parameters, fixed over time).
+    (the scene enters the penalty through h, so it rides in the parameters, one per time:
+    the same scene, or with moving circles the scene predicted to each state's time).
     constraints: (x, scene) -> c(x) = -h(x) (nh). base_stage / base_terminal: the original cost,
     to report the cost without penalty terms.
     """
@@ -89,15 +91,27 @@ class ALProblem:
     def params(self, P_base: np.ndarray, lam: np.ndarray, mu: np.ndarray,
                scene=None) -> np.ndarray:
         """Inner parameter array (T+1, n_p) from the base parameters, the AL blocks and the
-        scene (default: the model's own)."""
+        scene (default: the model's own); row k's scene is the one of x_k's time, k dt (the
+        scene itself unless it has moving circles)."""
         s = self.model.scene_vector(scene)
-        return np.hstack([P_base, lam, mu, np.tile(s, (P_base.shape[0], 1))])
+        return np.hstack([P_base, lam, mu, self._scenes(s, P_base.shape[0])])
+
+    def _scenes(self, s: np.ndarray, n: int) -> np.ndarray:
+        """(n, n_scene): row k the scene predicted to k dt."""
+        if not predicts(self.model):
+            return np.tile(s, (n, 1))
+        return np.stack([scene_at(self.model, s, k * self.model.dt) for k in range(n)])
 
     def constraint_values(self, X: np.ndarray, scene=None) -> np.ndarray:
-        """c(x_k) = -h(x_k) for every row of X (T+1, nx) -> (T+1, nh), in ``scene``."""
+        """c(x_k) = -h(x_k) for every row of X (T+1, nx) -> (T+1, nh), in ``scene`` (row k
+        in the scene of x_k's time when it has moving circles)."""
         n = X.shape[0]
+        s = self.model.scene_vector(scene)
+        if predicts(self.model):
+            c = self.constraints.map(n)
+            return np.asarray(c(X.T, self._scenes(s, n).T)).T.reshape(n, self.nh)
         c = self.constraints.map("c", "serial", n, [1], [])
-        return np.asarray(c(X.T, self.model.scene_vector(scene))).T.reshape(n, self.nh)
+        return np.asarray(c(X.T, s)).T.reshape(n, self.nh)
 
     def base_cost(self, X: np.ndarray, U: np.ndarray, P_base: np.ndarray) -> float:
         """The original cost (no penalty terms) of a trajectory."""
@@ -133,7 +147,8 @@ def al_problem(model: Model, cost: Cost) -> ALProblem:
         stage_hessian_x=hess_stage + gn, terminal_hessian_x=hess_term + gn)
     inner_model = dataclasses.replace(model, name=f"{model.name}_al", h=ca.SX(0, 1),
                                       obstacles=(), scene=ca.SX(0, 1),
-                                      scene_value=np.zeros(0), scene_capacity=0)
+                                      scene_value=np.zeros(0), scene_capacity=0,
+                                      scene_layout=None)
     return ALProblem(
         problem=Problem.build(inner_model, aug), model=model,
         constraints=ca.Function("c", [x, scene], [ca.densify(c)], ["x", "scene"], ["c"]),

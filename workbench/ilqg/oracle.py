@@ -15,6 +15,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from workbench.problem.prediction import scene_at
 from workbench.problem.problem import Problem
 
 
@@ -38,7 +39,7 @@ IpoptResult = NLPResult
 def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = False,
                 tol: float = 1e-10, max_iter: int = 3000, scene=None) -> IpoptResult:
     """Minimise the problem's cost over U (T,nu) from the guess U0 with IPOPT (exact Hessian),
-    in ``scene`` (default: the model's own)."""
+    in ``scene`` (default: the model's own; moving circles predicted to each state's time)."""
     s = problem.scene_vector(scene)
     x0 = problem.check_initial_state(x0, s)
     U0 = problem.check_controls(U0)
@@ -51,9 +52,10 @@ def solve_ipopt(problem: Problem, x0, U0, P=None, *, hard_constraints: bool = Fa
     g = []
     for t in range(T):
         J += f["stage"](x, u[:, t], P[t])
-        x = f["dyn"](x, u[:, t], s)
+        st = scene_at(problem.model, s, (t + 1) * problem.model.dt)  # x_{t+1}'s time
+        x = f["dyn"](x, u[:, t], st)
         if hard_constraints and problem.nh:
-            g.append(f["margins"](x, s))
+            g.append(f["margins"](x, st))
     J += f["term"](x, P[T])
     nlp = {"x": ca.vec(u), "f": J, "g": ca.vertcat(*g) if g else ca.SX(0, 1)}
     opts: dict[str, Any] = {"print_time": False, "ipopt": {
@@ -81,9 +83,11 @@ class MultipleShootingNLP:
     Variables stage-wise [x_0, u_0, x_1, u_1, ..., x_T]; constraints, stage by stage, the gap
     x_{k+1} - F(x_k, u_k) = 0 and (``hard_constraints``) the margins h(x_k) >= 0, k >= 1; x_0
     and the control box are variable bounds. x_0 and the parameters P are NLP parameters, so
-    one solver serves every solve. FATROP detects the stage structure from this layout
-    (``structure_detection="auto"``). Exact Hessians, CasADi's virtual machine for the
-    functions (no code generation), ``solve`` times the solver call only.
+    one solver serves every solve. Moving circles of the scene are predicted to each state's
+    time (step k's gap and x_k's margins in the scene of k dt). FATROP detects the stage
+    structure from this layout (``structure_detection="auto"``). Exact Hessians, CasADi's
+    virtual machine for the functions (no code generation), ``solve`` times the solver call
+    only.
     """
 
     def __init__(self, problem: Problem, T: int, solver: str = "ipopt", *,
@@ -98,20 +102,25 @@ class MultipleShootingNLP:
         x0 = ca.SX.sym("x0", nx)
         Ps = [ca.SX.sym(f"p{k}", n_p) for k in range(T + 1)]
         sc = ca.SX.sym("scene", problem.n_scene)
+        layout, dt = problem.model.scene_layout, problem.model.dt
+
+        def at(k: int):  # the scene of x_k's time (moving circles at c + v k dt)
+            return layout.predicted_sx(sc, k * dt) if layout is not None else sc
+
         w, g, eq, J = [], [], [], ca.SX(0)
         nh = problem.nh if hard_constraints else 0
         for k in range(T):
             w += [xs[k], us[k]]
             J += f["stage"](xs[k], us[k], Ps[k])
-            g.append(xs[k + 1] - f["dyn"](xs[k], us[k], sc))
+            g.append(xs[k + 1] - f["dyn"](xs[k], us[k], at(k + 1)))
             eq += [True] * nx
             if nh and k >= 1:
-                g.append(f["margins"](xs[k], sc))
+                g.append(f["margins"](xs[k], at(k)))
                 eq += [False] * nh
         w.append(xs[T])
         J += f["term"](xs[T], Ps[T])
         if nh:
-            g.append(f["margins"](xs[T], sc))
+            g.append(f["margins"](xs[T], at(T)))
             eq += [False] * nh
         self._eq = np.array(eq)
         nlp = {"x": ca.vertcat(*w), "f": J, "g": ca.vertcat(*g),

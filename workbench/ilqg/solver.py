@@ -18,6 +18,7 @@ import numpy as np
 from workbench.ilqg.compiled import CompiledPasses, SolveOptions, problem_library
 from workbench.ilqg.twin import CRASH_MARGIN, PassesTwin
 from workbench.problem.models import margin_violation
+from workbench.problem.prediction import predicts
 from workbench.problem.problem import Problem
 from workbench.validation import fail, flag, integer, one_of, real
 
@@ -137,8 +138,16 @@ class ILQGResult:
 
 
 def make_passes(problem: Problem, T: int, backend: Backend = "auto"):
-    """The pass backend for a problem and horizon."""
+    """The pass backend for a problem and horizon. A model whose scene has moving circles
+    gets the NumPy passes, which evaluate each step in its predicted scene (the compiled
+    passes hold one scene over the horizon); ``backend="compiled"`` is refused for it."""
     if backend == "numpy":
+        return PassesTwin(problem, T)
+    if predicts(problem.model):
+        if backend == "compiled":
+            raise fail("backend", backend, "the compiled iLQG passes hold one scene over the "
+                       "horizon; a model whose scene has moving circles (predicted per step) "
+                       "runs on 'numpy' or 'auto'")
         return PassesTwin(problem, T)
     lib = problem_library(problem)
     if lib is None:
@@ -156,7 +165,8 @@ def ilqg(problem: Problem, x0, U0, P=None, options: ILQGOptions | None = None,
     initial guess; if its rollout crashes or is not finite, zeros are used (assumptions §6.1) and
     ``initial_guess_replaced`` is set. ``scene``: the obstacles (see
     :meth:`~workbench.problem.Model.scene_vector`; default the model's own), held fixed over
-    the horizon.
+    the horizon, except its moving circles, predicted at each step's time
+    (:mod:`workbench.problem.prediction`).
     """
     opts = options or ILQGOptions()
     t_start = time.perf_counter()

@@ -7,6 +7,11 @@ mapped over the horizon. Every branch mirrors workbench/ilqg/core.c; ``tests/tes
 compares the two pass by pass at relative tolerance. Layout: time-major trajectories, X (T+1, nx),
 U (T, nu), gains (T, nu, nx), as the compiled passes (no batch dimension, nothing to convert).
 
+Moving circles: for a model whose scene has moving slots the twin evaluates step t (the
+dynamics, its crash test and derivatives) in the scene predicted to (t + 1) dt, and
+:func:`~workbench.ilqg.solver.make_passes` always returns it (the compiled passes hold one
+scene over the horizon).
+
 Run-time fallback: :func:`~workbench.ilqg.solver.make_passes` returns this twin when no C
 compiler is available (or with ``backend="numpy"``, ``WORKBENCH_NO_CODEGEN=1``); every iLQG
 solve and every feedback law then runs on it.
@@ -23,6 +28,7 @@ from workbench.ilqg.passes import (
     ForwardResult,
     LineSearchResult,
 )
+from workbench.problem.prediction import predicts, step_scenes
 from workbench.problem.problem import Problem
 
 CRASH_PENALTY = 1e10
@@ -121,7 +127,10 @@ class PassesTwin:
     def __init__(self, problem: Problem, T: int):
         f = problem.functions
         self.problem, self.T = problem, T
-        self._jac = f["dyn_jac"].map("dyn_jac", "serial", T, [2], [])  # the scene is shared
+        self._moves = predicts(problem.model)
+        # the scene is shared, or one per step (moving circles: the scene of x_{t+1}'s time)
+        self._jac = (f["dyn_jac"].map(T) if self._moves
+                     else f["dyn_jac"].map("dyn_jac", "serial", T, [2], []))
         self._quad = f["stage_quad"].map(T)
         self._tquad = f["term_quad"]
         self._hess = f["dyn_hess"]
@@ -129,14 +138,22 @@ class PassesTwin:
         self.set_scene(problem.model.scene_value)
 
     def set_scene(self, scene: np.ndarray) -> None:
-        """The scene (flat, ``problem.n_scene``) the following passes use."""
+        """The scene (flat, ``problem.n_scene``) the following passes use; with moving circles
+        step t uses it predicted to (t + 1) dt
+        (:func:`~workbench.problem.prediction.step_scenes`)."""
         self._S = np.array(scene, dtype=float)
+        self._St = (step_scenes(self.problem.model, self._S, self.T) if self._moves
+                    else None)
+
+    def _at(self, t: int) -> np.ndarray:
+        return self._S if self._St is None else self._St[:, t]
 
     def derivatives(self, X, U, P):
         """A (T,nx,nx), B (T,nx,nu), lx (T+1,nx), lu, lxx (T+1,nx,nx), luu, lux (T,nu,nx) and
         the trajectory X (T+1,nx) they were taken along (for the second-order backward pass)."""
         T, nx, nu = self.T, self.problem.nx, self.problem.nu
-        A, B = (np.asarray(m) for m in self._jac(X[:-1].T, U.T, self._S))
+        A, B = (np.asarray(m) for m in self._jac(X[:-1].T, U.T,
+                                                  self._S if self._St is None else self._St))
         A = A.reshape(nx, T, nx).transpose(1, 0, 2)
         B = B.reshape(nx, T, nu).transpose(1, 0, 2)
         _, lx, lu, lxx, luu, lux = (np.asarray(m) for m in self._quad(X[:-1].T, U.T, P[:-1].T))
@@ -169,7 +186,8 @@ class PassesTwin:
             Qux = d["lux"][t] + B.T @ Vxx @ A
             Quu = d["luu"][t] + B.T @ Vxx @ B
             if second_order:
-                fxx, fuu, fux = (np.asarray(m) for m in self._hess(d["X"][t], U[t], Vx, self._S))
+                fxx, fuu, fux = (np.asarray(m) for m in self._hess(d["X"][t], U[t], Vx,
+                                                                 self._at(t)))
                 Qxx, Quu, Qux = Qxx + fxx, Quu + fuu, Qux + fux
             if reg == 0:
                 Quu_r, Qux_r = Quu + mu * np.eye(nu), Qux
@@ -207,7 +225,7 @@ class PassesTwin:
         for t in range(T):
             v = U[t] + (alpha * k[t] + K[t] @ (Xn[t] - X[t]) if use_policy else 0.0)
             Un[t] = np.clip(v, umin, umax)
-            xn, c = self._step(Xn[t], Un[t], P[t], self._S)
+            xn, c = self._step(Xn[t], Un[t], P[t], self._at(t))
             Xn[t + 1] = np.asarray(xn).ravel()
             J += float(c)
         return ForwardResult(X=Xn, U=Un, cost=J + float(self._term(Xn[T], P[T])))

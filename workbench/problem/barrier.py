@@ -120,7 +120,10 @@ def embed_barrier(model: Model, options: BarrierOptions | None = None) -> Model:
     """The safety-embedded model x_bar = [x; beta] (assumptions §4.4), exact CasADi expressions.
 
     beta is recomputed from the margins in the model's scene symbol, so the embedded dynamics
-    take the current scene as an input like the margins do."""
+    take the current scene as an input like the margins do. With moving circles in the scene
+    (a layout with moving slots) that scene is the one of the next state's time (the samplers
+    predict it per step); with gamma != 0 the present state's term then sees the moving
+    circles one step earlier (c - v dt), i.e. where they are at the present state's time."""
     opts = options or BarrierOptions()
     if model.n_physical != model.nx:
         raise fail("model", model.name, "is already barrier-embedded")
@@ -129,7 +132,15 @@ def embed_barrier(model: Model, options: BarrierOptions | None = None) -> Model:
     h_fn = ca.Function("h", [model.x, model.scene], [model.h])
     now = _barrier_values(model.h, opts, groups)
     nxt = _barrier_values(h_fn(model.x_next, model.scene), opts, groups)
-    beta_next = nxt - opts.gamma * (beta - now) if opts.gamma != 0.0 else nxt
+    layout = model.scene_layout
+    if opts.gamma != 0.0 and layout is not None and layout.moves:
+        # the dynamics' scene is that of x_{k+1}'s time: x_k's margins see the moving circles
+        # one step earlier, at c - v dt
+        now_step = _barrier_values(h_fn(model.x, layout.predicted_sx(model.scene, -model.dt)),
+                                   opts, groups)
+        beta_next = nxt - opts.gamma * (beta - now_step)
+    else:
+        beta_next = nxt - opts.gamma * (beta - now) if opts.gamma != 0.0 else nxt
     x_bar = ca.vertcat(model.x, beta)
     names = tuple(f"beta{j}" for j in range(len(groups))) if len(groups) > 1 else ("beta",)
     return Model(

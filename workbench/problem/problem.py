@@ -36,6 +36,7 @@ import numpy as np
 
 from workbench.problem.costs import Cost
 from workbench.problem.models import Model, margin_violation
+from workbench.problem.prediction import step_scenes
 from workbench.validation import as_array, fail
 
 FUNCTION_NAMES = ("dyn", "dyn_jac", "dyn_hess", "stage", "stage_quad", "term", "term_quad",
@@ -176,11 +177,13 @@ class Problem:
         return as_array("P", P, (T + 1, self.n_p))
 
     def rollout(self, x0, U, scene=None) -> np.ndarray:
-        """Open-loop state trajectory X (T+1, nx) under controls U (no clipping) in ``scene``."""
+        """Open-loop state trajectory X (T+1, nx) under controls U (no clipping) in ``scene``
+        (step k in the scene predicted to (k + 1) dt when it has moving circles,
+        :mod:`workbench.problem.prediction`)."""
         U = np.asarray(U, dtype=float)
         T = U.shape[0]
         sim = self.functions["dyn"].mapaccum(T)
-        S = np.repeat(self.scene_vector(scene)[:, None], T, axis=1)
+        S = step_scenes(self.model, self.scene_vector(scene), T)
         Xs = np.asarray(sim(np.asarray(x0, dtype=float), U.T, S))
         return np.vstack([np.asarray(x0, dtype=float)[None], Xs.T])
 

@@ -241,6 +241,26 @@ class SceneLayout:
                 out.append(SignedDistanceGrid.from_row(row, self.grid))
         return out
 
+    @property
+    def moves(self) -> bool:
+        """Whether the layout has moving-circle slots (its scenes change over a horizon)."""
+        return self.count("moving") > 0
+
+    def predicted_sx(self, scene: ca.SX, t: ca.SX | float) -> ca.SX:
+        """The scene symbol at time ``t`` (an SX scalar or a number) from now: each moving
+        slot's centre replaced by c + v t (an unused slot has v = 0 and stays put); ``scene``
+        itself when the layout has no moving slot."""
+        b = next((b for b in self.blocks() if b.kind.name == "moving"), None)
+        if b is None:
+            return scene
+        parts = [scene[:b.start]] if b.start else []
+        for i in range(b.count):
+            lo = b.start + i * b.width
+            parts += [scene[lo:lo + 2] + t * scene[lo + 3:lo + 5], scene[lo + 2:lo + b.width]]
+        if b.stop < self.size:
+            parts.append(scene[b.stop:])
+        return ca.vertcat(*parts)
+
     def predicted(self, v: np.ndarray, t: float) -> np.ndarray:
         """The scene at time ``t`` from now: moving circles at c + v t (the rest as is)."""
         b = next((b for b in self.blocks() if b.kind.name == "moving"), None)

@@ -9,6 +9,11 @@ plain iLQG tracking gains give RMPPI (assumptions §9.4). The selection threshol
 The controller holds only immutable configuration and external workspaces (compiled kernels,
 iLQG passes); everything that changes between steps lives in the returned state.
 ``ctrl.record_samples(k)`` hands out the last SAIS batch's samples, real and nominal.
+
+Moving circles (a scene with moving slots): the SAIS and candidate rollouts and the feedback
+law predict them over the horizon; the candidate starts are states of the present time (the
+old nominal propagated by one step reaches now), so their propagation and lifts use the present
+scene.
 """
 
 from __future__ import annotations

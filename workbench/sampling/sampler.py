@@ -66,6 +66,7 @@ from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.diagnostics import diagnostics_library
 from workbench.sampling.kernels.flags import PRECISIONS
 from workbench.sampling.kernels.library import SamplerLibrary, sampler_library
+from workbench.sampling.kernels.vocabulary import step_times
 from workbench.sampling.problem import SamplingProblem
 from workbench.sampling.twin import lane_major, mppi_twin, sais_twin
 from workbench.validation import as_array, fail, integer, one_of
@@ -238,10 +239,11 @@ class Sampler:
         T = U.shape[0]
         if self.lib is not None:
             f32 = self.lib32 is not None
-            r, lane = self._run("mppi", N, {"x": x0}, (), {"u": U}, c, seed, f32)
+            ts = step_times(self.sp, T)
+            r, lane = self._run("mppi", N, {"x": x0}, (), {"u": U, **ts}, c, seed, f32)
             if f32 and np.all(r["crashed"] > 0):  # no crash-free sample: float64's batch
                 self._rerun()
-                r, lane = self._run("mppi", N, {"x": x0}, (), {"u": U}, c, seed, False)
+                r, lane = self._run("mppi", N, {"x": x0}, (), {"u": U, **ts}, c, seed, False)
             return MPPIBatch(S=r["S"], crashed=r["crashed"] > 0, v=lane[0])
         ref = mppi_twin(self.sp, np.tile(x0, (N, 1)), U, self._noise(N, T, seed), c)
         return MPPIBatch(S=ref["S"], crashed=ref["crashed"], v=lane_major(ref["v"]))
@@ -259,8 +261,8 @@ class Sampler:
             return self._sais_diag(x0, xs0, U, K, N, c, seed)
         if self.lib is not None:
             f32 = self.lib32 is not None
-            args = ("sais", N, {"x": x0, "x_nom": xs0}, (), {"u": U, "K": K.reshape(T, -1)}, c,
-                    seed)
+            args = ("sais", N, {"x": x0, "x_nom": xs0}, (), {"u": U, "K": K.reshape(T, -1),
+                                                    **step_times(self.sp, T)}, c, seed)
             r, lane = self._run(*args, f32)
             if f32 and (np.all(r["crashed_real"] > 0) or np.all(r["crashed_nom"] > 0)):
                 self._rerun()  # no crash-free real (or nominal) sample: float64's batch
@@ -287,7 +289,8 @@ class Sampler:
             X[0], Xs[0] = x0[:, None], xs0[:, None]
             bufs = [np.empty((T, self.sp.nu, Np)), np.empty((T, self.sp.nu, Np)), X[1:], Xs[1:]]
             out = k(k.carry.pack(N, x=x0, x_nom=xs0), consts=c.kernel_consts(),
-                    time_in={"u": U, "K": K.reshape(T, -1)}, seed=seed, lane_out=bufs)
+                    time_in={"u": U, "K": K.reshape(T, -1), **step_times(self.sp, T)},
+                    seed=seed, lane_out=bufs)
             r = k.result.unpack(out.result)
             X, Xs = X[..., :N], Xs[..., :N]
             return SAISDiagBatch(
@@ -326,7 +329,8 @@ class Sampler:
             # float32: no whole-batch rerun (candidate free energies are only compared with
             # the threshold; a candidate whose samples all crash is refused in both precisions)
             r, _ = self._run("candidates", N, {"x": starts, "delay": stride, "stride": stride},
-                             ("x", "delay", "stride"), {"u": U, "u_next": U_next}, c, seed,
+                             ("x", "delay", "stride"),
+                             {"u": U, "u_next": U_next, **step_times(self.sp, T)}, c, seed,
                              self.lib32 is not None)
             return r["S"]
         U_lane = np.where(stride[:, None, None] > 0, U_next[None], U[None])

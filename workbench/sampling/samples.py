@@ -36,6 +36,7 @@ import numpy as np
 
 from workbench.codegen import CompileError, Library, build_library
 from workbench.codegen.fastcall import FastFunction
+from workbench.problem.prediction import predicts, scene_at
 from workbench.sampling.problem import SamplingProblem
 from workbench.validation import MAX_BATCH, fail, integer, one_of
 
@@ -214,12 +215,15 @@ class Rollout:
     """State trajectories (K, T+1, nx) of control sequences V (K, T, nu) from start states
     x0 ((nx,) shared, or (K, nx)) in a scene: ``x_{t+1} = dyn(x_t, v_t, scene)``, the
     problem's own dynamics, compiled (``backend="auto"``) or on the CasADi virtual machine
-    (``backend="casadi"``, or "auto" without a C compiler)."""
+    (``backend="casadi"``, or "auto" without a C compiler). A scene with moving circles is
+    predicted per step (step t in the scene of (t + 1) dt, as the sampler's rollouts), on the
+    CasADi virtual machine (the compiled rollout holds one scene)."""
 
     def __init__(self, sp: SamplingProblem, backend: Literal["auto", "casadi"] = "auto"):
         one_of("backend", backend, ("auto", "casadi"))
         self.sp = sp
-        self.lib = rollout_library(sp) if backend == "auto" else None
+        self._moves = predicts(sp.model)
+        self.lib = rollout_library(sp) if backend == "auto" and not self._moves else None
         self._f = _rollout_function(sp)
         self._vm: dict[int, FastFunction] = {}
 
@@ -246,8 +250,10 @@ class Rollout:
         if f is None:
             f = self._vm[K] = FastFunction(self._f, K, shared=(2,))
         X[:, 0] = x0
+        m = self.sp.model
         for t in range(T):
-            X[:, t + 1] = f(X[:, t], V[:, t], s)[0].reshape(K, nx)
+            st = scene_at(m, s, (t + 1) * m.dt) if self._moves else s
+            X[:, t + 1] = f(X[:, t], V[:, t], st)[0].reshape(K, nx)
         return X
 
 

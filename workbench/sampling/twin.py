@@ -67,6 +67,7 @@ def mppi_twin(sp: SamplingProblem, X0, U, Z, c: SamplerConstants,
         u = Ub[:, t]
         v = np.clip(u + c.sigma * Z[:, t], c.u_min, c.u_max)
         eps = v - u
+        m.at((t + 1) * sp.model.dt)  # moving circles: the scene of x_{t+1}'s time
         X[:, t + 1] = m.step(X[:, t], v)
         crashed |= m.crashed(X[:, t + 1], sp.eps_h)
         S += m.cost(m.q, X[:, t + 1], c.p) + c.crash_cost * crashed
@@ -102,6 +103,7 @@ def sais_twin(sp: SamplingProblem, X0, Xs0, U, K, Z, c: SamplerConstants,
         vn = np.clip(u + eps, c.u_min, c.u_max)  # line 7
         eps_eff = vn - u if c.clip_in_cost else eps
         kfb_eff = vr - u - (vn - u) if c.clip_in_cost else kfb
+        m.at((t + 1) * sp.model.dt)  # moving circles: the scene of x_{t+1}'s time
         X[:, t + 1], Xs[:, t + 1] = m.step(X[:, t], vr), m.step(Xs[:, t], vn)
         cr |= m.crashed(X[:, t + 1], sp.eps_h)
         cn |= m.crashed(Xs[:, t + 1], sp.eps_h)

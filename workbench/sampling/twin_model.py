@@ -88,7 +88,11 @@ class NumpyNavigation:
         with np.errstate(divide="ignore", invalid="ignore"):
             beta = self._beta(self.margins(x_next))
             if o.gamma != 0.0:
-                beta = beta - o.gamma * (X[:, 4:] - self._beta(self.margins(X)))
+                h_now = self.margins(X)
+                if self.layout is not None and self.layout.moves:  # x_k's time: c - v dt
+                    h_now = self.layout.numpy_margins(
+                        X[:, :d], self.layout.predicted(self.scene, -dt), self.h_form)
+                beta = beta - o.gamma * (X[:, 4:] - self._beta(h_now))
         return np.hstack([x_next, beta])
 
     def crashed(self, X, eps_h) -> np.ndarray:
@@ -166,7 +170,8 @@ def _box(model: Model, d: int) -> tuple[np.ndarray, np.ndarray]:
 def model_twin(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
     """Model evaluation for the twin in ``scene`` (empty: the model's own): plain NumPy for
     the built-in navigation problem (unless ``model_backend == "casadi"``), otherwise the CasADi
-    virtual machine mapped over samples."""
+    virtual machine mapped over samples. With moving circles in the scene, rollout step k is
+    evaluated in the scene predicted to (k + 1) dt: call ``at((k + 1) dt)`` before each step."""
     scene = sp.model.scene_vector(scene if np.size(scene) else None)
     if model_backend != "casadi" and sp.weights is not None:
         twin = numpy_navigation_twin(sp.model, sp.weights, sp.functions())
@@ -174,7 +179,7 @@ def model_twin(sp: SamplingProblem, N: int, scene, model_backend: str = "auto"):
             if sp.model.scene_capacity or sp.model.scene_layout is not None:
                 # (else the twin holds the baked circles)
                 twin.set_scene(scene)
-            return NumpyModelTwin(twin)
+            return NumpyModelTwin(twin, scene)
     return CasadiModelTwin(sp, N, scene)
 
 
@@ -185,7 +190,16 @@ class CasadiModelTwin:
         self.margins = (f["margins"].map("margins", "serial", N, [1], []) if sp.model.nh
                         else None)
         self.q, self.phi = f["q"].map(N), f["phi"].map(N)
-        self.scene = scene
+        self.scene = self.present = scene
+        layout = sp.model.scene_layout
+        self._layout = layout if layout is not None and layout.moves else None
+
+    def at(self, t: float) -> None:
+        """Evaluate the next steps in the scene predicted to time ``t`` from now (moving circles
+        at c + v t, :meth:`~workbench.problem.scene_layout.SceneLayout.predicted`); nothing
+        changes for a scene without moving circles."""
+        if self._layout is not None:
+            self.scene = self._layout.predicted(self.present, t)
 
     def step(self, X, V):
         return np.asarray(self.dyn(X.T, V.T, self.scene)).T
@@ -200,10 +214,18 @@ class CasadiModelTwin:
 
 
 class NumpyModelTwin:
-    def __init__(self, twin):
+    def __init__(self, twin, scene: np.ndarray | None = None):
         self.twin = twin
         self.q, self.phi = twin.q, twin.phi
         self.name = "numpy"
+        self.present = scene
+        layout = twin.layout
+        self._layout = layout if layout is not None and layout.moves else None
+
+    def at(self, t: float) -> None:
+        """As :meth:`CasadiModelTwin.at`: the scene predicted to time ``t`` from now."""
+        if self._layout is not None and self.present is not None:
+            self.twin.set_scene(self._layout.predicted(self.present, t))
 
     def step(self, X, V):
         return self.twin.step(X, V)

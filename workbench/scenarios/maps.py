@@ -41,6 +41,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from workbench.problem.obstacles import Circle
+from workbench.problem.scene_kinds import MovingCircle
+from workbench.problem.scene_layout import SceneLayout
 from workbench.scenarios.scenes import CircleScene, NavigationScene
 from workbench.validation import as_array, fail, integer, real
 
@@ -354,6 +356,36 @@ class GeneratedMap:
         dt = real("moving_scene.dt", dt, 0.0, strict=True)
         return lambda k: self.scene_at(k, dt)
 
+    def scene_layout(self) -> SceneLayout:
+        """The slots of a model that is told how the circles move (:meth:`velocity_scene_at`):
+        one circle slot per static circle, one moving slot per moving circle."""
+        return SceneLayout.of(circles=self.n_static, moving=len(self.moving))
+
+    def velocity_scene_at(self, k: int, dt: float) -> tuple[Circle | MovingCircle, ...]:
+        """The true scene at step k (time k dt) with the moving circles' velocities, for a
+        model built with :meth:`scene_layout`: the static circles as :class:`Circle`, each
+        moving circle as a :class:`MovingCircle` at its position of :meth:`scene_at` with its
+        velocity at that time (a component's sign flips at each bounce; 0 for an axis on which
+        the circle fits the box exactly and stays put). A controller predicts it at c + v t."""
+        k = integer("velocity_scene_at.k", k, 0)
+        dt = real("velocity_scene_at.dt", dt, 0.0, strict=True)
+        now = self.scene_at(k, dt)
+        moving = dict(self.moving)
+        out: list[Circle | MovingCircle] = [c for i, c in enumerate(now) if i not in moving]
+        for i, v in self.moving:
+            c0, c = self.circles[i], now[i]
+            vx, vy = (v[a] * _bounce_sign(c0.center[a], v[a] * k * dt, self.box[a],
+                                          c0.radius) for a in range(2))
+            out.append(MovingCircle(c.center, c.radius, (vx, vy)))
+        return tuple(out)
+
+    def velocity_scene(self, dt: float) -> Callable[[int], tuple[Circle | MovingCircle, ...]]:
+        """``k -> velocity_scene_at(k, dt)``, for ``closed_loop(..., scene=...)`` with a model
+        built with :meth:`scene_layout` (the controller is told the velocities; the plant's
+        crash check uses the circles' true positions)."""
+        dt = real("velocity_scene.dt", dt, 0.0, strict=True)
+        return lambda k: self.velocity_scene_at(k, dt)
+
 
 def _bounce(x0: float, shift: float, span: tuple[float, float], r: float) -> float:
     """Coordinate x0 + shift reflected back into [lo + r, hi - r] (a triangle wave)."""
@@ -365,6 +397,17 @@ def _bounce(x0: float, shift: float, span: tuple[float, float], r: float) -> flo
 
 
 # ------------------------------------------------------------------------------ generators
+
+
+def _bounce_sign(x0: float, shift: float, span: tuple[float, float], r: float) -> float:
+    """The direction of travel (+1, -1) after moving ``shift`` from x0 on the triangle wave of
+    :func:`_bounce` (0 when the span leaves no room, or for a circle that does not move): +1
+    on its rising half, -1 on its falling half (a bounce point counts as after the bounce)."""
+    lo, width = span[0] + r, span[1] - span[0] - 2 * r
+    if width <= 0:
+        return 0.0
+    u = np.mod(x0 - lo + shift, 2 * width)
+    return 1.0 if u < width else -1.0
 
 
 def _gap_ok(C: np.ndarray, c: np.ndarray, r: float, gap: float | np.ndarray) -> bool:

@@ -28,6 +28,7 @@ from workbench.ilqg import make_passes
 from workbench.ilqg.al import al_problem
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import Model
+from workbench.problem.prediction import predicts
 from workbench.sampling.feedback.base import (
     FeedbackWeights,
     Gains,
@@ -89,7 +90,8 @@ class ALFeedback:
     """Gains of the AL-iLQG inner problem about the nominal rollout (see the module docstring).
 
     ``model``: a plain model with margins h(x) (constraints c = -h <= 0); ``nx_full``: the
-    sampler's state size (gains zero-padded to it). The scene rides in the AL parameters.
+    sampler's state size (gains zero-padded to it). The scene rides in the AL parameters
+    (per time: moving circles predicted to each state's time).
     Fallbacks as in :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback`: when the derivatives or
     the gains are not finite, or the backward pass fails at every regularisation level, the
     previous gains shifted by the stride are used and the reason is reported (K = 0 only when
@@ -140,7 +142,10 @@ class ALFeedback:
         return fw.X, fw.U
 
     def constraint_values(self, X: np.ndarray) -> np.ndarray:
-        """c(x_k) = -h(x_k) (T+1, nh) along X (T+1, nx) in the current scene."""
+        """c(x_k) = -h(x_k) (T+1, nh) along X (T+1, nx) in the current scene (x_k in the
+        scene predicted to k dt when it has moving circles)."""
+        if predicts(self.model):
+            return self.al.constraint_values(X, self._scene)
         return self._c(X, self._scene)[0].reshape(self.T + 1, self.nh)
 
     def initial_multipliers(self) -> np.ndarray:

@@ -5,6 +5,11 @@
   wrapped around the tracking law u_ref = u*_k + K_k (x - x*_k), linearised at x*_k with the
   filter's active set held fixed: d pi_k / dx at x*_k by implicit differentiation of the QP's
   KKT system (Fiacco 1976; Amos & Kolter 2017, arXiv:1703.00443).
+
+Moving circles (a scene with moving slots): the tracking law's rollout predicts them
+(:class:`~workbench.sampling.feedback.ilqg.ILQGFeedback`), the filter's rows along the nominal
+use the present scene (the ECBF of a moving circle would need its velocity in the derivatives
+of h, which the filter does not model).
 """
 
 from __future__ import annotations

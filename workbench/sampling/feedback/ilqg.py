@@ -4,6 +4,11 @@ RMPPI (assumptions §9.4). The gains come from one derivative evaluation and one
 along the clipped open-loop nominal rollout (see :mod:`workbench.sampling.feedback.base`);
 :meth:`ILQGFeedback.fast_gains` is the same in one compiled call
 (:mod:`workbench.sampling.feedback.compiled`).
+
+Moving circles (a scene with moving slots): the rollout, derivatives and backward pass see
+each step's predicted scene (the NumPy passes, :func:`~workbench.ilqg.make_passes`); there is
+no compiled law for such a model (:meth:`ILQGFeedback.fast_gains` then calls
+:meth:`ILQGFeedback.gains`).
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from workbench.codegen.fastcall import FastFunction
 from workbench.ilqg import make_passes
 from workbench.problem.costs import quadratic_tracking
 from workbench.problem.models import Model
+from workbench.problem.prediction import predicts, scene_at
 from workbench.problem.problem import Problem
 from workbench.sampling.feedback.base import (
     FeedbackWeights,
@@ -66,7 +72,8 @@ class ILQGFeedback:
         if model.nh:
             self._margins = FastFunction(model.margins_function, horizon + 1, shared=(1,))
         self._ksafe: KSafeKernel | None = None
-        self._want_compiled = flag("ILQGFeedback.compiled", compiled)  # built on first use
+        # built on first use; never for moving circles (the compiled law holds one scene)
+        self._want_compiled = flag("ILQGFeedback.compiled", compiled) and not predicts(model)
         self.set_scene(None)
 
     @property
@@ -125,8 +132,13 @@ class ILQGFeedback:
         U = as_array("U", U, (self.T, self.problem.nu))
         X, Uc = self.nominal(x_nom, U)
         m = self.problem.model
-        unsafe = bool(m.nh) and bool(
-            np.min(self._margins(X[:, : m.n_physical], self._scene)[0]) <= 0.0)
+        if predicts(m):  # x_k in the scene of its time, k dt
+            h = [m.margins(X[j, : m.n_physical], scene_at(m, self._scene, j * m.dt))
+                 for j in range(X.shape[0])]
+            unsafe = bool(np.min(h) <= 0.0)
+        else:
+            unsafe = bool(m.nh) and bool(
+                np.min(self._margins(X[:, : m.n_physical], self._scene)[0]) <= 0.0)
         d = self.passes.derivatives(X, Uc, self._params(X, Uc))
         K, mu, reason = regularised_backward(self.passes, d, Uc, m, self.w.mu, self.w.mu_max)
         if K is not None:

@@ -36,6 +36,11 @@ the chosen constraint exactly unless the box clips it; the tolerance only absorb
 
 Run-time constants: the MPPI kernel's (sigma, lr, u_min, u_max, crash, p, scene) plus
 ``project`` (0/1), ``w_dcbf`` (>= 0) and ``gamma`` (in (0, 1]).
+
+Moving circles (a scene with moving slots): like the MPPI kernel, step k takes the time input
+t = (k + 1) dt; the dynamics and the crash test of x_{k+1} see the scene predicted to t, the
+constraints c_i(x_k, .) the scene predicted to x_k's time t - dt (the obstacles held where they
+are at step k over that one step: the discrete CBF is of one scene).
 """
 
 from __future__ import annotations
@@ -57,7 +62,13 @@ from workbench.sampling.kernels.library import (
     load_verified,
     set_threads,
 )
-from workbench.sampling.kernels.vocabulary import clip, crashed_flag, kernel_symbols, model_parts
+from workbench.sampling.kernels.vocabulary import (
+    clip,
+    crashed_flag,
+    kernel_symbols,
+    model_parts,
+    time_symbol,
+)
 from workbench.sampling.problem import SamplingProblem
 
 _OPTS = {"cse": True}
@@ -121,8 +132,12 @@ def safe_spec(sp: SamplingProblem, name: str = "wb_safe") -> KernelSpec:
     cbf = discrete_cbf(sp.model)
     c = kernel_symbols(sp)
     project, w_dcbf, gamma = (ca.SX.sym(n) for n in SAFE_CONSTS)
-    dyn, margins, q, phi = model_parts(sp, c)
+    t = time_symbol(sp)
+    dyn, margins, q, phi = model_parts(sp, c, t)
     s = c.get("scene", ca.SX(0, 1))
+    if t is not None and sp.model.scene_layout is not None:
+        # the constraints of step k at the scene of x_k's time (obstacles held over the step)
+        s = sp.model.scene_layout.predicted_sx(s, t - sp.model.dt)
     carry = ca.SX.sym("carry", nx + 5)
     z, u = ca.SX.sym("z", nu), ca.SX.sym("u", nu)
     x, S, cr, npr, ninf, viol = (carry[:nx], *(carry[nx + i] for i in range(5)))
@@ -137,16 +152,16 @@ def safe_spec(sp: SamplingProblem, name: str = "wb_safe") -> KernelSpec:
     inv = 1.0 / (c["sigma"] * c["sigma"])
     lr = 0.5 * c["lr"] * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, eps))
     Sn = S + (q(xn, c["p"]) + c["crash"][0] * crn) + lr + w_dcbf * step_viol
-    ins = {"carry": carry, "z": z, "u": u, **c, "project": project, "w_dcbf": w_dcbf,
-           "gamma": gamma}
+    ins = {"carry": carry, "z": z, "u": u, **({"t": t} if t is not None else {}), **c,
+           "project": project, "w_dcbf": w_dcbf, "gamma": gamma}
     new = ca.vertcat(xn, Sn, crn, npr + acted, ninf + infeasible, viol + step_viol)
     step = ca.Function(name + "_step", list(ins.values()), [new, v], list(ins),
                        ["carry_next", "v"], _OPTS)
     final = ca.Function(name + "_final", [carry, c["p"]],
                         [ca.vertcat(S + phi(x, c["p"]), cr, npr, ninf, viol)],
                         ["carry", "p"], ["result"], _OPTS)
-    roles = {"carry": "carry", "z": "noise", "u": "time", **{k: "const" for k in ins
-                                                           if k not in ("carry", "z", "u")}}
+    roles = {"carry": "carry", "z": "noise", "u": "time", "t": "time",
+             **{k: "const" for k in ins if k not in ("carry", "z", "u", "t")}}
     return KernelSpec(name=name, step=step, final=final, roles=roles)
 
 

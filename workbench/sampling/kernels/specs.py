@@ -9,7 +9,12 @@ Run-time constants (``const`` role, shared by all samples):
   obstacles, alpha (1) the RMPPI threshold and inv_var (nu) = 1 / sigma^2 (SAIS only: its
   likelihood-ratio terms multiply by it instead of dividing by sigma^2 per sample, four
   divisions fewer per sample and step, measured 5% of the navigation SAIS rollout).
-Per-time inputs: u (nu) the importance-sampling sequence; SAIS also K (nu*nx, row-major K_k).
+Per-time inputs: u (nu) the importance-sampling sequence; SAIS also K (nu*nx, row-major K_k);
+t (1) when the scene has moving circles: the time of the state x_{k+1} that step k computes,
+(k + 1) dt (:func:`~workbench.sampling.kernels.vocabulary.step_times`); the step's dynamics and
+the crash test of x_{k+1} then see the moving circles at c + v t (the scene predicted to that
+time, :meth:`~workbench.problem.scene_layout.SceneLayout.predicted_sx`). Other models' kernels
+take no ``t`` (they are exactly those of a model without moving obstacles).
 Carries and results are named by :func:`layouts` (one :class:`Layout` per kernel and role).
 
 Float32 kernels (``precision="float32"``, their own library ``sampler_<model>_f32``) compute the
@@ -36,6 +41,7 @@ from workbench.sampling.kernels.vocabulary import (
     kernel_symbols,
     model_parts,
     near_crash_flag,
+    time_symbol,
 )
 from workbench.sampling.problem import SamplingProblem
 
@@ -80,7 +86,8 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
     c = kernel_symbols(sp)
     if f32:
         c["guard"] = ca.SX.sym("guard")
-    dyn, margins, q, phi = model_parts(sp, c)
+    t = time_symbol(sp)
+    dyn, margins, q, phi = model_parts(sp, c, t)
     carry = ca.SX.sym("carry", nx + 2 + 2 * int(strided) + int(f32))
     z, u_in, u_next = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("u_next", nu)
     x, S, cr = carry[:nx], carry[nx], carry[nx + 1]
@@ -98,7 +105,8 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
     inv = 1.0 / (c["sigma"] * c["sigma"])
     lr = 0.5 * c["lr"] * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, eps))
     Sn = S + (q(xn, c["p"]) + c["crash"][0] * crn) + lr
-    ins = {"carry": carry, "z": z, "u": u_in, **({"u_next": u_next} if strided else {}), **c}
+    ins = {"carry": carry, "z": z, "u": u_in, **({"u_next": u_next} if strided else {}),
+           **({"t": t} if t is not None else {}), **c}
     new = [xn, Sn, crn] + ([carry[nx + 2] - 1, carry[nx + 3]] if strided else [])
     res = [S + phi(x, c["p"]), cr]
     if f32:
@@ -112,7 +120,7 @@ def mppi_spec(sp: SamplingProblem, name: str = "wb_mppi", strided: bool = False,
                        list(ins), ["carry_next", "v"], _OPTS)
     final = ca.Function(name + "_final", [carry, c["p"]],
                         [ca.vertcat(*res)], ["carry", "p"], ["result"], _OPTS)
-    roles = {"carry": "carry", "z": "noise", "u": "time", "u_next": "time",
+    roles = {"carry": "carry", "z": "noise", "u": "time", "u_next": "time", "t": "time",
              **{k: "const" for k in c}}
     return KernelSpec(name=name, step=step, final=final, roles=roles, precision=precision,
                       wide=(nx,) if f32 else ())  # the cost sum
@@ -132,7 +140,8 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "floa
     if f32:
         c["guard"] = ca.SX.sym("guard")
     c["inv_var"] = ca.SX.sym("inv_var", nu)  # 1 / sigma^2, computed once per batch
-    dyn, margins, q, phi = model_parts(sp, c)
+    t = time_symbol(sp)
+    dyn, margins, q, phi = model_parts(sp, c, t)
     alpha, clip_cost = ca.SX.sym("alpha"), ca.SX.sym("clip_cost")
     carry = ca.SX.sym("carry", 2 * nx + 6 + int(f32))
     z, u, Kv = ca.SX.sym("z", nu), ca.SX.sym("u", nu), ca.SX.sym("K", nu * nx)
@@ -158,7 +167,8 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "floa
     Sn = Sn + qn
     Sr = Sr + (qr + half * ca.dot((u + kt) * inv, u + 2.0 * et + kt))
     LR = LR + half * (ca.dot(u * inv, u) + 2.0 * ca.dot(u * inv, et))
-    ins = {"carry": carry, "z": z, "u": u, "K": Kv, **c, "alpha": alpha, "clip_cost": clip_cost}
+    ins = {"carry": carry, "z": z, "u": u, "K": Kv, **({"t": t} if t is not None else {}), **c,
+           "alpha": alpha, "clip_cost": clip_cost}
     new = [xn, xsn, Sn, Sh, Sr, LR, crn, cnn]
     fx, fxs = phi(x, c["p"]), phi(xs, c["p"])
     Shf, Snf, Srf = carry[2 * nx + 1] + fx, carry[2 * nx] + fxs, carry[2 * nx + 2] + fx
@@ -176,7 +186,8 @@ def sais_spec(sp: SamplingProblem, name: str = "wb_sais", precision: str = "floa
                        list(ins), ["carry_next", "v_nom", "v_real"], _OPTS)
     final = ca.Function(name + "_final", [carry, c["p"], alpha],
                         [ca.vertcat(*res)], ["carry", "p", "alpha"], ["result"], _OPTS)
-    roles = {"carry": "carry", "z": "noise", "u": "time", "K": "time", "alpha": "const",
+    roles = {"carry": "carry", "z": "noise", "u": "time", "K": "time", "t": "time",
+             "alpha": "const",
              "clip_cost": "const",
              **{k: "const" for k in c}}
     return KernelSpec(name=name, step=step, final=final, roles=roles, precision=precision,

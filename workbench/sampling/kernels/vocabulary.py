@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import casadi as ca
+import numpy as np
 
 from workbench.problem.barrier import min_margin
 from workbench.sampling.problem import SamplingProblem
@@ -36,13 +37,36 @@ def kernel_symbols(sp: SamplingProblem) -> dict[str, ca.SX]:
     return out
 
 
-def model_parts(sp: SamplingProblem, c: dict) -> tuple[Callable, Callable, ca.Function,
-                                                       ca.Function]:
+def time_symbol(sp: SamplingProblem) -> ca.SX | None:
+    """The kernels' ``t`` time input when the model's scene has moving circles (a fresh
+    symbol: the time from now of the state a step computes, x_{k+1} at t = (k + 1) dt, see
+    :func:`step_times`), else None (the kernels then take no such input and are those of a
+    model without prediction)."""
+    layout = sp.model.scene_layout
+    return ca.SX.sym("t") if layout is not None and layout.moves else None
+
+
+def step_times(sp: SamplingProblem, T: int) -> dict[str, np.ndarray]:
+    """The ``t`` time input of a T-step kernel call, {"t": (T, 1)} with t_k = (k + 1) dt (the
+    time of x_{k+1}, whose margins step k evaluates), or {} when the kernels take none."""
+    layout = sp.model.scene_layout
+    if layout is None or not layout.moves:
+        return {}
+    return {"t": ((np.arange(T) + 1.0) * sp.model.dt)[:, None]}
+
+
+def model_parts(sp: SamplingProblem, c: dict, t: ca.SX | None = None
+                ) -> tuple[Callable, Callable, ca.Function, ca.Function]:
     """(dyn, margins, q, phi) of the problem: ``dyn(x, v)`` and ``margins(x)`` evaluated in
-    the kernel's ``scene`` symbol of ``c`` (the empty scene when it has none), and the stage
+    the kernel's ``scene`` symbol of ``c`` (the empty scene when it has none) or, with the time
+    symbol ``t`` of :func:`time_symbol`, in the scene predicted to time t (moving circles at
+    c + v t; ``dyn`` of step k and the margins of x_{k+1} both at t = (k + 1) dt), and the stage
     and final cost Functions ``q(x, p)`` and ``phi(x, p)``."""
     fns = sp.functions()
     s = c.get("scene", ca.SX(0, 1))
+    layout = sp.model.scene_layout
+    if t is not None and layout is not None:
+        s = layout.predicted_sx(s, t)
     return (lambda x, v: fns["dyn"](x, v, s)), (lambda x: fns["margins"](x, s)), \
         fns["q"], fns["phi"]
 
@@ -64,4 +88,5 @@ def near_crash_flag(margins: Callable, x, eps_h: float, nh: int, band):
     return ca.fabs(min_margin(margins(x), range(nh)) - eps_h) <= band
 
 
-__all__ = ["clip", "crashed_flag", "kernel_symbols", "model_parts", "near_crash_flag"]
+__all__ = ["clip", "crashed_flag", "kernel_symbols", "model_parts", "near_crash_flag",
+           "step_times", "time_symbol"]

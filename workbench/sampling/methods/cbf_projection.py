@@ -12,6 +12,11 @@ like the clip) and the plan is updated to the weighted average of the *applied* 
 controls. With ``project_applied`` the control sent to the plant is projected once more, at the
 measured state, by the same closed form (a CasADi Function evaluated in place).
 
+Moving circles (a scene with moving slots): the rollouts predict them over the horizon (the
+safe kernel: each step's constraints in the scene of its start state's time, its dynamics and
+crash test in the next state's); the projection of the applied control acts at the current
+step only and uses the present scene, as the kernel's first step does.
+
 ``record_samples(k)`` (:mod:`workbench.sampling.samples`) hands out the last batch's samples
 with their projected controls (``nominal`` None).
 """

@@ -26,6 +26,10 @@ weakens it to "nearly at rest" (assumptions §8.4). A backup derived from the mo
 which brakes any model whose moving states the controls reach within a few steps:
 :func:`model_braking_backup` (assumptions §8.5).
 
+Moving circles (a scene with moving slots) are predicted over the check's horizon
+(:func:`backup_check_function`); a rest state is then safe only as long as no circle's predicted
+path reaches it, so the invariance argument above covers the checked horizon only.
+
 ``Gatekeeper.record_samples(k)`` switches the inner controller's recording on
 (:mod:`workbench.sampling.samples`); ``GatekeeperInfo.samples`` is the inner step's.
 """
@@ -252,7 +256,9 @@ def backup_check_function(plant: Model, backup: BackupPolicy, horizon: int,
     ``horizon`` steps (controls clipped to the box) and return the smallest margin over x1 and
     the ``horizon`` rollout states, the last state x_H, and the rate of one more backup step,
     max_i |x_{H+1,i} - x_{H,i}| / (dt rest_scale[i]) (``rest_scale``: one rate unit per state,
-    inf ignores a state; default 1 each). One fold over the horizon."""
+    inf ignores a state; default 1 each). One fold over the horizon. With moving circles in the
+    scene (a layout with moving slots) each state's margins see them where they are predicted
+    at its time: x1 at dt, the j-th rollout state at (j + 1) dt (c + v t)."""
     n, ns = plant.nx, plant.n_scene
     integer("horizon", horizon, 1, MAX_HORIZON)
     scale = np.ones(n) if rest_scale is None else np.asarray(
@@ -268,7 +274,14 @@ def backup_check_function(plant: Model, backup: BackupPolicy, horizon: int,
                        [ca.vertcat(xn, ca.fmin(carry[n], ca.mmin(h(xn, s))))])
     folded = step.fold(horizon)
     x1, sc = ca.SX.sym("x1", n), ca.SX.sym("scene", ns)
-    cT = folded(ca.vertcat(x1, ca.mmin(h(x1, sc))), ca.repmat(sc, 1, horizon))
+    layout = plant.scene_layout
+    if layout is not None and layout.moves:  # x1 at dt from now, rollout state j at (j + 1) dt
+        s1 = layout.predicted_sx(sc, plant.dt)
+        scenes = ca.horzcat(*(layout.predicted_sx(sc, (j + 2) * plant.dt)
+                              for j in range(horizon)))
+    else:
+        s1, scenes = sc, ca.repmat(sc, 1, horizon)
+    cT = folded(ca.vertcat(x1, ca.mmin(h(x1, s1))), scenes)
     xH = cT[:n]
     inv = ca.DM(np.where(np.isinf(scale), 0.0, 1.0 / (plant.dt * scale)))
     rate = ca.mmax(ca.fabs(bstep(xH) - xH) * inv)

@@ -21,6 +21,7 @@ from workbench.problem.dcbf import DEFAULT_GAMMA, check_gamma
 from workbench.sampling.feedback.effect import differs
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import safe_library
+from workbench.sampling.kernels.vocabulary import step_times
 from workbench.sampling.methods.twin import safe_twin
 from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.planning import (
@@ -101,7 +102,7 @@ class SafeSampler:
             k = self.lib.safe
             out = k(k.carry.pack(N, x=x0), consts={**consts.kernel_consts(),
                                                    **options.kernel_consts()},
-                    time_in={"u": U}, seed=seed)
+                    time_in={"u": U, **step_times(sp, T)}, seed=seed)
             r = k.result.unpack(out.result)
             v = out.lane_out[0]
             return SafeBatch(S=r["S"].copy(), crashed=r["crashed"] > 0, v=v,

@@ -22,6 +22,10 @@ Robust MPC Method Using Control Barrier Functions", IEEE RA-L 2023, arXiv:2302.1
    :data:`~workbench.sampling.kernels.safe.INFEASIBLE_TOL`). When steps run out the last
    iterate is applied and the step reports ``shield_failed``.
 
+Moving circles (a scene with moving slots): the sampling (1) predicts them over the horizon
+(the safe kernel's rule); the shield (2) acts at the current step only and uses the present
+scene, as the kernel's constraints of the first step do.
+
 ``record_samples(k)`` (:mod:`workbench.sampling.samples`) hands out the last batch's samples
 (``nominal`` None; the weights include the DCBF cost).
 """

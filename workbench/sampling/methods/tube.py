@@ -13,6 +13,8 @@ plan U_n. The applied control tracks the nominal::
 with K the ancillary tracker's gains about the nominal trajectory (by default iLQG tracking
 gains, :class:`~workbench.sampling.feedback.ilqg.ILQGFeedback`, on the physical model), and the
 nominal advances without noise, x_nom <- f(x_nom, clip(U_n[0])). The plans shift like MPPI's.
+Moving circles (a scene with moving slots) are predicted over the horizon in both batches (the
+sampler's kernels) and in the nominal's advance (the scene of x_nom's next time, dt from now).
 
 ``record_samples(k)`` (:mod:`workbench.sampling.samples`) hands out both batches of the last
 iteration, the same lanes (common random numbers): ``real`` the actual batch from the measured
@@ -28,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
+from workbench.problem.prediction import step_scene
 from workbench.sampling.feedback.base import FeedbackLaw, FeedbackWeights, Gains
 from workbench.sampling.feedback.effect import differs
 from workbench.sampling.feedback.ilqg import ILQGFeedback
@@ -206,7 +209,7 @@ class TubeMPPI(RecordsSamples):
         gains = self.feedback.gains(x_nom, U_n, state.gains, 0 if state.gains is None else 1)
         lo, hi = sp.model.u_min, sp.model.u_max
         u = np.clip(U_n[0] + gains.K[0] @ (xb - x_nom), lo, hi)
-        x_next = self._dyn(x_nom, np.clip(U_n[0], lo, hi), c.scene)[0]
+        x_next = self._dyn(x_nom, np.clip(U_n[0], lo, hi), step_scene(sp.model, c.scene))[0]
         b, W = (ba, Wa) if last else (bn, Wn)
         dt = time.perf_counter() - t0
         rec = self.sample_recorder
