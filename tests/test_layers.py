@@ -1,6 +1,6 @@
 """The library's layers, lowest first, the rule that nothing imports upward, and no import cycle.
 
-validation, environment < study (infrastructure: configs, runner, store, statistics) and
+validation, environment, registry < study (infrastructure: configs, runner, store, statistics) and
 codegen < problem < ilqg, filters < sim < sampling.problem < sampling.kernels
 < sampling.feedback < sampling < scenarios < bound < cli. The library never imports
 ``benchmarks`` or ``studies`` (except the command line, which reads the study registry).
@@ -24,7 +24,7 @@ REPO = Path(__file__).parents[1]
 ROOT = REPO / "workbench"
 PACKAGES = ("workbench", "studies", "benchmarks")
 LAYERS = [
-    ("workbench.validation", "workbench.environment"),
+    ("workbench.validation", "workbench.environment", "workbench.registry"),
     ("workbench.study", "workbench.codegen"),
     ("workbench.problem",),
     ("workbench.ilqg", "workbench.filters"),
@@ -153,5 +153,5 @@ def test_the_cycle_finder_on_a_synthetic_graph():
 
 def test_the_top_of_the_package_is_small():
     assert sorted(p.name for p in ROOT.glob("*.py")) == ["__init__.py", "cli.py",
-                                                         "environment.py", "sim.py",
-                                                         "validation.py"]
+                                                         "environment.py", "registry.py",
+                                                         "sim.py", "validation.py"]

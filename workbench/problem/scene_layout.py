@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from workbench.problem import sdf_grid
+import workbench.problem.sdf_grid as sdf_grid
 from workbench.problem.obstacles import Circle, HForm, slot_margins
 from workbench.problem.scene_kinds import SCENE_KINDS, SceneKind
 from workbench.problem.sdf_grid import SignedDistanceGrid
