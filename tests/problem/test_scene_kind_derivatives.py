@@ -139,16 +139,6 @@ def controls(kind):
     return [(rng.uniform(-0.5, 0.5, plain.nu), rng.normal(0.0, 1.0, x.size)) for x in states]
 
 
-def grid_hessian_gap(kind, request) -> None:
-    """The grid's margin has the bilinear cross term d2h/dxdy inside a cell; CasADi's linear
-    interpolant gives it no second derivative, so the Hessians lack that term (an expected
-    failure that must fail: it reports when the term is there)."""
-    if kind[0] == "grid":
-        request.applymarker(pytest.mark.xfail(
-            strict=True, reason="the grid's second derivatives: CasADi's linear interpolant "
-            "has none, so the bilinear cross term d2h/dxdy is missing"))
-
-
 def test_dyn_jac_equals_finite_differences(kind):
     name, plain, f, states, _ = kind
     scene = plain.scene_value
@@ -161,8 +151,7 @@ def test_dyn_jac_equals_finite_differences(kind):
         assert np.any(np.abs(A[-1, :plain.nx]) > 1e-3), name  # the barrier state is in play
 
 
-def test_dyn_hess_equals_finite_differences(kind, request):
-    grid_hessian_gap(kind, request)
+def test_dyn_hess_equals_finite_differences(kind):
     name, plain, f, states, _ = kind
     scene = plain.scene_value
     for x, (u, lam) in zip(states, controls(kind), strict=True):
@@ -207,8 +196,7 @@ def test_margin_gradient_equals_differences_of_the_numpy_margins(kind):
         assert close(G, central(margins, x[:d], H1)[used], TOL1), name
 
 
-def test_margin_hessian_equals_differences_of_the_numpy_margins(kind, request):
-    grid_hessian_gap(kind, request)
+def test_margin_hessian_equals_differences_of_the_numpy_margins(kind):
     name, plain, _, states, _ = kind
     p, s, h, margins, used = margin_parts(kind)
     d = plain.scene_layout.dim

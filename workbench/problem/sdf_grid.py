@@ -2,10 +2,10 @@
 
 The grid holds signed distances (metres; > 0 free, < 0 inside an obstacle) at the nodes
 ``origin + (i, j) * resolution``, i < nx along x, j < ny along y. Its margin at a position is
-the bilinear interpolation of the four surrounding nodes: exact at the nodes, continuous,
-differentiable inside each cell (iLQG uses the cell's gradient; the second derivative in x or
-in y alone is 0). Outside the grid the boundary cells' bilinear form continues (linear
-extrapolation), as CasADi's linear interpolant does.
+the bilinear interpolation of the four surrounding nodes: exact at the nodes, continuous, with
+exact first and second derivatives inside each cell (iLQG's: the gradient, the cross term
+d2h/dx dy; d2h/dx2 = d2h/dy2 = 0). Beyond the grid a position takes the value of the nearest
+point of the grid (the map says nothing there).
 
 In the scene input a grid is ``(ox, oy, resolution, values)`` with the values x-fastest
 (``values.T.ravel()`` of an (nx, ny) array); its shape is fixed when the model is built, so a
@@ -84,33 +84,57 @@ def check_row(field: str, row: np.ndarray) -> None:
 
 
 @functools.lru_cache(maxsize=16)
-def unit_interpolant(nx: int, ny: int) -> ca.Function:
-    """CasADi's linear interpolant on the unit grid 0..nx-1 x 0..ny-1 with the values as an
-    input (x-fastest); shared by every grid of that shape."""
-    return ca.interpolant(f"wb_grid_{nx}x{ny}", "linear",
-                          [np.arange(nx, dtype=float), np.arange(ny, dtype=float)], 1, {})
+def row_interpolant(n: int) -> ca.Function:
+    """CasADi's linear interpolant on 0..n-1 with the n values as an input: the grid's values
+    read along x (node i + nx j at coordinate i + nx j)."""
+    return ca.interpolant(f"wb_row_{n}", "linear", [np.arange(n, dtype=float)], 1, {})
+
+
+def _clamp(x, hi: float):
+    """x clamped to [0, hi]; NaN stays NaN (comparisons with NaN are false)."""
+    return ca.if_else(x < 0, 0, ca.if_else(x > hi, hi, x))
 
 
 def grid_sx(p, block, shape: tuple[int, int], inflation: float = 0.0):
-    """The grid's margin at position ``p`` (2 SX entries) for a scene block (SX)."""
+    """The grid's margin at position ``p`` (2 SX entries) for a scene block (SX).
+
+    Unit coordinates u, v clamped to the grid, cell (i, j) = (min(floor u, nx - 2), min(floor v,
+    ny - 2)), weights a = u - i, b = v - j; the cell's bottom and top edges interpolated along x
+    by two calls of the row interpolant over the values (nodes k + a and k + nx + a, k = i + nx
+    j), then h = (1 - b) e0 + b e1. Its value is the bilinear interpolation and its derivatives
+    are exact inside a cell: gradient, the cross term d2h/du dv = (e1 - e0)'; d2h/du2 = d2h/dv2
+    = 0. Beyond the grid the nearest boundary point's value (its gradient across the boundary
+    0). A NaN position gives a NaN margin."""
     nx, ny = shape
-    u = (p[0] - block[0]) / block[2]
-    v = (p[1] - block[1]) / block[2]
-    h = unit_interpolant(nx, ny)(ca.vertcat(u, v), block[HEADER:HEADER + nx * ny])
+    u = _clamp((p[0] - block[0]) / block[2], nx - 1)
+    v = _clamp((p[1] - block[1]) / block[2], ny - 1)
+    i = ca.fmin(ca.floor(u), nx - 2)
+    j = ca.fmin(ca.floor(v), ny - 2)
+    a, b = u - i, v - j
+    k = i + nx * j
+    row = row_interpolant(nx * ny)
+    values = block[HEADER:HEADER + nx * ny]
+    e0 = row(k + a, values)
+    e1 = row(k + nx + a, values)
+    h = (1 - b) * e0 + b * e1
     return h - inflation if inflation else h
 
 
 def grid_numpy(P: np.ndarray, row: np.ndarray, shape: tuple[int, int],
                inflation: float = 0.0) -> np.ndarray:
-    """The grid's margins (N,) at positions P (N, 2): bilinear in the cell holding each point
-    (the boundary cells' form beyond the grid), written without CasADi."""
+    """The grid's margins (N,) at positions P (N, 2): bilinear in the cell holding each point,
+    the nearest boundary point's value beyond the grid, NaN for a NaN position; written
+    without CasADi."""
     nx, ny = shape
     V = row[HEADER:].reshape(ny, nx)  # V[j, i]
-    u = (P[:, 0] - row[0]) / row[2]
-    v = (P[:, 1] - row[1]) / row[2]
-    i = np.clip(np.floor(u), 0, nx - 2).astype(int)
-    j = np.clip(np.floor(v), 0, ny - 2).astype(int)
+    u = np.clip((P[:, 0] - row[0]) / row[2], 0, nx - 1)
+    v = np.clip((P[:, 1] - row[1]) / row[2], 0, ny - 1)
+    bad = np.isnan(u) | np.isnan(v)
+    u, v = np.where(bad, 0.0, u), np.where(bad, 0.0, v)
+    i = np.minimum(np.floor(u), nx - 2).astype(int)
+    j = np.minimum(np.floor(v), ny - 2).astype(int)
     a, b = u - i, v - j
-    h = ((1 - a) * (1 - b) * V[j, i] + a * (1 - b) * V[j, i + 1]
-         + (1 - a) * b * V[j + 1, i] + a * b * V[j + 1, i + 1])
-    return h - inflation
+    e0 = (1 - a) * V[j, i] + a * V[j, i + 1]
+    e1 = (1 - a) * V[j + 1, i] + a * V[j + 1, i + 1]
+    h = (1 - b) * e0 + b * e1
+    return np.where(bad, np.nan, h) - inflation

@@ -31,7 +31,7 @@ from workbench.problem.models import double_integrator
 from workbench.problem.obstacles import Circle
 from workbench.problem.scene_kinds import Capsule, HalfSpace
 from workbench.problem.scene_layout import SceneLayout
-from workbench.problem.sdf_grid import SignedDistanceGrid, grid_numpy, grid_sx, unit_interpolant
+from workbench.problem.sdf_grid import SignedDistanceGrid, grid_numpy, grid_sx, row_interpolant
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.emit import EmitError, KernelSpec, emit_kernel
 from workbench.sampling.kernels.verify import reference_rollout, verify_kernel
@@ -170,9 +170,9 @@ def test_the_float32_lookup_is_within_float_rounding(probe):
     assert err.max() > 0.0  # really float
 
 
-def test_a_lookup_clamped_to_the_last_node_fails(probe, tmp_path, monkeypatch):
-    """A broken copy (cell index clamped to nx - 1, reading past the row) disagrees with
-    CasADi at the last node column and beyond the high side: the comparison above sees it."""
+def test_a_lookup_with_a_shifted_weight_fails(probe, tmp_path, monkeypatch):
+    """A broken copy (the weight a = x - i off by 1e-9) disagrees with CasADi: the comparison
+    above sees it."""
     from workbench.codegen import build_library
     from workbench.sampling.kernels import grid_lookup
     from workbench.sampling.kernels.flags import kernel_flags
@@ -181,8 +181,8 @@ def test_a_lookup_clamped_to_the_last_node_fails(probe, tmp_path, monkeypatch):
     real = grid_lookup.lookup_c
 
     def broken(name, u, v, table, g, ctype):
-        hi = float(g.shape[0] - 2)
-        return real(name, u, v, table, g, ctype).replace(f"{hi!r}", f"{hi + 1.0!r}")
+        return real(name, u, v, table, g, ctype).replace(f"= {u} - {name}_i;",
+                                                         f"= {u} - {name}_i + 1e-9;")
 
     monkeypatch.setattr("workbench.sampling.kernels.emit.lookup_c", broken)
     P, row, _ = probe
@@ -364,16 +364,16 @@ def test_other_calls_are_refused_and_named():
                                         r"emitter does not support"):
         emit_kernel(tiny(lambda c, w, s: other(c)))
     # a derivative of the interpolant (the sampler kernels need none)
-    with pytest.raises(EmitError, match=r"operation call \(fwd1_wrap_wb_grid_4x3\)"):
+    with pytest.raises(EmitError, match=r"operation call \(fwd1_wrap_wb_row_12\)"):
         emit_kernel(tiny(lambda c, w, s: ca.jacobian(grid_sx(c, s, (4, 3)), c)[0]))
     # values compiled into the model instead of the run-time scene, or partly computed
     with pytest.raises(EmitError, match=r"not one contiguous run of an input.*run-time scene"):
-        emit_kernel(tiny(lambda c, w, s: unit_interpolant(4, 3)(c, np.arange(12.0))))
+        emit_kernel(tiny(lambda c, w, s: row_interpolant(12)(c[0], np.arange(12.0))))
     with pytest.raises(EmitError, match=r"not one contiguous run of an input"):
-        emit_kernel(tiny(lambda c, w, s: unit_interpolant(4, 3)(c, ca.vertcat(c, s[3:13]))))
+        emit_kernel(tiny(lambda c, w, s: row_interpolant(12)(c[0], ca.vertcat(c, s[3:13]))))
     # values from a per-sample input
     with pytest.raises(EmitError, match=r"values must be an input shared by every sample"):
-        emit_kernel(tiny(lambda c, w, s: unit_interpolant(4, 3)(c, w)))
+        emit_kernel(tiny(lambda c, w, s: row_interpolant(12)(c[0], w)))
     emit_kernel(tiny(lambda c, w, s: grid_sx(c, s, (4, 3))))  # the scene's grid is written
 
 

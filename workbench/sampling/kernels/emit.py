@@ -240,14 +240,16 @@ def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
                                 "input shared by every sample (the run-time scene)")
             if tables is not None:
                 tables.add(g.input)
-            uv = [work[g.u], work[g.v]]
+            uv = [work[g.u]] + ([] if g.v is None else [work[g.v]])
             rank[name] = max(*(rank[a] for a in uv), level(g.input, g.start) if split else 2)
             kinds = {typ.get(a, "d") for a in uv}
             t = "d" if "d" in kinds or not typed else "f" if "f" in kinds else "p"
-            ud, vd = (operand(a, "d") for a in uv)
+            ud, vd = (operand(a, "d") for a in uv) if g.v is not None else (
+                operand(uv[0], "d"), None)
             stmt = lookup_c(name, ud, vd, table, g, "double")
             if t != "d":  # "p": both types, the double one named <name>_d
-                stmt = lookup_c(name, uv[0], uv[1], table, g, "float") + (
+                uf, vf = (uv[0], uv[1]) if g.v is not None else (uv[0], None)
+                stmt = lookup_c(name, uf, vf, table, g, "float") + (
                     " " + lookup_c(name + "_d", ud, vd, table, g, "double") if t == "p" else "")
             key[name] = (k, 0, k)
             typ[name] = t

@@ -1,16 +1,15 @@
 """The signed-distance grid's interpolant calls in an emitted kernel, written as inline C.
 
-A grid margin (:func:`workbench.problem.sdf_grid.grid_sx`) is an SX call of CasADi's linear
-interpolant ``wb_grid_{nx}x{ny}`` on the unit grid: arguments the unit coordinates (u, v) and
-the nx ny node values (x-fastest), one output. The emitter writes each such call as a bilinear
-lookup into the input array holding the values (the run-time scene, shared by every sample and
-step): cell ``i = clamp(floor(u), 0, nx - 2)`` (a NaN coordinate gives cell 0 and a NaN value),
-``j`` likewise, weights ``a = u - i``, ``b = v - j`` (outside the grid the boundary cell's
-bilinear form continues, as the interpolant does), and the interpolant's own sum, corner by
-corner in its order, so the result equals CasADi's evaluation bitwise. The four loads have
-per-sample indices (gathers, or their emulation where the target prefers it), the rest
-vectorises like any other step operation (a double kernel forms the index without an int32
-conversion, which would halve the vector width of its whole lane loop).
+A grid margin (:func:`workbench.problem.sdf_grid.grid_sx`) reads the grid's values through two
+SX calls of CasADi's linear interpolant ``wb_row_{n}`` over the n = nx ny values (x-fastest):
+argument a coordinate x along the values, and the values, one output. The emitter writes each
+such call as a lookup into the input array holding the values (the run-time scene, shared by
+every sample and step): segment ``i = clamp(floor(x), 0, n - 2)`` (a NaN coordinate gives
+segment 0 and a NaN value), weight ``a = x - i``, and the interpolant's own sum
+``(1 - a) V[i] + a V[i + 1]`` in its order, so the result equals CasADi's evaluation bitwise.
+The two loads have per-sample indices (gathers, or their emulation where the target prefers
+it), the rest vectorises like any other step operation (a double kernel forms the index without
+an int32 conversion, which would halve the vector width of its whole lane loop).
 
 Only calls of these interpolants whose values are one contiguous run of a shared input are
 written; any other call (another Function, a derivative of the interpolant, values computed
@@ -24,17 +23,17 @@ from dataclasses import dataclass
 
 import casadi as ca
 
-GRID_FUNCTION = re.compile(r"wb_grid_(\d+)x(\d+)")
+ROW_FUNCTION = re.compile(r"wb_row_(\d+)")
 
 
 class UnsupportedCall(ValueError):
     """A call the emitter cannot write (the reason is the message)."""
 
 
-def grid_shape(name: str) -> tuple[int, int] | None:
-    """(nx, ny) of a grid interpolant's name ``wb_grid_{nx}x{ny}``, else None."""
-    m = GRID_FUNCTION.fullmatch(name)
-    return (int(m[1]), int(m[2])) if m else None
+def grid_shape(name: str) -> tuple[int, ...] | None:
+    """(n,) of a row interpolant's name ``wb_row_{n}``, else None."""
+    m = ROW_FUNCTION.fullmatch(name)
+    return (int(m[1]),) if m else None
 
 
 Program = list[tuple[int, list[int], list[int]]]
@@ -59,14 +58,22 @@ def called_functions(f: ca.Function, prog: Program | None = None) -> dict[int, s
 
 @dataclass(frozen=True)
 class GridCall:
-    """A grid lookup: work entries ``u``, ``v`` of the coordinates; the values are entries
-    ``start .. start + nx ny - 1`` of the Function's input ``input``."""
+    """A grid lookup: work entries ``u``, ``v`` of the coordinates (``v`` None for a row's
+    one coordinate); the values are entries ``start .. start + prod(shape) - 1`` of the
+    Function's input ``input``."""
 
-    shape: tuple[int, int]
+    shape: tuple[int, ...]
     u: int
-    v: int
+    v: int | None
     input: int
     start: int
+
+    @property
+    def size(self) -> int:
+        n = 1
+        for m in self.shape:
+            n *= m
+        return n
 
 
 def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[int]]:
@@ -82,13 +89,15 @@ def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[
     for k, (op, ins, outs) in enumerate(prog):
         if op == ca.OP_CALL:
             shape = grid_shape(names[k])
-            if shape is None or len(ins) != 2 + shape[0] * shape[1] or len(outs) != 1:
+            d = 0 if shape is None else len(shape)
+            size = 0 if shape is None else (shape[0] * shape[1] if d == 2 else shape[0])
+            if shape is None or len(ins) != d + size or len(outs) != 1:
                 raise UnsupportedCall(f"a call of {names[k]} (only the signed-distance grid's "
                                       "interpolant is written as C)")
             if min(ins) < 0:
                 raise UnsupportedCall(f"a call of {names[k]} with a structurally zero argument")
-            plain.update(producer[w] for w in ins[:2])
-            src = [producer[w] for w in ins[2:]]
+            plain.update(producer[w] for w in ins[:d])
+            src = [producer[w] for w in ins[d:]]
             first = prog[src[0]][1]
             if not all(prog[s][0] == ca.OP_INPUT and prog[s][1] == [first[0], first[1] + n]
                        for n, s in enumerate(src)):
@@ -97,7 +106,7 @@ def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[
                                       "model, or computed values); pass the grid in the "
                                       "run-time scene")
             table_use.update(src)
-            calls[k] = GridCall(shape, ins[0], ins[1], first[0], first[1])
+            calls[k] = GridCall(shape, ins[0], ins[1] if d == 2 else None, first[0], first[1])
         elif op == ca.OP_OUTPUT:
             plain.add(producer[ins[0]])
         elif op not in (ca.OP_INPUT, ca.OP_CONST):
@@ -108,41 +117,41 @@ def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[
     return calls, table_use - plain
 
 
-def lookup_c(name: str, u: str, v: str, table: str, g: GridCall, ctype: str) -> str:
-    """C declarations computing the lookup ``g`` as ``const <ctype> <name>`` from coordinates
-    ``u``, ``v`` (C expressions of type ``ctype``) and ``table`` (a C pointer to the input's
-    doubles; entry ``g.start`` is node (0, 0))."""
-    nx, ny = g.shape
+def lookup_c(name: str, u: str, v: str | None, table: str, g: GridCall, ctype: str) -> str:
+    """C declarations computing the lookup ``g`` as ``const <ctype> <name>`` from the
+    coordinate ``u`` (a C expression of type ``ctype``; ``v`` is None: a row has one) and
+    ``table`` (a C pointer to the input's doubles; entry ``g.start`` is node 0)."""
+    if v is not None or len(g.shape) != 1:
+        raise UnsupportedCall(f"a lookup of shape {g.shape} (rows only)")
+    return _row_c(name, u, table, g, ctype)
+
+
+def _cell(name: str, c: str, x: str, n: int, ctype: str) -> str:
     f = "f" if ctype == "float" else ""
-    one, zero = ("1.0f", "0.0f") if f else ("1.0", "0.0")
+    zero = "0.0f" if f else "0.0"
+    hi = f"{float(n - 2)!r}{f}"
+    return (f"const {ctype} {name}_f{c} = floor{f}({x}); "
+            f"const {ctype} {name}_{c} = {name}_f{c} >= {zero} ? ({name}_f{c} <= {hi} ? "
+            f"{name}_f{c} : {hi}) : {zero};")
+
+
+def _row_c(name: str, x: str, table: str, g: GridCall, ctype: str) -> str:
+    """A row lookup: segment ``i = clamp(floor(x), 0, n - 2)``, weight ``a = x - i``, the
+    interpolant's sum (1 - a) V[i] + a V[i + 1] in its order (a NaN x gives segment 0 and a NaN
+    value; beyond the row the end segment's line continues)."""
+    (n,) = g.shape
+    f = "f" if ctype == "float" else ""
+    one = "1.0f" if f else "1.0"
     cvt = "(float)" if f else ""
-
-    def cell(c: str, x: str, n: int) -> str:
-        hi = f"{float(n - 2)!r}{f}"
-        return (f"const {ctype} {name}_f{c} = floor{f}({x}); "
-                f"const {ctype} {name}_{c} = {name}_f{c} >= {zero} ? ({name}_f{c} <= {hi} ? "
-                f"{name}_f{c} : {hi}) : {zero};")
-
     at = f"{name}_k"
     if f:
-        index = f"const int {at} = (int){name}_i + {nx}*(int){name}_j;"
-    else:
-        # the node index as the low bits of i + nx j + 2^52 (exact below 2^52): gcc converts
-        # double to int32 only, in half-width vectors, and would then run the whole lane loop
-        # of a double kernel at half width
-        index = (f"const double {at}x = ({name}_i + {float(nx)!r}*{name}_j) + 0x1p52; "
-                 f"int64_t {at}; __builtin_memcpy(&{at}, &{at}x, 8); "
-                 f"{at} -= 0x4330000000000000LL;")
-
-    def val(off: int) -> str:
-        return f"{cvt}{table}[{g.start + off} + {at}]"
-
-    a, b = f"{name}_a", f"{name}_b"
+        index = f"const int {at} = (int){name}_i;"
+    else:  # the index as the low bits of i + 2^52, as in the grid lookup
+        index = (f"const double {at}x = {name}_i + 0x1p52; int64_t {at}; "
+                 f"__builtin_memcpy(&{at}, &{at}x, 8); {at} -= 0x4330000000000000LL;")
+    a = f"{name}_a"
     return " ".join([
-        cell("i", u, nx), cell("j", v, ny),
-        index,
-        f"const {ctype} {a} = {u} - {name}_i; const {ctype} {b} = {v} - {name}_j;",
-        f"const {ctype} {name} = (((({one}-{a})*({one}-{b}))*{val(0)} + "
-        f"(({a}*({one}-{b}))*{val(1)})) + ((({one}-{a})*{b})*{val(nx)})) + "
-        f"(({a}*{b})*{val(nx + 1)});",
+        _cell(name, "i", x, n, ctype), index, f"const {ctype} {a} = {x} - {name}_i;",
+        f"const {ctype} {name} = (({one}-{a})*{cvt}{table}[{g.start} + {at}]) + "
+        f"({a}*{cvt}{table}[{g.start + 1} + {at}]);",
     ])
