@@ -82,6 +82,29 @@ class SceneLayout:
         """``SceneLayout.of(circles=30, capsules=4, grid=(200, 200))``; zero counts left out."""
         return cls(dim, tuple((k, n) for k, n in counts.items() if n), grid)
 
+    @classmethod
+    def fitting(cls, scene, field: str = "scene") -> SceneLayout:
+        """The smallest layout that holds the obstacles ``scene`` (a sequence, as
+        :meth:`vector` takes): one slot per obstacle of each kind, the grid's shape; the
+        position dimension of the obstacles (2 when none says)."""
+        counts: dict[str, int] = {}
+        grid: tuple[int, int] | None = None
+        dims: set[int] = set()
+        for i, obj in enumerate(_items(scene, field)):
+            if isinstance(obj, SignedDistanceGrid):
+                if grid is not None:
+                    raise fail(f"{field}[{i}]", obj, "a scene holds at most one grid")
+                grid, dims = obj.shape, dims | {2}
+                continue
+            kind = _kind_of(obj, f"{field}[{i}]")
+            counts[kind.name] = counts.get(kind.name, 0) + 1
+            d = _dim_of(obj)
+            dims |= set() if d is None else {d}
+        if len(dims) > 1:
+            raise fail(field, sorted(dims), "obstacles of one scene share one position "
+                       "dimension (2 or 3)")
+        return cls.of(dims.pop() if dims else 2, grid, **counts)
+
     def blocks(self) -> list[Block]:
         out, start = [], 0
         for name, count in self.slots:
@@ -205,7 +228,7 @@ class SceneLayout:
                            f"{self.dim}")
             if b is None or used[kind.name] >= b.count:
                 room = 0 if b is None else b.count
-                raise fail(field, f"{used[kind.name] + 1} or more {kind.name}",
+                raise fail(field, f"{used.get(kind.name, 0) + 1} or more {kind.name}",
                            f"this model was built with room for {room} "
                            f"(SceneLayout.slots)")
             lo = b.start + used[kind.name] * b.width

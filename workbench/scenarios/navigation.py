@@ -19,7 +19,7 @@ from workbench.sampling.problem import SamplingProblem, goal_costs, navigation_c
 from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.threshold import AlphaRule, Threshold
 from workbench.scenarios.methods import MethodSettings, build, feedback_law, method
-from workbench.scenarios.scenes import CircleScene, NavigationScene
+from workbench.scenarios.scenes import CircleScene, NavigationScene, ObstacleScene
 from workbench.scenarios.systems import SYSTEMS, System
 from workbench.scenarios.systems import TUNED_LAMBDA as TUNED_LAMBDA
 from workbench.scenarios.systems import TUNED_Q_BETA as TUNED_Q_BETA
@@ -33,7 +33,7 @@ class NavigationSetup:
     """The plant, the barrier-embedded sampling problem and the sampler settings of one map,
     for one :class:`~workbench.scenarios.systems.System`."""
 
-    scene: NavigationScene | CircleScene
+    scene: NavigationScene | CircleScene | ObstacleScene
     plant: Model
     problem: SamplingProblem
     goal: np.ndarray  # physical goal state (n_physical,)
@@ -110,7 +110,7 @@ class NavigationSetup:
                               weights=weights)
 
 
-def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
+def navigation_setup(scene: NavigationScene | CircleScene | ObstacleScene | None = None, *,
                      system: str | System = "double_integrator",
                      barrier: BarrierOptions | None = None, q_beta: float | None = None,
                      mppi: MPPIConfig | None = None, scene_capacity: int | None = None,
@@ -120,7 +120,10 @@ def navigation_setup(scene: NavigationScene | CircleScene | None = None, *,
     ``scene``: the paper's map (default: :class:`NavigationScene`, scaled by the system's
     ``scale``, :meth:`System.scaled`; a system built from your model: its own scene) or your
     own circles
-    (:class:`~workbench.scenarios.scenes.CircleScene`, used as given, in the system's units);
+    (:class:`~workbench.scenarios.scenes.CircleScene`, used as given, in the system's units)
+    or obstacles of any kind, an occupancy map's signed-distance grid among them
+    (:class:`~workbench.scenarios.scenes.ObstacleScene`: the plant is built on its
+    :class:`~workbench.problem.scene_layout.SceneLayout`, ``scene_capacity`` stays unset);
     any object with ``start``, ``goal``, ``dt``, ``u_limit`` and ``obstacles()`` works.
     ``system``: a name of :data:`~workbench.scenarios.systems.SYSTEMS` or a :class:`System`
     (default the double integrator, whose set-up is unchanged). Start and goal are the system's

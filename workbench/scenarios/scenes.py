@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from workbench.problem.obstacles import Circle
+from workbench.problem.scene_layout import SceneLayout
 from workbench.validation import as_array, fail, positive
 
 
@@ -286,3 +287,61 @@ class CircleScene:
 
     def assumed_values(self) -> dict[str, object]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+@dataclass(frozen=True, eq=False)
+class ObstacleScene:
+    """A navigation scene of obstacles of any kind: ``navigation_setup(ObstacleScene(...))``
+    builds the plant on a :class:`~workbench.problem.scene_layout.SceneLayout`.
+
+    objects: :class:`Circle`, :class:`~workbench.problem.scene_kinds.HalfSpace`,
+    :class:`~workbench.problem.scene_kinds.Capsule`,
+    :class:`~workbench.problem.scene_kinds.MovingCircle` (at its time-0 position) and at most
+    one :class:`~workbench.problem.sdf_grid.SignedDistanceGrid` (e.g. an occupancy map's,
+    :mod:`workbench.scenarios.occupancy`); start and goal positions (2,); dt and the control
+    box as in :class:`NavigationScene`. layout: the slots of the plant's scene input (default:
+    exactly the given obstacles, :meth:`SceneLayout.fitting`); a larger one lets other scenes
+    with up to that many obstacles (and a grid of the same shape) share compiled kernels.
+    Start and goal are checked to be in free space when the plant is built.
+    """
+
+    objects: tuple
+    start: tuple[float, float] = (0.5, 0.5)
+    goal: tuple[float, float] = (9.5, 9.5)
+    dt: float = 0.02
+    u_limit: float = 5.0
+    layout: SceneLayout | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.objects, str | bytes) or not hasattr(self.objects, "__iter__"):
+            raise fail("ObstacleScene.objects", self.objects, "must be a sequence of obstacles")
+        objects = tuple(self.objects)
+        layout = self.layout
+        if layout is None:
+            layout = SceneLayout.fitting(objects, "ObstacleScene.objects")
+        elif not isinstance(layout, SceneLayout):
+            raise fail("ObstacleScene.layout", layout, "must be a SceneLayout or None")
+        if layout.dim != 2:
+            raise fail("ObstacleScene.layout", layout, "a navigation scene is planar (dim 2)")
+        layout.vector(list(objects), "ObstacleScene.objects")  # refuses what does not fit
+        object.__setattr__(self, "objects", objects)
+        object.__setattr__(self, "layout", layout)
+        for name in ("start", "goal"):
+            p = as_array(f"ObstacleScene.{name}", getattr(self, name), (2,))
+            object.__setattr__(self, name, (float(p[0]), float(p[1])))
+        positive("ObstacleScene.dt", self.dt)
+        positive("ObstacleScene.u_limit", self.u_limit)
+
+    @property
+    def scene_layout(self) -> SceneLayout:
+        """The layout the plant is built with."""
+        assert self.layout is not None
+        return self.layout
+
+    def obstacles(self) -> tuple:
+        return self.objects
+
+    def assumed_values(self) -> dict[str, object]:
+        return {"start": self.start, "goal": self.goal, "dt": self.dt,
+                "u_limit": self.u_limit, "layout": self.scene_layout,
+                "objects": [repr(o) for o in self.objects]}

@@ -46,6 +46,7 @@ often than the band, and undisturbed it reaches the goal on 83 % of the training
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import math
 from collections.abc import Callable, Mapping
@@ -89,7 +90,7 @@ TUNED_LAMBDA = 10.0
 TUNED_Q_BETA = 0.01
 
 ModelFactory = Callable[..., Model]  # (*, obstacles, dt, u_limit, scene_capacity,
-#                                       runtime_obstacles) -> Model
+#                                       runtime_obstacles[, scene_layout]) -> Model
 BackupFactory = Callable[[Model, float | None], BackupPolicy]  # (plant, gain) -> backup law
 
 
@@ -98,7 +99,8 @@ class System:
     """One plant of the navigation set-up and everything the methods need to run on it.
 
     ``model``: factory called with keywords ``obstacles, dt, u_limit, scene_capacity,
-    runtime_obstacles`` (``u_limit`` is the scene's control bound: only the double integrator
+    runtime_obstacles`` (and ``scene_layout`` on a scene of other obstacles, see
+    :meth:`plant`) (``u_limit`` is the scene's control bound: only the double integrator
     uses it; the vehicles keep their own limits). ``state_at(point, heading)``: the physical
     state at rest at a map point (the quadrotor: hovering there, level). ``Q``, ``S``: goal-cost
     weights (:func:`~workbench.sampling.problem.goal_costs`: Q per physical state, S per
@@ -204,10 +206,23 @@ class System:
 
     def plant(self, scene, *, scene_capacity: int | None = None,
               runtime_obstacles: bool = True) -> Model:
-        """The plant on ``scene`` (any object with ``obstacles()``, ``dt``, ``u_limit``)."""
+        """The plant on ``scene`` (any object with ``obstacles()``, ``dt``, ``u_limit``). A
+        scene with a ``scene_layout`` (an :class:`~workbench.scenarios.scenes.ObstacleScene`)
+        builds the plant on that layout (the model factory then also gets ``scene_layout``;
+        the built-in planar systems take it); ``scene_capacity`` must then stay unset."""
+        layout = getattr(scene, "scene_layout", None)
+        extra = {}
+        if layout is not None:
+            if scene_capacity is not None:
+                raise fail("scene_capacity", scene_capacity, "a scene with a SceneLayout "
+                           "sizes its own slots; leave scene_capacity unset")
+            if "scene_layout" not in inspect.signature(self.model).parameters:
+                raise fail("system", self.name, "its model factory takes no scene_layout: "
+                           "it runs on circles only, not on a scene of other obstacles")
+            extra["scene_layout"] = layout
         return self.model(obstacles=tuple(scene.obstacles()), dt=scene.dt,
                           u_limit=scene.u_limit, scene_capacity=scene_capacity,
-                          runtime_obstacles=runtime_obstacles)
+                          runtime_obstacles=runtime_obstacles, **extra)
 
     def goal_distance(self, plant: Model, X, goal) -> np.ndarray:
         """Distance of the states ``X`` (rows, or one state) to ``goal``: Euclidean in the
@@ -266,24 +281,30 @@ def _planar_at(point, heading: float) -> np.ndarray:
     return np.array([*_point(point), 0.0, 0.0])
 
 
-def _di_model(*, obstacles, dt, u_limit, scene_capacity, runtime_obstacles) -> Model:
+def _di_model(*, obstacles, dt, u_limit, scene_capacity, runtime_obstacles,
+              scene_layout=None) -> Model:
     return double_integrator(obstacles=obstacles, u_limit=u_limit, dt=dt,
-                             scene_capacity=scene_capacity, runtime_obstacles=runtime_obstacles)
+                             scene_capacity=scene_capacity, runtime_obstacles=runtime_obstacles,
+                             scene_layout=scene_layout)
 
 
-def _unicycle_model(*, obstacles, dt, u_limit, scene_capacity, runtime_obstacles) -> Model:
+def _unicycle_model(*, obstacles, dt, u_limit, scene_capacity, runtime_obstacles,
+                    scene_layout=None) -> Model:
     return unicycle(obstacles=obstacles, dt=dt, scene_capacity=scene_capacity,
-                    runtime_obstacles=runtime_obstacles)
+                    runtime_obstacles=runtime_obstacles, scene_layout=scene_layout)
 
 
-def _bicycle_model(*, obstacles, dt, u_limit, scene_capacity, runtime_obstacles) -> Model:
+def _bicycle_model(*, obstacles, dt, u_limit, scene_capacity, runtime_obstacles,
+                   scene_layout=None) -> Model:
     return kinematic_bicycle(obstacles=obstacles, dt=dt, scene_capacity=scene_capacity,
-                             runtime_obstacles=runtime_obstacles)
+                             runtime_obstacles=runtime_obstacles, scene_layout=scene_layout)
 
 
-def _quadrotor_model(*, obstacles, dt, u_limit, scene_capacity, runtime_obstacles) -> Model:
+def _quadrotor_model(*, obstacles, dt, u_limit, scene_capacity, runtime_obstacles,
+                     scene_layout=None) -> Model:
     return planar_quadrotor(obstacles=obstacles, dt=dt, scene_capacity=scene_capacity,
-                            runtime_obstacles=runtime_obstacles, hover_offset=True)
+                            runtime_obstacles=runtime_obstacles, hover_offset=True,
+                            scene_layout=scene_layout)
 
 
 def _unicycle_at(point, heading: float) -> np.ndarray:
