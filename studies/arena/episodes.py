@@ -20,7 +20,7 @@ import numpy as np
 
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.robust import RMPPIConfig
-from workbench.scenarios.maps import GeneratedMap, MapFamily, generate, scaled
+from workbench.scenarios.maps import GRID_FAMILIES, GeneratedMap, MapFamily, generate, scaled
 from workbench.scenarios.methods import build, method
 from workbench.scenarios.model_system import resolve_system
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
@@ -54,9 +54,12 @@ def arena_map(family: MapFamily, seed: int) -> GeneratedMap:
     return generate(family, seed)
 
 
-def capacity(family: MapFamily, seeds: tuple[int, ...]) -> int:
+def capacity(family: MapFamily, seeds: tuple[int, ...]) -> int | None:
     """Circle slots for every map of ``family`` with these seeds, rounded up to a multiple of
-    8: all of them share one compiled set of kernels per system."""
+    8: all of them share one compiled set of kernels per system. None for a family whose maps
+    are signed-distance grids (one grid of the family's shape: its scene sizes itself)."""
+    if family.family in GRID_FAMILIES:
+        return None
     most = max(len(arena_map(family, s).circles) for s in seeds)
     return 8 * math.ceil(most / 8)
 
@@ -65,7 +68,8 @@ def capacity(family: MapFamily, seeds: tuple[int, ...]) -> int:
 class Where:
     """A system on one map: the map's family and seed, and the circle slots of its kernels.
     A system with a scene of its own runs on that scene whatever the map (``capacity`` None:
-    no circle slots); the map's seed then only selects the episode's random streams."""
+    no circle slots; so does a map that is a signed-distance grid, whose scene sizes the
+    plant's input); the map's seed then only selects the episode's random streams."""
 
     system: str
     family: MapFamily

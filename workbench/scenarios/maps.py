@@ -1,7 +1,8 @@
 """Map families drawn from a seed, moving obstacles and a difficulty measure per map.
 
 All maps live in the box [0, 10]^2 with start (0.5, 0.5) and goal (9.5, 9.5) by default;
-:func:`scaled` scales a map (or scene) afterwards. Three families (:data:`MAP_FAMILIES`):
+:func:`scaled` scales a map (or scene) afterwards. Three families of circles
+(:data:`MAP_FAMILIES`):
 
 - ``"spec"``: the paper's map family, :class:`~workbench.scenarios.scenes.NavigationScene`
   (two gate circles around a central corridor plus random circles), reused as is.
@@ -23,6 +24,16 @@ All maps live in the box [0, 10]^2 with start (0.5, 0.5) and goal (9.5, 9.5) by 
   by :func:`cover_cells` (conservative: every occupied cell is covered, no circle reaches
   more than (sqrt 2 - 1) / 2 cell sizes beyond the occupied cells).
 
+and one family whose map is a signed-distance grid (:data:`GRID_FAMILIES`):
+
+- ``"occupancy_grid"``: the ``"occupancy"`` family's cells (the same cells for the same knobs
+  and seed), the obstacles given as the signed-distance grid of the cells
+  (:meth:`~workbench.scenarios.occupancy.OccupancyMap.signed_distance`, nodes at the cell
+  centres) instead of covering circles: :meth:`GeneratedMap.scene` is then an
+  :class:`~workbench.scenarios.scenes.ObstacleScene` and the plant's scene input one grid of
+  ``grid`` x ``grid`` nodes, whatever the map. Its difficulty is that of the covering circles
+  (as the occupancy family's). No moving obstacles.
+
 ``generate(MapFamily(...), seed)`` is deterministic in (family, seed) and returns a
 :class:`GeneratedMap` with its :class:`MapDifficulty`. The box is where maps live and what
 the difficulty measure treats as the boundary; the navigation plant itself does not keep the
@@ -41,12 +52,16 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from workbench.problem.obstacles import Circle
-from workbench.problem.scene_kinds import MovingCircle
+from workbench.problem.scene_kinds import Capsule, HalfSpace, MovingCircle
 from workbench.problem.scene_layout import SceneLayout
-from workbench.scenarios.scenes import CircleScene, NavigationScene
+from workbench.problem.sdf_grid import SignedDistanceGrid
+from workbench.scenarios.occupancy import OccupancyMap
+from workbench.scenarios.scenes import CircleScene, NavigationScene, ObstacleScene
 from workbench.validation import as_array, fail, integer, real
 
 MAP_FAMILIES: tuple[str, ...] = ("spec", "corridor", "occupancy")
+GRID_FAMILIES: tuple[str, ...] = ("occupancy_grid",)  # maps as a signed-distance grid
+FAMILIES: tuple[str, ...] = MAP_FAMILIES + GRID_FAMILIES
 BOX: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 10.0), (0.0, 10.0))
 # n_obstacles when unset: spec counts every circle (gates included, as NavigationScene);
 # corridor counts the random circles besides the walls; occupancy has none
@@ -66,9 +81,10 @@ _CHUNK = 2**22  # float64 entries of one block of cover_cells' pairwise distance
 class MapFamily:
     """A map family and its knobs (lengths in m, in the box [0, 10]^2).
 
-    family: one of :data:`MAP_FAMILIES`. n_obstacles: spec: every circle, the two gate
-    circles included (default 30); corridor: random circles besides the walls (default 5);
-    occupancy: must stay unset (:attr:`obstacle_count` resolves the default). radius_range:
+    family: one of :data:`MAP_FAMILIES` or :data:`GRID_FAMILIES`. n_obstacles: spec: every
+    circle, the two gate circles included (default 30); corridor: random circles besides the
+    walls (default 5); occupancy and occupancy_grid: must stay unset (:attr:`obstacle_count`
+    resolves the default). radius_range:
     radii of random and moving circles (corridor walls use the upper end). min_gap: smallest
     edge-to-edge gap between a random or moving circle and any other circle (wall circles
     overlap each other by design); for occupancy maps, the narrowest passage the start-goal
@@ -78,7 +94,7 @@ class MapFamily:
     smoothing: occupancy initial fill fraction, cells per side and cellular-automaton
     iterations. start, goal: inside the box. endpoint_clearance: every circle's edge keeps
     this distance from start and goal. moving, speed: number of moving circles and their
-    speed (m/s) (see :func:`generate`).
+    speed (m/s) (see :func:`generate`; none on occupancy_grid maps).
 
     Counts are integers (never ``bool``) with upper limits: n_obstacles and moving <=
     :data:`MAX_CIRCLES`, n_gates <= 20, grid in [4, :data:`MAX_GRID`], smoothing <= 100.
@@ -100,13 +116,13 @@ class MapFamily:
     speed: float = 0.5
 
     def __post_init__(self) -> None:
-        if not isinstance(self.family, str) or self.family not in MAP_FAMILIES:
+        if not isinstance(self.family, str) or self.family not in FAMILIES:
             raise fail("map.family", self.family,
-                       f"unknown map family; allowed values are {MAP_FAMILIES}")
+                       f"unknown map family; allowed values are {FAMILIES}")
         n = self.n_obstacles
-        if n is not None and self.family == "occupancy":
-            raise fail("map.n_obstacles", n, "the occupancy family has no obstacle count "
-                       "(fill, grid and smoothing shape its maps); leave it unset")
+        if n is not None and self.family in ("occupancy", "occupancy_grid"):
+            raise fail("map.n_obstacles", n, f"the {self.family} family has no obstacle "
+                       "count (fill, grid and smoothing shape its maps); leave it unset")
         if n is not None:
             low = 2 if self.family == "spec" else 0
             what = " (it counts the two gate circles)" if low else ""
@@ -136,6 +152,9 @@ class MapFamily:
             raise fail("map.goal", self.goal, "must differ from map.start")
         real("map.endpoint_clearance", self.endpoint_clearance, 0.0)
         integer("map.moving", self.moving, 0, MAX_CIRCLES)
+        if self.moving and self.family in GRID_FAMILIES:
+            raise fail("map.moving", self.moving, f"the {self.family} family has no moving "
+                       "obstacles; use 0 (or the occupancy family, whose map is circles)")
         real("map.speed", self.speed, 0.0)
 
     @property
@@ -311,8 +330,10 @@ class GeneratedMap:
     walls: for corridor maps, the circle indices of each wall in order along it (the gate
     lies between two consecutive ones). cells, cell_size: for occupancy maps, the occupied
     cells (i along x, j along y; cell (i, j) is [i, i + 1] x [j, j + 1] times cell_size from
-    the box corner), which the circles cover. box: the box moving circles bounce in. After
-    :func:`scaled`, ``family`` and ``seed`` still describe the unscaled map.
+    the box corner), which the circles cover. box: the box moving circles bounce in. grid:
+    for occupancy_grid maps, the signed-distance grid of the cells (``circles`` is then
+    empty; the difficulty is the covering circles'). After :func:`scaled`, ``family`` and
+    ``seed`` still describe the unscaled map.
     """
 
     family: MapFamily
@@ -326,14 +347,18 @@ class GeneratedMap:
     cells: tuple[tuple[int, int], ...] = ()
     cell_size: float = 0.0
     box: tuple[tuple[float, float], tuple[float, float]] = BOX
+    grid: SignedDistanceGrid | None = None
 
     @property
     def n_static(self) -> int:
         """Number of circles that never move."""
         return len(self.circles) - len(self.moving)
 
-    def scene(self, dt: float = 0.02, u_limit: float = 5.0) -> CircleScene:
-        """The map at time 0 as a :class:`CircleScene` (for ``navigation_setup``)."""
+    def scene(self, dt: float = 0.02, u_limit: float = 5.0) -> CircleScene | ObstacleScene:
+        """The map at time 0 as a :class:`CircleScene` (for ``navigation_setup``); a map with
+        a grid as an :class:`ObstacleScene` of the grid."""
+        if self.grid is not None:
+            return ObstacleScene((self.grid,), self.start, self.goal, dt=dt, u_limit=u_limit)
         return CircleScene(self.circles, self.start, self.goal, dt=dt, u_limit=u_limit)
 
     def scene_at(self, k: int, dt: float) -> tuple[Circle, ...]:
@@ -683,6 +708,12 @@ def _generate(family: MapFamily, seed: int) -> GeneratedMap:
         C, walls = _corridor(family, rng)
     else:
         C, cells, diff = _occupancy(family, rng)
+    grid = None
+    if family.family in GRID_FAMILIES:
+        h = (BOX[0][1] - BOX[0][0]) / family.grid
+        occ = np.zeros((family.grid, family.grid), dtype=bool)
+        occ[tuple(np.array(cells).T)] = True
+        grid = OccupancyMap(occ, h, (BOX[0][0], BOX[1][0])).signed_distance()
     for name in ("start", "goal"):
         p = np.array(getattr(family, name))
         inside: np.ndarray | list[int] = []
@@ -701,18 +732,21 @@ def _generate(family: MapFamily, seed: int) -> GeneratedMap:
         C, moving = _movers(family, rng.spawn(1)[0], C, free)
     if diff is None or C.shape[0] > n:
         diff = difficulty(C, family.start, family.goal)
-    circles = tuple(Circle((float(x), float(y)), float(r)) for x, y, r in C)
+    circles = () if grid is not None else tuple(
+        Circle((float(x), float(y)), float(r)) for x, y, r in C)
     return GeneratedMap(family=family, seed=seed, circles=circles, start=family.start,
                         goal=family.goal, moving=moving, difficulty=diff, walls=walls,
                         cells=cells, cell_size=(BOX[0][1] - BOX[0][0]) / family.grid
-                        if cells else 0.0)
+                        if cells else 0.0, grid=grid)
 
 
 def scaled(scene_or_map, factor: float):
     """A map or scene scaled by ``factor`` about the origin: circles (centres and radii),
-    start, goal, and for a :class:`GeneratedMap` also velocities, box and the difficulty's
-    lengths. GeneratedMap -> GeneratedMap; CircleScene or NavigationScene -> CircleScene
-    (dt and u_limit unchanged); a sequence of circles -> tuple of circles."""
+    start, goal, and for a :class:`GeneratedMap` also velocities, box, grid (origin,
+    resolution and distances) and the difficulty's lengths. GeneratedMap -> GeneratedMap;
+    CircleScene or NavigationScene -> CircleScene, ObstacleScene -> ObstacleScene (every
+    obstacle scaled, its layout kept; dt and u_limit unchanged); a sequence of circles ->
+    tuple of circles."""
     f = real("scaled.factor", factor, 0.0, strict=True)
 
     def circ(cs) -> tuple[Circle, ...]:
@@ -728,11 +762,33 @@ def scaled(scene_or_map, factor: float):
                        straight_clearance=d.straight_clearance * f)
         return replace(obj, circles=circ(obj.circles), start=pt(obj.start), goal=pt(obj.goal),
                        moving=tuple((i, pt(v)) for i, v in obj.moving), difficulty=diff,
-                       cell_size=obj.cell_size * f, box=(pt(obj.box[0]), pt(obj.box[1])))
+                       cell_size=obj.cell_size * f, box=(pt(obj.box[0]), pt(obj.box[1])),
+                       grid=None if obj.grid is None else _scaled_object(obj.grid, f))
+    if isinstance(obj, ObstacleScene):
+        return ObstacleScene(tuple(_scaled_object(o, f) for o in obj.objects), pt(obj.start),
+                             pt(obj.goal), dt=obj.dt, u_limit=obj.u_limit,
+                             layout=obj.scene_layout)
     if isinstance(obj, CircleScene | NavigationScene):
         return CircleScene(circ(obj.obstacles()), pt(obj.start), pt(obj.goal), dt=obj.dt,
                            u_limit=obj.u_limit)
     if isinstance(obj, Sequence) and not isinstance(obj, str):
         return circ(obj)
     raise fail("scaled.scene_or_map", type(obj).__name__,
-               "must be a GeneratedMap, CircleScene, NavigationScene or a sequence of circles")
+               "must be a GeneratedMap, CircleScene, NavigationScene, ObstacleScene or a "
+               "sequence of circles")
+
+
+def _scaled_object(obj, f: float):
+    """One obstacle of a scene scaled by ``f`` about the origin (a half-plane's normal kept)."""
+    if isinstance(obj, SignedDistanceGrid):
+        return SignedDistanceGrid(obj.values * f, (obj.origin[0] * f, obj.origin[1] * f),
+                                  obj.resolution * f)
+    if isinstance(obj, MovingCircle):
+        (cx, cy), (vx, vy) = obj.center, obj.velocity
+        return MovingCircle((cx * f, cy * f), obj.radius * f, (vx * f, vy * f))
+    if isinstance(obj, HalfSpace):
+        return HalfSpace(obj.normal, obj.offset * f)
+    if isinstance(obj, Capsule):
+        return Capsule(tuple(c * f for c in obj.a), tuple(c * f for c in obj.b), obj.radius * f)
+    (x, y, r), = _circle_array([obj])
+    return Circle((x * f, y * f), r * f)
