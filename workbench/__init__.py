@@ -65,7 +65,9 @@ _EXPORTS = {
     "workbench.sampling.calibration": ("calibrate", "calibration_trace"),
     "workbench.sampling.kernels.library": ("get_threads", "set_threads"),
     "workbench.sim": ("Disturbance", "Episode", "closed_loop", "scene_sequence"),
-    "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "TrackingScene"),
+    "workbench.scenarios.scenes": ("CircleScene", "NavigationScene", "ObstacleScene",
+                                   "TrackingScene"),
+    "workbench.scenarios.occupancy": ("OccupancyMap", "load_map"),
     "workbench.scenarios.navigation": ("NavigationSetup", "navigation_setup"),
     "workbench.scenarios.methods": ("MethodSettings", "MethodSpec", "register_method",
                                     "method_names"),
@@ -74,8 +76,8 @@ _EXPORTS = {
     "workbench.problem.vehicles": ("kinematic_bicycle", "planar_quadrotor", "unicycle"),
     "workbench.scenarios.systems": ("SYSTEMS", "System", "register_system", "system"),
     "workbench.scenarios.model_system": ("ModelScene", "system_from_model"),
-    "workbench.scenarios.maps": ("MAP_FAMILIES", "GeneratedMap", "MapDifficulty", "MapFamily",
-                                 "difficulty", "generate"),
+    "workbench.scenarios.maps": ("GRID_FAMILIES", "MAP_FAMILIES", "GeneratedMap",
+                                 "MapDifficulty", "MapFamily", "difficulty", "generate"),
     "workbench.scenarios.tuned": ("ControllerSettings", "Tuned", "tuned"),
     "workbench.study.tuning": ("Param", "TuningBudget", "tune"),
     "workbench.study.stats": ("pooled_paired",),
@@ -163,6 +165,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.sampling.threshold import AlphaRule, make_threshold
     from workbench.scenarios.compare import compare_methods
     from workbench.scenarios.maps import (
+        GRID_FAMILIES,
         MAP_FAMILIES,
         GeneratedMap,
         MapDifficulty,
@@ -183,7 +186,13 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     )
     from workbench.scenarios.model_system import ModelScene, system_from_model
     from workbench.scenarios.navigation import NavigationSetup, navigation_setup
-    from workbench.scenarios.scenes import CircleScene, NavigationScene, TrackingScene
+    from workbench.scenarios.occupancy import OccupancyMap, load_map
+    from workbench.scenarios.scenes import (
+        CircleScene,
+        NavigationScene,
+        ObstacleScene,
+        TrackingScene,
+    )
     from workbench.scenarios.systems import SYSTEMS, System, register_system, system
     from workbench.scenarios.tuned import ControllerSettings, Tuned, tuned
     from workbench.sim import Disturbance, Episode, closed_loop, scene_sequence
