@@ -76,7 +76,7 @@ _EXPORTS = {
     "workbench.problem.vehicles": ("kinematic_bicycle", "planar_quadrotor", "unicycle"),
     "workbench.scenarios.systems": ("SYSTEMS", "System", "register_system", "system"),
     "workbench.scenarios.model_system": ("ModelScene", "system_from_model"),
-    "workbench.scenarios.maps": ("GRID_FAMILIES", "MAP_FAMILIES", "GeneratedMap",
+    "workbench.scenarios.maps": ("LAYOUT_FAMILIES", "MAP_FAMILIES", "GeneratedMap",
                                  "MapDifficulty", "MapFamily", "difficulty", "generate"),
     "workbench.scenarios.tuned": ("ControllerSettings", "Tuned", "tuned"),
     "workbench.study.tuning": ("Param", "TuningBudget", "tune"),
@@ -165,7 +165,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from workbench.sampling.threshold import AlphaRule, make_threshold
     from workbench.scenarios.compare import compare_methods
     from workbench.scenarios.maps import (
-        GRID_FAMILIES,
+        LAYOUT_FAMILIES,
         MAP_FAMILIES,
         GeneratedMap,
         MapDifficulty,

@@ -20,7 +20,7 @@ import numpy as np
 
 from workbench.sampling.feedback import FeedbackWeights
 from workbench.sampling.robust import RMPPIConfig
-from workbench.scenarios.maps import GRID_FAMILIES, GeneratedMap, MapFamily, generate, scaled
+from workbench.scenarios.maps import LAYOUT_FAMILIES, GeneratedMap, MapFamily, generate, scaled
 from workbench.scenarios.methods import build, method
 from workbench.scenarios.model_system import resolve_system
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
@@ -58,7 +58,7 @@ def capacity(family: MapFamily, seeds: tuple[int, ...]) -> int | None:
     """Circle slots for every map of ``family`` with these seeds, rounded up to a multiple of
     8: all of them share one compiled set of kernels per system. None for a family whose maps
     are signed-distance grids (one grid of the family's shape: its scene sizes itself)."""
-    if family.family in GRID_FAMILIES:
+    if family.family in LAYOUT_FAMILIES:
         return None
     most = max(len(arena_map(family, s).circles) for s in seeds)
     return 8 * math.ceil(most / 8)

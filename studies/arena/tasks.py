@@ -27,7 +27,7 @@ from studies.arena.episodes import (
     own_scene,
     run_episode,
 )
-from workbench.scenarios.maps import FAMILIES, GRID_FAMILIES, MapFamily
+from workbench.scenarios.maps import FAMILIES, LAYOUT_FAMILIES, MapFamily
 from workbench.scenarios.methods import slowest_first
 from workbench.scenarios.methods.settings import fingerprint as settings_data
 from workbench.scenarios.systems import SYSTEMS, definition
@@ -208,7 +208,7 @@ def fingerprint(config: ArenaConfig) -> dict:
     if not all(own_scene(s) for s in config.systems):
         d["capacity"] = {f.family: capacity(f, config.map_seeds() + config.tuning_seeds()
                                             + config.validation_seeds())
-                         for f in config.families if f.family not in GRID_FAMILIES}
+                         for f in config.families if f.family not in LAYOUT_FAMILIES}
     if "tuned" in config.tunings:
         d["tuned"] = {f"{s}/{c}": settings_data(settings(config, s, c, "tuned"))
                       for s in config.systems for c in config.controllers}

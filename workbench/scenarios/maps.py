@@ -24,15 +24,21 @@ All maps live in the box [0, 10]^2 with start (0.5, 0.5) and goal (9.5, 9.5) by 
   by :func:`cover_cells` (conservative: every occupied cell is covered, no circle reaches
   more than (sqrt 2 - 1) / 2 cell sizes beyond the occupied cells).
 
-and one family whose map is a signed-distance grid (:data:`GRID_FAMILIES`):
+and two families whose obstacles are shapes other than circles (:data:`LAYOUT_FAMILIES`; their
+:meth:`GeneratedMap.scene` is an :class:`~workbench.scenarios.scenes.ObstacleScene` on the
+family's :meth:`GeneratedMap.layout`, the same for every seed, so one compiled set of kernels
+serves every map of the family; no moving obstacles):
 
+- ``"corridor_capsules"``: the ``"corridor"`` family's maps (the same walls, gates and random
+  circles for the same knobs and seed), each wall's two sides given as capsules (the segment
+  through the centres of that side's circles, their radius) instead of chains of circles: the
+  capsules hold the circles, the gates keep their width and the walls lose their scallops.
+  A side of a single circle stays a circle. The difficulty is that of the circle walls.
 - ``"occupancy_grid"``: the ``"occupancy"`` family's cells (the same cells for the same knobs
   and seed), the obstacles given as the signed-distance grid of the cells
   (:meth:`~workbench.scenarios.occupancy.OccupancyMap.signed_distance`, nodes at the cell
-  centres) instead of covering circles: :meth:`GeneratedMap.scene` is then an
-  :class:`~workbench.scenarios.scenes.ObstacleScene` and the plant's scene input one grid of
-  ``grid`` x ``grid`` nodes, whatever the map. Its difficulty is that of the covering circles
-  (as the occupancy family's). No moving obstacles.
+  centres) instead of covering circles: the plant's scene input is one grid of ``grid`` x
+  ``grid`` nodes. Its difficulty is that of the covering circles (as the occupancy family's).
 
 ``generate(MapFamily(...), seed)`` is deterministic in (family, seed) and returns a
 :class:`GeneratedMap` with its :class:`MapDifficulty`. The box is where maps live and what
@@ -60,12 +66,12 @@ from workbench.scenarios.scenes import CircleScene, NavigationScene, ObstacleSce
 from workbench.validation import as_array, fail, integer, real
 
 MAP_FAMILIES: tuple[str, ...] = ("spec", "corridor", "occupancy")
-GRID_FAMILIES: tuple[str, ...] = ("occupancy_grid",)  # maps as a signed-distance grid
-FAMILIES: tuple[str, ...] = MAP_FAMILIES + GRID_FAMILIES
+LAYOUT_FAMILIES: tuple[str, ...] = ("corridor_capsules", "occupancy_grid")  # not circles
+FAMILIES: tuple[str, ...] = MAP_FAMILIES + LAYOUT_FAMILIES
 BOX: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 10.0), (0.0, 10.0))
 # n_obstacles when unset: spec counts every circle (gates included, as NavigationScene);
 # corridor counts the random circles besides the walls; occupancy has none
-DEFAULT_OBSTACLES = {"spec": 30, "corridor": 5}
+DEFAULT_OBSTACLES = {"spec": 30, "corridor": 5, "corridor_capsules": 5}
 CENTER_RANGE = (1.0, 9.0)  # centres of random and moving circles (as NavigationScene)
 WALL_SPACING = 1.5  # wall circles' centre spacing in radii: overlap, thinnest part 1.32 radii
 WALL_JITTER = 0.15  # walls sit at (i + U(-j, j)) / (n_gates + 1) of the start-goal line
@@ -81,10 +87,10 @@ _CHUNK = 2**22  # float64 entries of one block of cover_cells' pairwise distance
 class MapFamily:
     """A map family and its knobs (lengths in m, in the box [0, 10]^2).
 
-    family: one of :data:`MAP_FAMILIES` or :data:`GRID_FAMILIES`. n_obstacles: spec: every
+    family: one of :data:`MAP_FAMILIES` or :data:`LAYOUT_FAMILIES`. n_obstacles: spec: every
     circle, the two gate circles included (default 30); corridor: random circles besides the
-    walls (default 5); occupancy and occupancy_grid: must stay unset (:attr:`obstacle_count`
-    resolves the default). radius_range:
+    walls (default 5, also corridor_capsules); occupancy and occupancy_grid: must stay unset
+    (:attr:`obstacle_count` resolves the default). radius_range:
     radii of random and moving circles (corridor walls use the upper end). min_gap: smallest
     edge-to-edge gap between a random or moving circle and any other circle (wall circles
     overlap each other by design); for occupancy maps, the narrowest passage the start-goal
@@ -94,7 +100,7 @@ class MapFamily:
     smoothing: occupancy initial fill fraction, cells per side and cellular-automaton
     iterations. start, goal: inside the box. endpoint_clearance: every circle's edge keeps
     this distance from start and goal. moving, speed: number of moving circles and their
-    speed (m/s) (see :func:`generate`; none on occupancy_grid maps).
+    speed (m/s) (see :func:`generate`; none on the :data:`LAYOUT_FAMILIES` maps).
 
     Counts are integers (never ``bool``) with upper limits: n_obstacles and moving <=
     :data:`MAX_CIRCLES`, n_gates <= 20, grid in [4, :data:`MAX_GRID`], smoothing <= 100.
@@ -152,7 +158,7 @@ class MapFamily:
             raise fail("map.goal", self.goal, "must differ from map.start")
         real("map.endpoint_clearance", self.endpoint_clearance, 0.0)
         integer("map.moving", self.moving, 0, MAX_CIRCLES)
-        if self.moving and self.family in GRID_FAMILIES:
+        if self.moving and self.family in LAYOUT_FAMILIES:
             raise fail("map.moving", self.moving, f"the {self.family} family has no moving "
                        "obstacles; use 0 (or the occupancy family, whose map is circles)")
         real("map.speed", self.speed, 0.0)
@@ -332,8 +338,10 @@ class GeneratedMap:
     cells (i along x, j along y; cell (i, j) is [i, i + 1] x [j, j + 1] times cell_size from
     the box corner), which the circles cover. box: the box moving circles bounce in. grid:
     for occupancy_grid maps, the signed-distance grid of the cells (``circles`` is then
-    empty; the difficulty is the covering circles'). After :func:`scaled`, ``family`` and
-    ``seed`` still describe the unscaled map.
+    empty; the difficulty is the covering circles'). capsules: for corridor_capsules maps,
+    the walls' sides in order (``circles`` then holds the random circles and any side of a
+    single circle; ``walls`` is empty). After :func:`scaled`, ``family`` and ``seed`` still
+    describe the unscaled map.
     """
 
     family: MapFamily
@@ -348,6 +356,7 @@ class GeneratedMap:
     cell_size: float = 0.0
     box: tuple[tuple[float, float], tuple[float, float]] = BOX
     grid: SignedDistanceGrid | None = None
+    capsules: tuple[Capsule, ...] = ()
 
     @property
     def n_static(self) -> int:
@@ -357,9 +366,25 @@ class GeneratedMap:
     def scene(self, dt: float = 0.02, u_limit: float = 5.0) -> CircleScene | ObstacleScene:
         """The map at time 0 as a :class:`CircleScene` (for ``navigation_setup``); a map with
         a grid as an :class:`ObstacleScene` of the grid."""
-        if self.grid is not None:
-            return ObstacleScene((self.grid,), self.start, self.goal, dt=dt, u_limit=u_limit)
+        layout = self.layout()
+        if layout is not None:
+            objects = (*self.capsules, *self.circles) + (() if self.grid is None
+                                                          else (self.grid,))
+            return ObstacleScene(objects, self.start, self.goal, dt=dt, u_limit=u_limit,
+                                 layout=layout)
         return CircleScene(self.circles, self.start, self.goal, dt=dt, u_limit=u_limit)
+
+    def layout(self) -> SceneLayout | None:
+        """The scene layout of a :data:`LAYOUT_FAMILIES` map (None for circle maps), the same
+        for every map of its family: corridor_capsules: a capsule per wall side and room for
+        the random circles plus a circle per side; occupancy_grid: the grid's shape."""
+        fam = self.family
+        if fam.family == "corridor_capsules":
+            return SceneLayout.of(capsules=2 * fam.n_gates,
+                                  circles=fam.obstacle_count + 2 * fam.n_gates)
+        if fam.family == "occupancy_grid":
+            return SceneLayout.of(grid=(fam.grid, fam.grid))
+        return None
 
     def scene_at(self, k: int, dt: float) -> tuple[Circle, ...]:
         """The circles at step k (time k dt): each moving circle translates at its velocity
@@ -704,12 +729,15 @@ def _generate(family: MapFamily, seed: int) -> GeneratedMap:
     diff = None
     if family.family == "spec":
         C = _spec(family, seed)
-    elif family.family == "corridor":
+    elif family.family in ("corridor", "corridor_capsules"):
         C, walls = _corridor(family, rng)
     else:
         C, cells, diff = _occupancy(family, rng)
     grid = None
-    if family.family in GRID_FAMILIES:
+    if family.family == "occupancy_grid":
+        if not cells:
+            raise fail("map.fill", family.fill, "drew a map without an occupied cell; the "
+                       "occupancy_grid family needs one (raise fill)")
         h = (BOX[0][1] - BOX[0][0]) / family.grid
         occ = np.zeros((family.grid, family.grid), dtype=bool)
         occ[tuple(np.array(cells).T)] = True
@@ -734,10 +762,36 @@ def _generate(family: MapFamily, seed: int) -> GeneratedMap:
         diff = difficulty(C, family.start, family.goal)
     circles = () if grid is not None else tuple(
         Circle((float(x), float(y)), float(r)) for x, y, r in C)
+    capsules: tuple[Capsule, ...] = ()
+    if family.family == "corridor_capsules":
+        capsules, single = _wall_capsules(C, walls)
+        on_walls = {i for w in walls for i in w}
+        circles = tuple(circles[i] for i in single) + tuple(
+            c for i, c in enumerate(circles) if i not in on_walls)
+        walls = ()
     return GeneratedMap(family=family, seed=seed, circles=circles, start=family.start,
                         goal=family.goal, moving=moving, difficulty=diff, walls=walls,
                         cells=cells, cell_size=(BOX[0][1] - BOX[0][0]) / family.grid
-                        if cells else 0.0, grid=grid)
+                        if cells else 0.0, grid=grid, capsules=capsules)
+
+
+def _wall_capsules(C: np.ndarray, walls) -> tuple[tuple[Capsule, ...], list[int]]:
+    """Each wall's two sides (the circles before and after its gate, the widest gap between
+    consecutive centres) as capsules through their first and last centres; the indices of
+    sides of a single circle, which stay circles."""
+    out, single = [], []
+    for w in walls:
+        idx = np.array(w)
+        gap = np.hypot(*np.diff(C[idx, :2], axis=0).T)
+        k = int(np.argmax(gap)) + 1
+        for side in (idx[:k], idx[k:]):
+            if side.size == 1:
+                single.append(int(side[0]))
+                continue
+            a, b = C[side[0]], C[side[-1]]
+            out.append(Capsule((float(a[0]), float(a[1])), (float(b[0]), float(b[1])),
+                               float(a[2])))
+    return tuple(out), single
 
 
 def scaled(scene_or_map, factor: float):
@@ -763,7 +817,8 @@ def scaled(scene_or_map, factor: float):
         return replace(obj, circles=circ(obj.circles), start=pt(obj.start), goal=pt(obj.goal),
                        moving=tuple((i, pt(v)) for i, v in obj.moving), difficulty=diff,
                        cell_size=obj.cell_size * f, box=(pt(obj.box[0]), pt(obj.box[1])),
-                       grid=None if obj.grid is None else _scaled_object(obj.grid, f))
+                       grid=None if obj.grid is None else _scaled_object(obj.grid, f),
+                       capsules=tuple(_scaled_object(c, f) for c in obj.capsules))
     if isinstance(obj, ObstacleScene):
         return ObstacleScene(tuple(_scaled_object(o, f) for o in obj.objects), pt(obj.start),
                              pt(obj.goal), dt=obj.dt, u_limit=obj.u_limit,
