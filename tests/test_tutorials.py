@@ -45,11 +45,9 @@ def blocks(page: str, path: Path | None = None) -> list[tuple[str, shown_output.
     return shown_output.page_blocks(path or TUTORIALS / page, page)
 
 
-def run_page(page: str, where: Path, allow: str | None = None,
-             ) -> list[tuple[str, str, shown_output.Shown | None]]:
+def run_page(page: str, where: Path) -> list[tuple[str, str, shown_output.Shown | None]]:
     """Run a page's blocks in one namespace in ``where``: (code, printed, shown) per block.
-    Fails on any warning raised from the workbench (e.g. a fallback from compiled kernels)
-    but those whose message matches the regular expression ``allow``."""
+    Fails on any warning raised from the workbench (e.g. a fallback from compiled kernels)."""
     scope: dict = {"__name__": "__tutorial__"}
     results = []
     cwd = os.getcwd()
@@ -64,8 +62,7 @@ def run_page(page: str, where: Path, allow: str | None = None,
                 results.append((code, buffer.getvalue(), shown))
     finally:
         os.chdir(cwd)
-    ours = [str(w.message) for w in caught if f"{os.sep}workbench{os.sep}" in w.filename
-            and not (allow and re.search(allow, str(w.message)))]
+    ours = [str(w.message) for w in caught if f"{os.sep}workbench{os.sep}" in w.filename]
     assert not ours, f"{page}: warnings from the workbench: {ours}"
     return results
 
@@ -262,13 +259,8 @@ def edited(tmp_path: Path, page: str, old: str, new: str) -> Path:
     return path
 
 
-# the sampler falls back to the CasADi evaluation for a grid until its C emitter supports
-# CasADi's interpolant; that fallback's warning is allowed on this page only
-GRID_FALLBACK = r"no compiled sampler kernels .* uses the CasADi operation call"
-
-
 def test_tutorial_occupancy_map(tmp_path):
-    results = run_page("occupancy-map.md", tmp_path, allow=GRID_FALLBACK)
+    results = run_page("occupancy-map.md", tmp_path)
     check_shown_output(results, "occupancy-map.md")
     out = printed(results)
     loops = re.findall(r"^(bas_mppi|sa_rmppi): crashed (True|False), reached the goal "
@@ -279,7 +271,7 @@ def test_tutorial_occupancy_map(tmp_path):
         assert float(closest) > 0
     cells = re.findall(r"^(bas_mppi|sa_rmppi): safe in (\d+) of (\d+)", out, re.M)
     assert sorted(c[0] for c in cells) == ["bas_mppi", "sa_rmppi"], out
-    assert all(int(n) == 1 and int(k) == 1 for _, k, n in cells), out  # both safe
+    assert all(int(n) == 4 and int(k) >= 2 for _, k, n in cells), out  # mostly safe
     assert (tmp_path / "runs" / "office" / "report.md").is_file()
 
 
