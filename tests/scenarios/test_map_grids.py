@@ -111,6 +111,7 @@ def test_capsule_corridors_hold_the_wall_circles_and_keep_the_gates(seed):
         assert gap == pytest.approx(0.7, rel=1e-12)
     lay = m.layout()
     assert lay == generate(MapFamily("corridor_capsules", **kw), seed + 1).layout()
+    assert m.scene_layout() == lay and c.layout() is None
     assert lay.count("capsules") == 6 and lay.count("circles") == 5 + 6
 
 

@@ -364,8 +364,8 @@ class GeneratedMap:
         return len(self.circles) - len(self.moving)
 
     def scene(self, dt: float = 0.02, u_limit: float = 5.0) -> CircleScene | ObstacleScene:
-        """The map at time 0 as a :class:`CircleScene` (for ``navigation_setup``); a map with
-        a grid as an :class:`ObstacleScene` of the grid."""
+        """The map at time 0 as a :class:`CircleScene` (for ``navigation_setup``); a
+        :data:`LAYOUT_FAMILIES` map as an :class:`ObstacleScene` on its :meth:`layout`."""
         layout = self.layout()
         if layout is not None:
             objects = (*self.capsules, *self.circles) + (() if self.grid is None
@@ -408,7 +408,11 @@ class GeneratedMap:
 
     def scene_layout(self) -> SceneLayout:
         """The slots of a model that is told how the circles move (:meth:`velocity_scene_at`):
-        one circle slot per static circle, one moving slot per moving circle."""
+        one circle slot per static circle, one moving slot per moving circle (a
+        :data:`LAYOUT_FAMILIES` map, without moving circles: its :meth:`layout`)."""
+        own = self.layout()
+        if own is not None:
+            return own
         return SceneLayout.of(circles=self.n_static, moving=len(self.moving))
 
     def velocity_scene_at(self, k: int, dt: float) -> tuple[Circle | MovingCircle, ...]:

@@ -103,9 +103,10 @@ class OccupancyMap:
         lies along a row or column of the free node, this is the exact distance to the
         occupied squares; towards a corner it exceeds it by at most (sqrt 2 - 1) / 2 cells
         (:data:`CORNER_EXCESS`): add ``CORNER_EXCESS * resolution`` to the inflation for a
-        bound that never overstates the clearance at the nodes. Beyond the map the grid
-        continues its boundary cells linearly (the map's outside is neither free nor
-        occupied). A map without an occupied or without a free cell is refused."""
+        bound that never overstates the clearance at the nodes. Beyond the outermost
+        nodes (the map's outer half cells and its outside) a position takes the value of the
+        nearest point of the grid (:mod:`workbench.problem.sdf_grid`). A map without an
+        occupied or without a free cell is refused."""
         r = real("inflation", inflation, 0.0)
         occ, h = self.occupied, self.resolution
         if not occ.any() or occ.all():
