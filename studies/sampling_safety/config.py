@@ -13,6 +13,7 @@ from workbench.sampling.mppi import MPPIConfig
 from workbench.sampling.robust import RMPPIConfig
 from workbench.sampling.sampler import Backend, Precision
 from workbench.sampling.threshold import AlphaRule
+from workbench.scenarios.maps import MapFamily, generate
 from workbench.scenarios.methods import MethodSettings, names
 from workbench.scenarios.model_system import resolve_system
 from workbench.validation import MAX_STEPS, MAX_TASKS, at_most, fail, integer, real
@@ -56,7 +57,10 @@ class StudyConfig:
     or ``"path/file.py:function"`` returning a System
     (:func:`~workbench.scenarios.model_system.system_from_model`). ``scene``: the map of a map
     system (None: the default map, scaled to the system); a system built from a model runs on
-    its own start, goal and constraints, and a scene is refused. ``sampler``, ``q_beta``,
+    its own start, goal and constraints, and a scene is refused. ``family`` and ``map_seed``:
+    instead of ``scene``, the map of seed ``map_seed`` (default 0) of a generated map family
+    (:class:`~workbench.scenarios.maps.MapFamily`, static; e.g. ``occupancy_grid``, whose map
+    is a signed-distance grid), scaled to the system. ``sampler``, ``q_beta``,
     ``feedback`` and ``goal_radius``: None takes the system's own (sigma, lambda and horizon
     with 1024 samples); a ``[sampler]`` table (:class:`SamplerSettings`) changes the keys it
     gives and keeps the system's for the others; an MPPIConfig (from Python) is used whole.
@@ -75,6 +79,8 @@ class StudyConfig:
     goal_radius: float | None = None
     system: str = "double_integrator"
     scene: MapSpec | None = None
+    family: MapFamily | None = None
+    map_seed: int | None = None
     sampler: SamplerSettings | MPPIConfig | None = None
     q_beta: float | None = None
     robust: RMPPIConfig = RMPPIConfig()
@@ -111,6 +117,24 @@ class StudyConfig:
                 raise fail("scene", self.scene, f"the system {sysm.name!r} runs on its own "
                            "start, goal and constraints; leave scene out")
             self.scene.check()
+        if self.map_seed is not None:
+            object.__setattr__(self, "map_seed", integer("map_seed", self.map_seed, 0))
+        if self.family is not None:
+            if not isinstance(self.family, MapFamily):
+                raise fail("family", self.family, "must be a MapFamily or None")
+            if self.scene is not None:
+                raise fail("family", self.family.family, "give a scene or a map family, not "
+                           "both")
+            if sysm.scene is not None:
+                raise fail("family", self.family.family, f"the system {sysm.name!r} runs on "
+                           "its own start, goal and constraints; leave family out")
+            if self.family.moving:
+                raise fail("family", self.family.family, "this study runs on a static map: "
+                           "use moving = 0 (moving obstacles run in the arena)")
+            generate(self.family, self.map_seed or 0)  # a start or goal inside an obstacle
+        elif self.map_seed is not None:
+            raise fail("map_seed", self.map_seed, "selects a map of family; set family or "
+                       "leave map_seed out")
         if not isinstance(self.sampler, SamplerSettings | MPPIConfig | None):
             raise fail("sampler", self.sampler, "must be a table of sampler settings, an "
                        "MPPIConfig or None")
@@ -134,7 +158,9 @@ class StudyConfig:
                    if isinstance(self.sampler, MPPIConfig) else self.sampler.over(base))
         return Resolved(
             system=sysm.name, entry=self.system,
-            scene=self.scene or (MapSpec() if sysm.scene is None else None),
+            scene=self.scene or (MapSpec() if sysm.scene is None and self.family is None
+                                 else None),
+            family=self.family, map_seed=self.map_seed or 0,
             sampler=sampler, q_beta=sysm.q_beta if self.q_beta is None else self.q_beta,
             robust=self.robust,
             feedback=sysm.feedback_weights if self.feedback is None else self.feedback,
@@ -150,6 +176,8 @@ class Resolved:
     system: str
     entry: str
     scene: MapSpec | None
+    family: MapFamily | None
+    map_seed: int
     sampler: MPPIConfig
     q_beta: float
     robust: RMPPIConfig

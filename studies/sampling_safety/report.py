@@ -162,9 +162,12 @@ def where(cfg: dict) -> str:
     label = cfg.get("system_label", "double integrator")
     if cfg.get("model_scene"):
         return f"the {label} (your model: its own start, goal and constraints)"
+    fam = cfg.get("family")
+    place = ("the navigation map" if not fam else
+             f"the generated {fam['family']} map of seed {cfg.get('map_seed', 0)}")
     if cfg.get("system_name", "double_integrator") == "double_integrator":
-        return "the navigation map"
-    return f"the navigation map with the {label}"
+        return place
+    return f"{place} with the {label}"
 
 
 def scaled(cfg: dict) -> str:

@@ -27,6 +27,7 @@ from scipy import stats
 
 from studies.navigation.paired import Paired
 from studies.sampling_safety.config import StudyConfig
+from workbench.scenarios.maps import generate
 from workbench.scenarios.mechanism_health import StudyHealth, study_health
 from workbench.scenarios.model_system import resolve_system
 from workbench.study import Rate, RunStore, Spread
@@ -181,5 +182,7 @@ def ran_settings(config: StudyConfig) -> dict:
 
 def ran_dt(config: StudyConfig) -> float:
     r = config.resolved()
+    if r.family is not None:
+        return float(generate(r.family, r.map_seed).scene().dt)
     return float(r.scene.scene().dt if r.scene is not None
                  else resolve_system(r.entry).scene.dt)

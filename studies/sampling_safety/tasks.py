@@ -15,6 +15,7 @@ import numpy as np
 from studies.sampling_safety.config import RESULT_VERSION, Resolved, StudyConfig, variance_key
 from workbench.sampling.calibration import calibrate
 from workbench.sampling.threshold import Threshold
+from workbench.scenarios.maps import generate, scaled
 from workbench.scenarios.methods import build, feedback_law, method, slowest_first
 from workbench.scenarios.methods.settings import fingerprint as settings_data
 from workbench.scenarios.model_system import resolve_system
@@ -50,7 +51,8 @@ def setup(s: Resolved) -> NavigationSetup:
     key = (s, id(sysm))
     hit = _SETUPS.get(key)
     if hit is None or hit[0] is not sysm:
-        scene = None if s.scene is None else sysm.scaled(s.scene.scene())
+        scene = (None if s.scene is None else sysm.scaled(s.scene.scene())) \
+            if s.family is None else scaled(generate(s.family, s.map_seed), sysm.scale).scene()
         hit = _SETUPS[key] = (sysm, navigation_setup(scene, system=sysm, q_beta=s.q_beta,
                                                      mppi=s.sampler))
     return hit[1]
@@ -158,6 +160,10 @@ def fingerprint(config: StudyConfig) -> dict:
     d = settings_data(config)
     for k in ("controllers", "variances", "realisations", "seed", "system"):
         d.pop(k)
+    d.pop("family")
+    d.pop("map_seed")
+    if s.family is not None:  # a generated map's family and seed, only when one is used
+        d.update(family=settings_data(s.family), map_seed=s.map_seed)
     d.update({k: settings_data(getattr(s, k)) if hasattr(getattr(s, k), "__dataclass_fields__")
               else getattr(s, k) for k in ("scene", "sampler", "q_beta", "feedback",
                                            "goal_radius")})
