@@ -24,6 +24,7 @@ from workbench.scenarios.maps import LAYOUT_FAMILIES, GeneratedMap, MapFamily, g
 from workbench.scenarios.methods import build, method
 from workbench.scenarios.model_system import resolve_system
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
+from workbench.scenarios.scenes import ObstacleScene
 from workbench.scenarios.systems import System
 from workbench.scenarios.tuned import ControllerSettings
 from workbench.sim import Disturbance, closed_loop
@@ -87,15 +88,20 @@ class Where:
     def scene(self):
         if self.own:
             return self.spec.scene
-        return scaled(arena_map(self.family, self.seed), self.spec.scale).scene()
+        m = scaled(arena_map(self.family, self.seed), self.spec.scale)
+        return m.scene(circle_slots=self.capacity) if self.family.predict else m.scene()
 
     def moving(self, dt: float):
         """The moving scene ``k -> circles`` (None for a static map or a scene of the
-        system's own), in the system's scale."""
+        system's own), in the system's scale; with the circles' velocities when the family
+        predicts them."""
         if self.own:
             return None
         m = arena_map(self.family, self.seed)
-        return scaled(m, self.spec.scale).moving_scene(dt) if m.moving else None
+        if not m.moving:
+            return None
+        m = scaled(m, self.spec.scale)
+        return m.velocity_scene(dt) if self.family.predict else m.moving_scene(dt)
 
 
 @dataclass(frozen=True)
@@ -111,8 +117,11 @@ class Controls:
 
 @cache
 def setup(where: Where, settings: ControllerSettings) -> NavigationSetup:
-    return navigation_setup(where.scene(), system=where.spec, q_beta=settings.q_beta,
-                            mppi=settings.sampler, scene_capacity=where.capacity)
+    scene = where.scene()  # an ObstacleScene sizes its own slots
+    return navigation_setup(scene, system=where.spec, q_beta=settings.q_beta,
+                            mppi=settings.sampler,
+                            scene_capacity=None if isinstance(scene, ObstacleScene)
+                            else where.capacity)
 
 
 @cache

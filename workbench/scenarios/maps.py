@@ -63,7 +63,7 @@ from workbench.problem.scene_layout import SceneLayout
 from workbench.problem.sdf_grid import SignedDistanceGrid
 from workbench.scenarios.occupancy import OccupancyMap
 from workbench.scenarios.scenes import CircleScene, NavigationScene, ObstacleScene
-from workbench.validation import as_array, fail, integer, real
+from workbench.validation import as_array, fail, flag, integer, real
 
 MAP_FAMILIES: tuple[str, ...] = ("spec", "corridor", "occupancy")
 LAYOUT_FAMILIES: tuple[str, ...] = ("corridor_capsules", "occupancy_grid")  # not circles
@@ -100,7 +100,10 @@ class MapFamily:
     smoothing: occupancy initial fill fraction, cells per side and cellular-automaton
     iterations. start, goal: inside the box. endpoint_clearance: every circle's edge keeps
     this distance from start and goal. moving, speed: number of moving circles and their
-    speed (m/s) (see :func:`generate`; none on the :data:`LAYOUT_FAMILIES` maps).
+    speed (m/s) (see :func:`generate`; none on the :data:`LAYOUT_FAMILIES` maps). predict:
+    True tells the controllers the moving circles' velocities, which they predict over their
+    horizon (:meth:`GeneratedMap.velocity_scene`); unset or False: they see the circles where
+    they are now (the maps themselves are the same).
 
     Counts are integers (never ``bool``) with upper limits: n_obstacles and moving <=
     :data:`MAX_CIRCLES`, n_gates <= 20, grid in [4, :data:`MAX_GRID`], smoothing <= 100.
@@ -120,6 +123,7 @@ class MapFamily:
     endpoint_clearance: float = 0.75
     moving: int = 0
     speed: float = 0.5
+    predict: bool | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.family, str) or self.family not in FAMILIES:
@@ -162,6 +166,11 @@ class MapFamily:
             raise fail("map.moving", self.moving, f"the {self.family} family has no moving "
                        "obstacles; use 0 (or the occupancy family, whose map is circles)")
         real("map.speed", self.speed, 0.0)
+        if self.predict is not None:
+            flag("map.predict", self.predict)
+            if self.predict and not self.moving:
+                raise fail("map.predict", self.predict, "predicts moving circles: set "
+                           "map.moving > 0, or leave predict out")
 
     @property
     def obstacle_count(self) -> int:
@@ -363,9 +372,19 @@ class GeneratedMap:
         """Number of circles that never move."""
         return len(self.circles) - len(self.moving)
 
-    def scene(self, dt: float = 0.02, u_limit: float = 5.0) -> CircleScene | ObstacleScene:
+    def scene(self, dt: float = 0.02, u_limit: float = 5.0,
+              circle_slots: int | None = None) -> CircleScene | ObstacleScene:
         """The map at time 0 as a :class:`CircleScene` (for ``navigation_setup``); a
-        :data:`LAYOUT_FAMILIES` map as an :class:`ObstacleScene` on its :meth:`layout`."""
+        :data:`LAYOUT_FAMILIES` map as an :class:`ObstacleScene` on its :meth:`layout`; a map
+        whose family predicts its moving circles as an :class:`ObstacleScene` of
+        :meth:`velocity_scene_at` (0) with ``circle_slots`` circle slots (default: its static
+        circles) and a moving slot per moving circle."""
+        if self.family.predict:
+            slots = self.n_static if circle_slots is None else integer(
+                "scene.circle_slots", circle_slots, self.n_static)
+            layout = SceneLayout.of(circles=slots, moving=len(self.moving))
+            return ObstacleScene(self.velocity_scene_at(0, dt), self.start, self.goal, dt=dt,
+                                 u_limit=u_limit, layout=layout)
         layout = self.layout()
         if layout is not None:
             objects = (*self.capsules, *self.circles) + (() if self.grid is None
