@@ -111,3 +111,28 @@ def test_a_misread_grid_fails_the_bound(case, broken):
         h = grid_numpy(P, bad.row(), (SHAPE[1], SHAPE[0]))
     err = np.abs(h - exact(P, circles)[0])
     assert np.any(err[kept] > bound[kept])
+
+
+def test_within_half_a_cell_everywhere_but_near_a_centre():
+    """Every point, the medial axis included, more than one cell from every circle centre:
+    within h/2 of the exact distance (measured up to 0.49 h over 20 maps of 6 circles; at a
+    centre, deep inside its circle, the distance is a cone's tip and the error reaches 0.65 h).
+    """
+    worst = 0.0
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        circles = np.c_[rng.uniform(0.5, 3.5, 6), rng.uniform(0.5, 2.5, 6),
+                        rng.uniform(0.2, 0.6, 6)]
+        xs = ORIGIN[0] + H * np.arange(SHAPE[0])
+        ys = ORIGIN[1] + H * np.arange(SHAPE[1])
+        F = np.hypot(xs[None, :, None] - circles[:, 0, None, None],
+                     ys[None, None, :] - circles[:, 1, None, None]) - circles[:, 2, None, None]
+        grid = SignedDistanceGrid(F.min(axis=0), ORIGIN, H)
+        P = np.c_[rng.uniform(xs[0], xs[-1], 20000), rng.uniform(ys[0], ys[-1], 20000)]
+        d, _ = exact(P, circles)
+        centre = np.min(np.hypot(P[:, None, 0] - circles[None, :, 0],
+                                 P[:, None, 1] - circles[None, :, 1]), axis=1)
+        err = np.abs(grid_numpy(P, grid.row(), SHAPE) - d)[centre > H]
+        worst = max(worst, float(err.max()))
+    assert worst <= H / 2
+    assert worst > 0.3 * H  # the points reach the cells where the error is largest
