@@ -89,3 +89,18 @@ def test_step_bound_is_never_above_the_measurement():
     recs[3]["params"]["lower_bound_step_over_batch"] = 1.35
     step = _row(goals_section(recs), "| SA-RMPPI step")
     assert "at least" not in step and "no bound rules the goal out" in step
+
+
+def test_floor_bound_adds_the_parts_the_floor_does_not_compute():
+    recs = _records(x_floor=1.5)  # batch 2.41 ms on a 1.78 ms floor
+    lines = goals_section(recs)
+    assert "at least" not in _row(lines, "| SAIS batch")  # no split: no bound
+    for k, v in (("noise_generation", 0.3), ("python_call", 0.2), ("weights", 0.05),
+                 ("update", 0.05)):
+        recs.append(_rec(f"sais_split_{k}_N1024_T100_1thread", v, 1.78))
+    row = _row(goals_section(recs), "| SAIS batch")
+    # (1.78 + 0.6) / 1.78 = 1.34 <= the measured 1.5
+    assert "at least 1.34" in row and "noise 0.30 ms" in row
+    recs[0]["params"]["x_floor"] = 1.2  # a measurement below the sum: not a bound
+    row = _row(goals_section(recs), "| SAIS batch")
+    assert "at least" not in row and "no bound rules the goal out" in row
