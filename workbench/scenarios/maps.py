@@ -382,9 +382,9 @@ class GeneratedMap:
         if self.family.predict:
             slots = self.n_static if circle_slots is None else integer(
                 "scene.circle_slots", circle_slots, self.n_static)
-            layout = SceneLayout.of(circles=slots, moving=len(self.moving))
+            told = SceneLayout.of(circles=slots, moving=len(self.moving))
             return ObstacleScene(self.velocity_scene_at(0, dt), self.start, self.goal, dt=dt,
-                                 u_limit=u_limit, layout=layout)
+                                 u_limit=u_limit, layout=told)
         layout = self.layout()
         if layout is not None:
             objects = (*self.capsules, *self.circles) + (() if self.grid is None
