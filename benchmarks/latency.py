@@ -144,6 +144,7 @@ def deadline_records(steps: int = 1000, episodes: int = 4, episode_steps: int = 
                                "beyond_margin_steps": int(beyond.sum()),
                                "beyond_margin_cpu_max_ms": float(cpu[beyond].max())
                                if beyond.any() else None,
+                               "beyond_margin_phases_ms": _phases(ep, wall, beyond),
                                "cpu_p50_ms": float(np.median(cpu))}))
     return out
 
@@ -151,6 +152,23 @@ def deadline_records(steps: int = 1000, episodes: int = 4, episode_steps: int = 
 def records(repeats: int) -> list[dict]:
     """The latency and deadline records (``repeats`` is not used: the step counts are fixed)."""
     return method_latency() + deadline_records()
+
+
+def _phases(ep, wall: np.ndarray, beyond: np.ndarray, most: int = 3) -> list[dict]:
+    """Where the time of the (at most ``most``) longest steps beyond the margin went: the
+    controller's own phase timings (ms; the robust controllers time selection, K_safe, SAIS
+    and update), its samples, and the step's wall and CPU ms."""
+    out = []
+    for k in np.argsort(wall)[::-1][:most]:
+        if not beyond[k]:
+            break
+        info = ep.infos[k]
+        phases = getattr(info, "timing", None) or {}
+        out.append({"step": int(k), "wall_ms": float(wall[k]),
+                    "cpu_ms": float(1e3 * ep.step_cpu_s[k]),
+                    "samples": int(info.deadline.samples) if info.deadline else None,
+                    **{f"{n}_ms": float(1e3 * v) for n, v in phases.items()}})
+    return out
 
 
 def _beyond(p: dict) -> str:
@@ -208,4 +226,12 @@ def markdown(records_: list[dict]) -> list[str]:
                 f"{'yes' if p.get('holds') else '**no**'} | {_beyond(p)} | {p['p50_ms']:.2f} | "
                 f"{p['p99_ms']:.2f} | {100 * p['truncated']:.0f} % | {p['samples_mean']:.0f} | "
                 f"{p['crash_rate']:.2f} ({p['episodes']} × {p['episode_steps']} steps) |")
+        worst = [(r["name"].removeprefix("deadline_"), q) for r in dl
+                 for q in (r["params"].get("beyond_margin_phases_ms") or [])[:1]]
+        if worst:
+            lines += ["", "The longest step beyond the margin, per controller (ms):", ""]
+            lines += [f"- {n}: " + ", ".join(f"{k.removesuffix('_ms')} {v:.1f}"
+                                             for k, v in q.items()
+                                             if k.endswith("_ms") and v is not None)
+                      for n, q in worst]
     return lines

@@ -37,8 +37,12 @@ def test_report_has_percentiles_tail_sources_and_deadlines():
     assert "| sa_rmppi_50hz | 20 | 1000 | 3 | 1.50 | 5.0 | yes | 0 | 19.00 | 20.50 | 100 % | " \
            "2048 | 0.25 (4 × 200 steps) |" in text
     broken = records()[1]
-    broken["params"].update(holds=False, beyond_margin_steps=2, beyond_margin_cpu_max_ms=4.5)
-    assert "| 5.0 | **no** | 2 (4.5) |" in "\n".join(markdown([broken]))
+    broken["params"].update(holds=False, beyond_margin_steps=2, beyond_margin_cpu_max_ms=4.5,
+                            beyond_margin_phases_ms=[{"step": 7, "wall_ms": 27.5, "cpu_ms": 4.5,
+                                                      "samples": 64, "selection_ms": 20.25}])
+    text = "\n".join(markdown([broken]))
+    assert "| 5.0 | **no** | 2 (4.5) |" in text
+    assert "- sa_rmppi_50hz: wall 27.5, cpu 4.5, selection 20.2" in text
     assert "## Deadlines under a load of 2" in report_markdown(records(), {})
 
 
