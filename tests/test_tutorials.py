@@ -272,7 +272,9 @@ def test_tutorial_occupancy_map(tmp_path):
     cells = re.findall(r"^(bas_mppi|sa_rmppi): safe in (\d+) of (\d+)", out, re.M)
     assert sorted(c[0] for c in cells) == ["bas_mppi", "sa_rmppi"], out
     assert all(int(n) == 4 and int(k) >= 2 for _, k, n in cells), out  # mostly safe
-    assert (tmp_path / "runs" / "office" / "report.md").is_file()
+    report = (tmp_path / "runs" / "office" / "report.md").read_text()
+    assert "![the map and the paths](map.png)" in report  # the map from the file, drawn
+    assert (tmp_path / "runs" / "office" / "map.png").stat().st_size > 5000
 
 
 def test_a_shown_number_edited_beyond_its_tolerance_is_reported(own_model, tmp_path):

@@ -13,6 +13,8 @@ import numpy as np
 
 from studies.sampling_safety.findings import frontier, most_collision_free, verdicts
 from studies.sampling_safety.summary import SamplingSafetySummary, summarise
+from studies.sampling_safety.tasks import setup
+from workbench import plot
 from workbench.scenarios.mechanism_health import console_lines, headline, report_lines
 from workbench.scenarios.methods import labels, markers, method
 from workbench.study import md_table, png_bytes, to_jsonable
@@ -187,7 +189,36 @@ def defaults_section(cfg: dict) -> list[str]:
             *md_table(["setting", "source"], [[f, src] for f, src in cfg["origins"]]), ""]
 
 
-def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
+def map_figure(config, store) -> bytes:
+    """The map the episodes ran on, every obstacle kind drawn (a grid as its zero level set,
+    its inside shaded), with each controller's paths at the run's largest variance."""
+    nav = setup(config.resolved())
+    ep = store.table("episodes")
+    v = max(config.variances)
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    plot.scene(ax, nav)
+    for i, c in enumerate(config.controllers):
+        rows = ep[(ep["controller"] == c) & (ep["variance"] == v)]
+        plot.paths(ax, [store.arrays(t)["X"] for t in rows["task_id"]], model=nav.plant,
+                   color=f"C{i % 10}", label=labels()[c])
+    ax.set_title(f"the map and every path at variance {v:g}")
+    ax.legend(fontsize=7, loc="best")
+    return png_bytes(fig)
+
+
+def map_lines(config, store, out: Path) -> list[str]:
+    """The report's map section: the figure, or why it could not be drawn."""
+    try:
+        atomic_write_bytes(out / "map.png", map_figure(config, store))
+    except ValueError as exc:  # a system the planar plots cannot show
+        return ["## The map", "", f"Not drawn: {exc}", ""]
+    return ["## The map", "", "![the map and the paths](map.png)", "",
+            "Obstacles of every kind as the plant sees them (a signed-distance grid as its "
+            "zero level set, inside shaded); each line is one realisation's path.", ""]
+
+
+def write_report(s: SamplingSafetySummary, out: Path, run_line: str,
+                 map_section: list[str] | None = None) -> Path:
     atomic_write_bytes(out / "frontier.png", frontier_figure(s))
     atomic_write_bytes(out / "samples.png", samples_figure(s))
     cfg = s.config
@@ -217,6 +248,7 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str) -> Path:
         "dashed line joins the methods no other beats in both; the dotted red line is the "
         "control period.", "",
         "![collision-free samples](samples.png)", "",
+        *(map_section or []),
         "## All cells", "", *cells_table(s), "",
         "Collision-free samples: per control step, the share of the samples the update was "
         "weighted over that never crashed (for the robust controllers, the real samples with "
@@ -267,4 +299,5 @@ def summary(finished) -> Summary:
 
 
 def report(finished, summary) -> Path:
-    return write_report(summary.value, finished.out, finished.run_line)
+    return write_report(summary.value, finished.out, finished.run_line,
+                        map_lines(finished.config, finished.store, finished.out))
