@@ -2,9 +2,9 @@
 
 With a deadline, a step draws its samples in ``MPPIConfig.deadline_chunks`` chunks (each from
 its own seed) while they fit. Before each chunk it estimates what the rest of the step costs
-from the controller's recent steps (:class:`DeadlineHistory`): the time per sample of the
-slowest recent chunk, the longest recent tail (weighting the samples and finishing the step,
-after the last chunk) and a guard of :data:`GUARD` of the deadline for the jitter of a loaded
+from the controller's recent steps (:class:`DeadlineHistory`): the 90th percentile of the
+recent chunks' time per sample, the longest recent tail (weighting the samples and finishing
+the step, after the last chunk) and a guard of :data:`GUARD` of the deadline for the jitter of a loaded
 machine. A chunk that fits is drawn whole; when only part of one fits, that part is drawn (at
 least :func:`least_chunk` samples) and sampling stops; a further MPPI iteration starts only when
 its least chunk fits. The first chunk of a step always runs, shrunk to what fits (at least the
@@ -54,6 +54,10 @@ class DeadlineReport:
 
 
 GUARD = 0.1  # share of the deadline kept free for the jitter of a loaded machine
+# the recent chunks' time per sample the next chunk is judged by: a high quantile, as a loaded
+# machine runs some chunks at half speed (the median let steps overrun by a chunk's worth; the
+# slowest chunk made one preempted small chunk set the pace for WINDOW steps)
+PER_SAMPLE_QUANTILE = 0.9
 WINDOW = 50  # recent steps (and chunks) the estimates look back over
 # what ``make bench`` checks the largest overshoot against over 1000 steps under a load of 2:
 # this share of the deadline (BaS-MPPI and SA-RMPPI at 20 and 50 Hz, navigation map)
@@ -92,7 +96,7 @@ class StepClock:
         h = self.history
         left = (self.deadline_s * (1.0 - GUARD) - (time.perf_counter() - self.t0)
                 - (max(h.tail) if h.tail else 0.0))
-        per = float(np.median(h.per_sample)) if h.per_sample else 0.0
+        per = float(np.quantile(h.per_sample, PER_SAMPLE_QUANTILE)) if h.per_sample else 0.0
         return left / per if per > 0 else (math.inf if left > 0 else -math.inf)
 
     def drew(self, size: int, seconds: float) -> None:
