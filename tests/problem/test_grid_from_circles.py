@@ -34,17 +34,23 @@ SHAPE = (89, 69)  # nodes along x, y: [-0.2, 4.2] x [-0.3, 3.1]
 ROUNDING = 1e-12  # relative, per element: the interpolant's own rounding
 
 
-@pytest.fixture(scope="module")
-def case():
-    rng = np.random.default_rng(2026)
-    circles = np.c_[rng.uniform(0.5, 3.5, 4), rng.uniform(0.5, 2.5, 4), rng.uniform(0.2, 0.6, 4)]
+def circles_and_grid(rng: np.random.Generator, n_circles: int, n_points: int):
+    """Random circles, the grid of their signed distance at the nodes, and random points on
+    the grid."""
+    circles = np.c_[rng.uniform(0.5, 3.5, n_circles), rng.uniform(0.5, 2.5, n_circles),
+                    rng.uniform(0.2, 0.6, n_circles)]
     xs = ORIGIN[0] + H * np.arange(SHAPE[0])
     ys = ORIGIN[1] + H * np.arange(SHAPE[1])
     F = np.hypot(xs[None, :, None] - circles[:, 0, None, None],
                  ys[None, None, :] - circles[:, 1, None, None]) - circles[:, 2, None, None]
     grid = SignedDistanceGrid(F.min(axis=0), ORIGIN, H)
-    P = np.c_[rng.uniform(xs[0], xs[-1], 4000), rng.uniform(ys[0], ys[-1], 4000)]
+    P = np.c_[rng.uniform(xs[0], xs[-1], n_points), rng.uniform(ys[0], ys[-1], n_points)]
     return circles, grid, P
+
+
+@pytest.fixture(scope="module")
+def case():
+    return circles_and_grid(np.random.default_rng(2026), 4, 4000)
 
 
 def exact(P: np.ndarray, circles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,15 +126,7 @@ def test_within_half_a_cell_everywhere_but_near_a_centre():
     """
     worst = 0.0
     for seed in range(5):
-        rng = np.random.default_rng(seed)
-        circles = np.c_[rng.uniform(0.5, 3.5, 6), rng.uniform(0.5, 2.5, 6),
-                        rng.uniform(0.2, 0.6, 6)]
-        xs = ORIGIN[0] + H * np.arange(SHAPE[0])
-        ys = ORIGIN[1] + H * np.arange(SHAPE[1])
-        F = np.hypot(xs[None, :, None] - circles[:, 0, None, None],
-                     ys[None, None, :] - circles[:, 1, None, None]) - circles[:, 2, None, None]
-        grid = SignedDistanceGrid(F.min(axis=0), ORIGIN, H)
-        P = np.c_[rng.uniform(xs[0], xs[-1], 20000), rng.uniform(ys[0], ys[-1], 20000)]
+        circles, grid, P = circles_and_grid(np.random.default_rng(seed), 6, 20000)
         d, _ = exact(P, circles)
         centre = np.min(np.hypot(P[:, None, 0] - circles[None, :, 0],
                                  P[:, None, 1] - circles[None, :, 1]), axis=1)

@@ -26,7 +26,7 @@ import numpy as np
 from workbench.ilqg import ILQGOptions, ilqg, make_passes
 from workbench.problem.costs import Cost
 from workbench.problem.models import Model
-from workbench.problem.prediction import predicts, scene_at
+from workbench.problem.prediction import predicts, scenes
 from workbench.problem.problem import Problem
 from workbench.validation import fail, integer, one_of, real
 
@@ -98,9 +98,7 @@ class ALProblem:
 
     def _scenes(self, s: np.ndarray, n: int) -> np.ndarray:
         """(n, n_scene): row k the scene predicted to k dt."""
-        if not predicts(self.model):
-            return np.tile(s, (n, 1))
-        return np.stack([scene_at(self.model, s, k * self.model.dt) for k in range(n)])
+        return scenes(self.model, s, n, first=0).T
 
     def constraint_values(self, X: np.ndarray, scene=None) -> np.ndarray:
         """c(x_k) = -h(x_k) for every row of X (T+1, nx) -> (T+1, nh), in ``scene`` (row k

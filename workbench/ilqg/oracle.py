@@ -15,7 +15,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from workbench.problem.prediction import scene_at
+from workbench.problem.prediction import scene_at, scene_sx_at
 from workbench.problem.problem import Problem
 
 
@@ -102,10 +102,10 @@ class MultipleShootingNLP:
         x0 = ca.SX.sym("x0", nx)
         Ps = [ca.SX.sym(f"p{k}", n_p) for k in range(T + 1)]
         sc = ca.SX.sym("scene", problem.n_scene)
-        layout, dt = problem.model.scene_layout, problem.model.dt
+        model = problem.model
 
         def at(k: int):  # the scene of x_k's time (moving circles at c + v k dt)
-            return layout.predicted_sx(sc, k * dt) if layout is not None else sc
+            return scene_sx_at(model, sc, k * model.dt)
 
         w, g, eq, J = [], [], [], ca.SX(0)
         nh = problem.nh if hard_constraints else 0

@@ -17,6 +17,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.models import Model
+from workbench.problem.prediction import predicts, scene_sx_at
 from workbench.validation import fail, one_of, real
 
 BarrierKind = Literal["inverse", "log", "exp"]
@@ -132,15 +133,13 @@ def embed_barrier(model: Model, options: BarrierOptions | None = None) -> Model:
     h_fn = ca.Function("h", [model.x, model.scene], [model.h])
     now = _barrier_values(model.h, opts, groups)
     nxt = _barrier_values(h_fn(model.x_next, model.scene), opts, groups)
-    layout = model.scene_layout
-    if opts.gamma != 0.0 and layout is not None and layout.moves:
-        # the dynamics' scene is that of x_{k+1}'s time: x_k's margins see the moving circles
-        # one step earlier, at c - v dt
-        now_step = _barrier_values(h_fn(model.x, layout.predicted_sx(model.scene, -model.dt)),
-                                   opts, groups)
-        beta_next = nxt - opts.gamma * (beta - now_step)
-    else:
-        beta_next = nxt - opts.gamma * (beta - now) if opts.gamma != 0.0 else nxt
+    # the dynamics' scene is that of x_{k+1}'s time: with moving circles x_k's margins see
+    # them one step earlier, at c - v dt (the lift keeps the present scene)
+    before = now
+    if opts.gamma != 0.0 and predicts(model):
+        before = _barrier_values(h_fn(model.x, scene_sx_at(model, model.scene, -model.dt)),
+                                 opts, groups)
+    beta_next = nxt - opts.gamma * (beta - before) if opts.gamma != 0.0 else nxt
     x_bar = ca.vertcat(model.x, beta)
     names = tuple(f"beta{j}" for j in range(len(groups))) if len(groups) > 1 else ("beta",)
     return Model(

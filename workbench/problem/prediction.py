@@ -33,18 +33,32 @@ def scene_at(model: Model, scene: np.ndarray, t: float) -> np.ndarray:
     return model.scene_layout.predicted(scene, t)
 
 
+def scene_sx_at(model: Model, scene, t):
+    """The scene symbol ``scene`` predicted to time ``t`` (an SX scalar or a number) from now
+    (itself when the model's scene has no moving circles)."""
+    if not predicts(model):
+        return scene
+    assert model.scene_layout is not None
+    return model.scene_layout.predicted_sx(scene, t)
+
+
 def step_scene(model: Model, scene: np.ndarray) -> np.ndarray:
     """The scene of one step from now (x_1's time, dt): what a single step's dynamics take."""
     return scene_at(model, scene, model.dt)
 
 
-def step_scenes(model: Model, scene: np.ndarray, T: int) -> np.ndarray:
-    """(ns, T): column k the scene of step k, predicted to (k + 1) dt (the scene repeated when
-    the model's scene has no moving circles)."""
+def scenes(model: Model, scene: np.ndarray, n: int, first: int = 1) -> np.ndarray:
+    """(ns, n): column k the scene predicted to (first + k) dt (the scene repeated when the
+    model's scene has no moving circles)."""
     s = np.asarray(scene, dtype=float)
     if not predicts(model):
-        return np.repeat(s[:, None], T, axis=1)
-    return np.stack([scene_at(model, s, (k + 1) * model.dt) for k in range(T)], axis=1)
+        return np.repeat(s[:, None], n, axis=1)
+    return np.stack([scene_at(model, s, (first + k) * model.dt) for k in range(n)], axis=1)
 
 
-__all__ = ["predicts", "scene_at", "step_scene", "step_scenes"]
+def step_scenes(model: Model, scene: np.ndarray, T: int) -> np.ndarray:
+    """(ns, T): column k the scene of step k, predicted to (k + 1) dt."""
+    return scenes(model, scene, T)
+
+
+__all__ = ["predicts", "scene_at", "scene_sx_at", "scenes", "step_scene", "step_scenes"]

@@ -53,6 +53,14 @@ class Sphere:
         object.__setattr__(self, "radius", real("Sphere.radius", self.radius, 0.0, strict=True))
 
 
+def _coordinates(field: str, value, what: str = "2 or 3 entries") -> np.ndarray:
+    """A finite 2-D or 3-D vector, refused naming ``field`` otherwise."""
+    v = as_array(field, value, (None,))
+    if v.size not in (2, 3):
+        raise fail(field, value, f"needs {what}")
+    return v
+
+
 @dataclass(frozen=True)
 class HalfSpace:
     """The safe side n.p >= offset of a wall, floor or ceiling (2-D: a half-plane). ``normal``
@@ -63,9 +71,7 @@ class HalfSpace:
     offset: float
 
     def __post_init__(self) -> None:
-        n = as_array("HalfSpace.normal", self.normal, (None,))
-        if n.size not in (2, 3):
-            raise fail("HalfSpace.normal", self.normal, "needs 2 (a half-plane) or 3 entries")
+        n = _coordinates("HalfSpace.normal", self.normal, "2 (a half-plane) or 3 entries")
         norm = float(np.linalg.norm(n))
         if not norm > 0:
             raise fail("HalfSpace.normal", self.normal, "must not be zero")
@@ -91,9 +97,7 @@ class Capsule:
     radius: float
 
     def __post_init__(self) -> None:
-        a = as_array("Capsule.a", self.a, (None,))
-        if a.size not in (2, 3):
-            raise fail("Capsule.a", self.a, "needs 2 or 3 entries")
+        a = _coordinates("Capsule.a", self.a)
         b = as_array("Capsule.b", self.b, (a.size,))
         if not np.any(a != b):
             raise fail("Capsule.b", self.b, "must differ from Capsule.a (a capsule of length "

@@ -4,12 +4,13 @@ With a deadline, a step draws its samples in ``MPPIConfig.deadline_chunks`` chun
 its own seed) while they fit. Before each chunk it estimates what the rest of the step costs
 from the controller's recent steps (:class:`DeadlineHistory`): the 90th percentile of the
 recent chunks' time per sample, the longest recent tail (weighting the samples and finishing
-the step, after the last chunk) and a guard of :data:`GUARD` of the deadline for the jitter of a loaded
-machine. A chunk that fits is drawn whole; when only part of one fits, that part is drawn (at
-least :func:`least_chunk` samples) and sampling stops; a further MPPI iteration starts only when
-its least chunk fits. The first chunk of a step always runs, shrunk to what fits (at least the
-least chunk), so a step still returns a plan when the deadline is too short. The work before
-the samples (for the robust controllers: the selection and the feedback gains) is never cut.
+the step, after the last chunk) and a guard of :data:`GUARD` of the deadline for the jitter of
+a loaded machine. A chunk that fits is drawn whole; when only part of one fits, that part is
+drawn (at least :func:`least_chunk` samples) and sampling stops; a further MPPI iteration starts
+only when its least chunk fits. The first chunk of a step always runs, shrunk to what fits (at
+least the least chunk), so a step still returns a plan when the deadline is too short. The work
+before the samples (for the robust controllers: the selection and the feedback gains) is never
+cut.
 
 A step can therefore exceed its deadline only when the work before the samples plus the least
 chunk does not fit, or when the machine stalls the process for longer than its recent steps

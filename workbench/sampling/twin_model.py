@@ -18,6 +18,7 @@ import numpy as np
 
 from workbench.problem.models import Model
 from workbench.problem.obstacles import scene_vector
+from workbench.problem.prediction import scene_at
 from workbench.sampling.problem import SamplingProblem
 
 
@@ -92,7 +93,7 @@ class NumpyNavigation:
                 if self.layout is not None and self.layout.moves:  # x_k's time: c - v dt
                     h_now = self.layout.numpy_margins(
                         X[:, :d], self.layout.predicted(self.scene, -dt), self.h_form)
-                beta = beta - o.gamma * (X[:, 4:] - self._beta(h_now))
+                beta = beta - o.gamma * (X[:, 2 * d:] - self._beta(h_now))
         return np.hstack([x_next, beta])
 
     def crashed(self, X, eps_h) -> np.ndarray:
@@ -191,15 +192,13 @@ class CasadiModelTwin:
                         else None)
         self.q, self.phi = f["q"].map(N), f["phi"].map(N)
         self.scene = self.present = scene
-        layout = sp.model.scene_layout
-        self._layout = layout if layout is not None and layout.moves else None
+        self.model = sp.model
 
     def at(self, t: float) -> None:
         """Evaluate the next steps in the scene predicted to time ``t`` from now (moving circles
-        at c + v t, :meth:`~workbench.problem.scene_layout.SceneLayout.predicted`); nothing
-        changes for a scene without moving circles."""
-        if self._layout is not None:
-            self.scene = self._layout.predicted(self.present, t)
+        at c + v t, :func:`~workbench.problem.prediction.scene_at`); nothing changes for a
+        scene without moving circles."""
+        self.scene = scene_at(self.model, self.present, t)
 
     def step(self, X, V):
         return np.asarray(self.dyn(X.T, V.T, self.scene)).T

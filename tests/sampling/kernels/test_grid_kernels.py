@@ -180,9 +180,9 @@ def test_a_lookup_with_a_shifted_weight_fails(probe, tmp_path, monkeypatch):
 
     real = grid_lookup.lookup_c
 
-    def broken(name, u, v, table, g, ctype):
-        return real(name, u, v, table, g, ctype).replace(f"= {u} - {name}_i;",
-                                                         f"= {u} - {name}_i + 1e-9;")
+    def broken(name, x, table, g, ctype):
+        return real(name, x, table, g, ctype).replace(f"= {x} - {name}_i;",
+                                                      f"= {x} - {name}_i + 1e-9;")
 
     monkeypatch.setattr("workbench.sampling.kernels.emit.lookup_c", broken)
     P, row, _ = probe

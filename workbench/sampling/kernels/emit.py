@@ -56,9 +56,9 @@ from workbench.sampling.kernels.grid_lookup import (
     UnsupportedCall,
     called_functions,
     grid_calls,
-    grid_shape,
     lookup_c,
     program,
+    row_size,
 )
 
 ROLES = ("carry", "noise", "lane", "time", "const")
@@ -138,7 +138,7 @@ def unsupported_operations(f: ca.Function, prog: Program | None = None) -> tuple
     names = [op_name(op) for op in bad]
     if ca.OP_CALL in ops:
         names += [f"call ({n})" for n in set(called_functions(f, prog).values())
-                  if grid_shape(n) is None]
+                  if row_size(n) is None]
     return tuple(sorted(names))
 
 
@@ -240,17 +240,14 @@ def straight_line(f: ca.Function, load, store, prefix: str, kind=None,
                                 "input shared by every sample (the run-time scene)")
             if tables is not None:
                 tables.add(g.input)
-            uv = [work[g.u]] + ([] if g.v is None else [work[g.v]])
-            rank[name] = max(*(rank[a] for a in uv), level(g.input, g.start) if split else 2)
-            kinds = {typ.get(a, "d") for a in uv}
-            t = "d" if "d" in kinds or not typed else "f" if "f" in kinds else "p"
-            ud, vd = (operand(a, "d") for a in uv) if g.v is not None else (
-                operand(uv[0], "d"), None)
-            stmt = lookup_c(name, ud, vd, table, g, "double")
+            x = work[g.x]
+            rank[name] = max(rank[x], level(g.input, g.start) if split else 2)
+            t = "d" if not typed else typ.get(x, "d")
+            xd = operand(x, "d")
+            stmt = lookup_c(name, xd, table, g, "double")
             if t != "d":  # "p": both types, the double one named <name>_d
-                uf, vf = (uv[0], uv[1]) if g.v is not None else (uv[0], None)
-                stmt = lookup_c(name, uf, vf, table, g, "float") + (
-                    " " + lookup_c(name + "_d", ud, vd, table, g, "double") if t == "p" else "")
+                stmt = lookup_c(name, x, table, g, "float") + (
+                    " " + lookup_c(name + "_d", xd, table, g, "double") if t == "p" else "")
             key[name] = (k, 0, k)
             typ[name] = t
             body.append((key[name], rank[name], stmt))

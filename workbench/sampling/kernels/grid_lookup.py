@@ -30,10 +30,10 @@ class UnsupportedCall(ValueError):
     """A call the emitter cannot write (the reason is the message)."""
 
 
-def grid_shape(name: str) -> tuple[int, ...] | None:
-    """(n,) of a row interpolant's name ``wb_row_{n}``, else None."""
+def row_size(name: str) -> int | None:
+    """n of a row interpolant's name ``wb_row_{n}``, else None."""
     m = ROW_FUNCTION.fullmatch(name)
-    return (int(m[1]),) if m else None
+    return int(m[1]) if m else None
 
 
 Program = list[tuple[int, list[int], list[int]]]
@@ -58,22 +58,13 @@ def called_functions(f: ca.Function, prog: Program | None = None) -> dict[int, s
 
 @dataclass(frozen=True)
 class GridCall:
-    """A grid lookup: work entries ``u``, ``v`` of the coordinates (``v`` None for a row's
-    one coordinate); the values are entries ``start .. start + prod(shape) - 1`` of the
-    Function's input ``input``."""
+    """A row lookup: work entry ``x`` of the coordinate; the values are entries ``start ..
+    start + n - 1`` of the Function's input ``input``."""
 
-    shape: tuple[int, ...]
-    u: int
-    v: int | None
+    n: int
+    x: int
     input: int
     start: int
-
-    @property
-    def size(self) -> int:
-        n = 1
-        for m in self.shape:
-            n *= m
-        return n
 
 
 def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[int]]:
@@ -88,16 +79,14 @@ def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[
     calls: dict[int, GridCall] = {}
     for k, (op, ins, outs) in enumerate(prog):
         if op == ca.OP_CALL:
-            shape = grid_shape(names[k])
-            d = 0 if shape is None else len(shape)
-            size = 0 if shape is None else (shape[0] * shape[1] if d == 2 else shape[0])
-            if shape is None or len(ins) != d + size or len(outs) != 1:
+            n = row_size(names[k])
+            if n is None or len(ins) != 1 + n or len(outs) != 1:
                 raise UnsupportedCall(f"a call of {names[k]} (only the signed-distance grid's "
                                       "interpolant is written as C)")
             if min(ins) < 0:
                 raise UnsupportedCall(f"a call of {names[k]} with a structurally zero argument")
-            plain.update(producer[w] for w in ins[:d])
-            src = [producer[w] for w in ins[d:]]
+            plain.add(producer[ins[0]])
+            src = [producer[w] for w in ins[1:]]
             first = prog[src[0]][1]
             if not all(prog[s][0] == ca.OP_INPUT and prog[s][1] == [first[0], first[1] + n]
                        for n, s in enumerate(src)):
@@ -106,7 +95,7 @@ def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[
                                       "model, or computed values); pass the grid in the "
                                       "run-time scene")
             table_use.update(src)
-            calls[k] = GridCall(shape, ins[0], ins[1] if d == 2 else None, first[0], first[1])
+            calls[k] = GridCall(n, ins[0], first[0], first[1])
         elif op == ca.OP_OUTPUT:
             plain.add(producer[ins[0]])
         elif op not in (ca.OP_INPUT, ca.OP_CONST):
@@ -117,41 +106,26 @@ def grid_calls(f: ca.Function, prog: Program) -> tuple[dict[int, GridCall], set[
     return calls, table_use - plain
 
 
-def lookup_c(name: str, u: str, v: str | None, table: str, g: GridCall, ctype: str) -> str:
+def lookup_c(name: str, x: str, table: str, g: GridCall, ctype: str) -> str:
     """C declarations computing the lookup ``g`` as ``const <ctype> <name>`` from the
-    coordinate ``u`` (a C expression of type ``ctype``; ``v`` is None: a row has one) and
-    ``table`` (a C pointer to the input's doubles; entry ``g.start`` is node 0)."""
-    if v is not None or len(g.shape) != 1:
-        raise UnsupportedCall(f"a lookup of shape {g.shape} (rows only)")
-    return _row_c(name, u, table, g, ctype)
-
-
-def _cell(name: str, c: str, x: str, n: int, ctype: str) -> str:
+    coordinate ``x`` (a C expression of type ``ctype``) and ``table`` (a C pointer to the
+    input's doubles; entry ``g.start`` is node 0): segment ``i = clamp(floor(x), 0, n - 2)``,
+    weight ``a = x - i``, the interpolant's sum (1 - a) V[i] + a V[i + 1] in its order (a NaN x
+    gives segment 0 and a NaN value; beyond the row the end segment's line continues)."""
     f = "f" if ctype == "float" else ""
-    zero = "0.0f" if f else "0.0"
-    hi = f"{float(n - 2)!r}{f}"
-    return (f"const {ctype} {name}_f{c} = floor{f}({x}); "
-            f"const {ctype} {name}_{c} = {name}_f{c} >= {zero} ? ({name}_f{c} <= {hi} ? "
-            f"{name}_f{c} : {hi}) : {zero};")
-
-
-def _row_c(name: str, x: str, table: str, g: GridCall, ctype: str) -> str:
-    """A row lookup: segment ``i = clamp(floor(x), 0, n - 2)``, weight ``a = x - i``, the
-    interpolant's sum (1 - a) V[i] + a V[i + 1] in its order (a NaN x gives segment 0 and a NaN
-    value; beyond the row the end segment's line continues)."""
-    (n,) = g.shape
-    f = "f" if ctype == "float" else ""
-    one = "1.0f" if f else "1.0"
+    one, zero = ("1.0f", "0.0f") if f else ("1.0", "0.0")
+    hi = f"{float(g.n - 2)!r}{f}"
     cvt = "(float)" if f else ""
-    at = f"{name}_k"
+    i, at, a = f"{name}_i", f"{name}_k", f"{name}_a"
+    cell = (f"const {ctype} {name}_fi = floor{f}({x}); const {ctype} {i} = {name}_fi >= "
+            f"{zero} ? ({name}_fi <= {hi} ? {name}_fi : {hi}) : {zero};")
     if f:
-        index = f"const int {at} = (int){name}_i;"
-    else:  # the index as the low bits of i + 2^52, as in the grid lookup
-        index = (f"const double {at}x = {name}_i + 0x1p52; int64_t {at}; "
+        index = f"const int {at} = (int){i};"
+    else:  # the index as the low bits of i + 2^52 (exact below 2^52), see the module
+        index = (f"const double {at}x = {i} + 0x1p52; int64_t {at}; "
                  f"__builtin_memcpy(&{at}, &{at}x, 8); {at} -= 0x4330000000000000LL;")
-    a = f"{name}_a"
     return " ".join([
-        _cell(name, "i", x, n, ctype), index, f"const {ctype} {a} = {x} - {name}_i;",
+        cell, index, f"const {ctype} {a} = {x} - {i};",
         f"const {ctype} {name} = (({one}-{a})*{cvt}{table}[{g.start} + {at}]) + "
         f"({a}*{cvt}{table}[{g.start + 1} + {at}]);",
     ])

@@ -53,6 +53,7 @@ import numpy as np
 
 from workbench.problem.barrier import min_margin
 from workbench.problem.dcbf import DiscreteCBF, discrete_cbf
+from workbench.problem.prediction import scene_sx_at
 from workbench.sampling.kernels.compiled import CompiledKernel
 from workbench.sampling.kernels.emit import KernelSpec
 from workbench.sampling.kernels.layout import Layout
@@ -135,9 +136,9 @@ def safe_spec(sp: SamplingProblem, name: str = "wb_safe") -> KernelSpec:
     t = time_symbol(sp)
     dyn, margins, q, phi = model_parts(sp, c, t)
     s = c.get("scene", ca.SX(0, 1))
-    if t is not None and sp.model.scene_layout is not None:
+    if t is not None:
         # the constraints of step k at the scene of x_k's time (obstacles held over the step)
-        s = sp.model.scene_layout.predicted_sx(s, t - sp.model.dt)
+        s = scene_sx_at(sp.model, s, t - sp.model.dt)
     carry = ca.SX.sym("carry", nx + 5)
     z, u = ca.SX.sym("z", nu), ca.SX.sym("u", nu)
     x, S, cr, npr, ninf, viol = (carry[:nx], *(carry[nx + i] for i in range(5)))

@@ -14,6 +14,7 @@ import casadi as ca
 import numpy as np
 
 from workbench.problem.barrier import min_margin
+from workbench.problem.prediction import predicts, scene_sx_at
 from workbench.sampling.problem import SamplingProblem
 
 
@@ -42,15 +43,13 @@ def time_symbol(sp: SamplingProblem) -> ca.SX | None:
     symbol: the time from now of the state a step computes, x_{k+1} at t = (k + 1) dt, see
     :func:`step_times`), else None (the kernels then take no such input and are those of a
     model without prediction)."""
-    layout = sp.model.scene_layout
-    return ca.SX.sym("t") if layout is not None and layout.moves else None
+    return ca.SX.sym("t") if predicts(sp.model) else None
 
 
 def step_times(sp: SamplingProblem, T: int) -> dict[str, np.ndarray]:
     """The ``t`` time input of a T-step kernel call, {"t": (T, 1)} with t_k = (k + 1) dt (the
     time of x_{k+1}, whose margins step k evaluates), or {} when the kernels take none."""
-    layout = sp.model.scene_layout
-    if layout is None or not layout.moves:
+    if not predicts(sp.model):
         return {}
     return {"t": ((np.arange(T) + 1.0) * sp.model.dt)[:, None]}
 
@@ -64,9 +63,8 @@ def model_parts(sp: SamplingProblem, c: dict, t: ca.SX | None = None
     and final cost Functions ``q(x, p)`` and ``phi(x, p)``."""
     fns = sp.functions()
     s = c.get("scene", ca.SX(0, 1))
-    layout = sp.model.scene_layout
-    if t is not None and layout is not None:
-        s = layout.predicted_sx(s, t)
+    if t is not None:
+        s = scene_sx_at(sp.model, s, t)
     return (lambda x, v: fns["dyn"](x, v, s)), (lambda x: fns["margins"](x, s)), \
         fns["q"], fns["phi"]
 

@@ -47,6 +47,7 @@ import numpy as np
 
 from workbench.codegen.fastcall import FastFunction
 from workbench.problem.models import Model
+from workbench.problem.prediction import predicts, scene_sx_at
 from workbench.sampling.feedback.effect import differs
 from workbench.sampling.planning import physical_model
 from workbench.sampling.samples import Keep, SampleTrajectories
@@ -274,10 +275,9 @@ def backup_check_function(plant: Model, backup: BackupPolicy, horizon: int,
                        [ca.vertcat(xn, ca.fmin(carry[n], ca.mmin(h(xn, s))))])
     folded = step.fold(horizon)
     x1, sc = ca.SX.sym("x1", n), ca.SX.sym("scene", ns)
-    layout = plant.scene_layout
-    if layout is not None and layout.moves:  # x1 at dt from now, rollout state j at (j + 1) dt
-        s1 = layout.predicted_sx(sc, plant.dt)
-        scenes = ca.horzcat(*(layout.predicted_sx(sc, (j + 2) * plant.dt)
+    if predicts(plant):  # x1 at dt from now, rollout state j at (j + 2) dt
+        s1 = scene_sx_at(plant, sc, plant.dt)
+        scenes = ca.horzcat(*(scene_sx_at(plant, sc, (j + 2) * plant.dt)
                               for j in range(horizon)))
     else:
         s1, scenes = sc, ca.repmat(sc, 1, horizon)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.problem.dcbf import check_gamma, discrete_cbf
+from workbench.problem.prediction import predicts, scene_at
 from workbench.sampling.kernels.constants import SamplerConstants
 from workbench.sampling.kernels.safe import INFEASIBLE_TOL
 from workbench.sampling.problem import SamplingProblem
@@ -70,12 +71,11 @@ def safe_twin(sp: SamplingProblem, X0, U, Z, c: SamplerConstants, project: bool,
     crashed = np.zeros(N, bool)
     V = np.empty((N, T, sp.nu))
     rows = np.arange(N)
-    layout = sp.model.scene_layout
     for t in range(T):
         x, u = X[:, t], U[t]
-        if layout is not None and layout.moves:  # the kernel's rule: the constraints in
-            # x_t's scene, the step and crash test in x_{t+1}'s
-            cbf.scene = layout.predicted(scene, t * sp.model.dt)
+        if predicts(sp.model):  # the kernel's rule: the constraints in x_t's scene, the step
+            # and crash test in x_{t+1}'s
+            cbf.scene = scene_at(sp.model, scene, t * sp.model.dt)
             m.at((t + 1) * sp.model.dt)
         v = np.clip(u + c.sigma * Z[:, t], c.u_min, c.u_max)
         acted = np.zeros(N, bool)
