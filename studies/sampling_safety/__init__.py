@@ -17,5 +17,6 @@ STUDY = StudySpec(
     tasks="studies.sampling_safety.tasks:declare",
     summarise="studies.sampling_safety.report:summary",
     report="studies.sampling_safety.report:report",
+    cost="studies.sampling_safety.tasks:cost_plan",
     figure="frontier.png",
 )

@@ -68,6 +68,10 @@ class StudyConfig:
     ``variances`` is in the double integrator's units, scaled by the system's
     ``level_scale`` on its ``disturbed`` states. The robust controllers calibrate
     ``rule`` once per run on an undisturbed episode seeded with ``calibration_seed``.
+    ``cost_rounds`` (>= 2) and ``cost_steps``: the cost pass, measured once per run after the
+    episodes, replays each method alone on the first ``cost_steps`` steps (at most ``steps``)
+    of realisation 0 at the largest variance, kernels on one thread, in ``cost_rounds``
+    interleaved rounds (:mod:`workbench.study.cost_pass`); the order by cost comes from it.
 
     Size limits (checked here): at most 10^7 tasks per run, 10^7 steps per episode."""
 
@@ -88,6 +92,8 @@ class StudyConfig:
     rule: AlphaRule = AlphaRule(kappa=0.1)
     methods: MethodSettings = field(default_factory=MethodSettings)
     calibration_seed: int = 0
+    cost_rounds: int = 10
+    cost_steps: int = 100
 
     def __post_init__(self) -> None:
         ctrls, known = self.controllers, names()
@@ -101,7 +107,8 @@ class StudyConfig:
         object.__setattr__(self, "controllers", tuple(c for c in known if c in ctrls))
         object.__setattr__(self, "variances", checked_variances("variances", self.variances))
         for name, lo, hi in (("realisations", 1, MAX_TASKS), ("steps", 1, MAX_STEPS),
-                             ("seed", 0, None), ("calibration_seed", 0, None)):
+                             ("seed", 0, None), ("calibration_seed", 0, None),
+                             ("cost_rounds", 2, 10_000), ("cost_steps", 1, MAX_STEPS)):
             object.__setattr__(self, name, integer(name, getattr(self, name), lo, hi))
         at_most("realisations", self.realisations,
                 len(self.controllers) * len(self.variances) * self.realisations, MAX_TASKS,

@@ -40,11 +40,6 @@ def _fraction_claim(s: SamplingSafetySummary, other: str, key: str, claim: str) 
                    "paired by realisation: " + "; ".join(parts))
 
 
-def _ms(s: SamplingSafetySummary, controller: str) -> float:
-    ms = [c.cpu_ms for c in s.cells if c.controller == controller]
-    return sum(ms) / len(ms) if ms else math.nan
-
-
 def verdicts(s: SamplingSafetySummary) -> list[Verdict]:
     out: list[Verdict | None] = [
         _fraction_claim(s, "mppi_crash", "samples_vs_crash_cost",
@@ -57,7 +52,7 @@ def verdicts(s: SamplingSafetySummary) -> list[Verdict]:
                         "sample onto the CBF constraint"),
     ]
     dt_ms = 1e3 * s.dt
-    bas, crash, proj = _ms(s, "bas_mppi"), _ms(s, "mppi_crash"), _ms(s, "cbf_projection")
+    bas, crash, proj = (s.cost_ms(c) for c in ("bas_mppi", "mppi_crash", "cbf_projection"))
     if math.isfinite(bas) and math.isfinite(crash):
         ratio = bas / crash
         out.append(Verdict(
@@ -88,11 +83,12 @@ def most_collision_free(s: SamplingSafetySummary, variance: float):
 
 
 def frontier(s: SamplingSafetySummary, variance: float):
-    """The cells not dominated in (higher safety, lower CPU ms per step) at ``variance``,
-    cheapest first, and the cell with the highest safety per CPU millisecond."""
+    """The cells not dominated in (higher safety, lower cost) at ``variance``, cheapest first,
+    and the cell with the highest safety per CPU millisecond (cost: ``s.cost_ms``)."""
     cells = [c for c in s.cells if c.variance == variance]
+    ms = {c.controller: s.cost_ms(c.controller) for c in cells}
     front = [c for c in cells if not any(
-        (o.safety >= c.safety and o.cpu_ms <= c.cpu_ms)
-        and (o.safety > c.safety or o.cpu_ms < c.cpu_ms) for o in cells)]
-    best = max(cells, key=lambda c: c.safety / c.cpu_ms) if cells else None
-    return sorted(front, key=lambda c: c.cpu_ms), best
+        (o.safety >= c.safety and ms[o.controller] <= ms[c.controller])
+        and (o.safety > c.safety or ms[o.controller] < ms[c.controller]) for o in cells)]
+    best = max(cells, key=lambda c: c.safety / ms[c.controller]) if cells else None
+    return sorted(front, key=lambda c: ms[c.controller]), best

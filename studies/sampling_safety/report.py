@@ -18,6 +18,7 @@ from workbench import plot
 from workbench.scenarios.mechanism_health import console_lines, headline, report_lines
 from workbench.scenarios.methods import labels, markers, method
 from workbench.study import md_table, png_bytes, to_jsonable
+from workbench.study.cost_pass import order_text
 from workbench.study.io import atomic_write_bytes, atomic_write_text
 from workbench.study.latency import LATENCY_HEADER, LATENCY_NOTE
 from workbench.study.spec import Summary
@@ -30,12 +31,12 @@ def frontier_figure(s: SamplingSafetySummary) -> bytes:
     fig, axes = plt.subplots(1, len(vs), figsize=(4.6 * len(vs), 4.4), squeeze=False)
     for ax, v in zip(axes[0], vs, strict=True):
         for c in (c for c in s.cells if c.variance == v):
-            ax.errorbar([c.cpu_ms], [100 * c.safety],
+            ax.errorbar([s.cost_ms(c.controller)], [100 * c.safety],
                         yerr=[[100 * (c.safety - c.ci_low)], [100 * (c.ci_high - c.safety)]],
                         marker=markers()[c.controller], capsize=3, ls="none",
                         label=labels()[c.controller])
         front, _ = frontier(s, v)
-        ax.plot([c.cpu_ms for c in front], [100 * c.safety for c in front], "--",
+        ax.plot([s.cost_ms(c.controller) for c in front], [100 * c.safety for c in front], "--",
                 color="0.5", lw=1, zorder=0)
         ax.axvline(1e3 * s.dt, color="tab:red", lw=0.8, ls=":")
         ax.set_xscale("log")
@@ -110,6 +111,31 @@ def latency_rows(s: SamplingSafetySummary) -> list[list[str]]:
             for c in sorted(s.cells, key=lambda c: (c.variance, order.index(c.controller)))]
 
 
+def cost_lines(s: SamplingSafetySummary) -> list[str]:
+    """The report's cost-pass section: the order by cost with its ties, and per method the CPU
+    ms per step with its interval, the ratio to the cheapest and the wall-clock tail."""
+    head = ["## What a method costs: the cost pass", ""]
+    if not s.cost:
+        return [*head, "This run has no cost pass (it was stored before the pass existed); the "
+                "costs above are the episodes' mean CPU time per step. Rerun the study into a "
+                "new folder to measure one.", ""]
+    cheapest = s.cost[0].cpu_ms
+    rows = [[labels()[c.method], _num(c.cpu_ms, c.cpu_low, c.cpu_high, 2),
+             f"{c.cpu_ms / cheapest:.2f}", *c.wall.row(), str(c.rounds)] for c in s.cost]
+    return [*head,
+            f"Order by cost, cheapest first (braces: not separated): "
+            f"**{order_text(s.cost_order, labels())}**.", "",
+            *md_table(["method", "CPU ms / step [95%]", "x cheapest", "wall p50", "wall p95",
+                       "wall p99", "wall max", "rounds"], rows), "",
+            f"Measured once in this run after every episode had finished: {s.cost_what}. Each "
+            "round replays the same episode for every method, so the CPU time of a method is "
+            "the same work every round; the interval is over rounds. Two methods are ordered "
+            "when the 95 % interval of their per-round log-ratio excludes 0 (a round holds "
+            "both, within a minute of each other); otherwise they are tied. The order does not "
+            "depend on how many workers ran the episodes. Costs in the frontier, the answers "
+            "and the claim come from this pass.", ""]
+
+
 def activity_table(s: SamplingSafetySummary) -> list[str]:
     rows = []
     for c in sorted(s.cells, key=lambda c: (list(labels()).index(c.controller), c.variance)):
@@ -153,9 +179,9 @@ def answers(s: SamplingSafetySummary) -> list[str]:
                f" with {'disjoint' if sep else 'overlapping'} intervals. " if second else ". ")
             + f"Safest per millisecond: {labels()[eff.controller]} "
             f"({_pct(eff.safety, eff.ci_low, eff.ci_high, 0)} % safe at "
-            f"{eff.cpu_ms:.2f} CPU ms). Not dominated in (safety, CPU ms): "
+            f"{s.cost_ms(eff.controller):.2f} CPU ms). Not dominated in (safety, CPU ms): "
             + ", ".join(f"{labels()[c.controller]} ({100 * c.safety:.0f} %, "
-                        f"{c.cpu_ms:.2f} ms)" for c in front) + ".")
+                        f"{s.cost_ms(c.controller):.2f} ms)" for c in front) + ".")
     return out
 
 
@@ -254,8 +280,11 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str,
         "weighted over that never crashed (for the robust controllers, the real samples with "
         "feedback), averaged over the steps of an episode; the interval is over realisations. "
         "ESS: effective sample size of the update's weights.", "",
-        "## What a step costs: CPU time and the wall-clock tail", "",
-        *md_table(LATENCY_HEADER, latency_rows(s)), "", LATENCY_NOTE, "",
+        *cost_lines(s),
+        "## What a step costs in the episodes: CPU time and the wall-clock tail", "",
+        *md_table(LATENCY_HEADER, latency_rows(s)), "", LATENCY_NOTE + " These ran beside "
+        "the other workers of the run: their CPU means move between runs (a shared cache, the "
+        "clock), which is why the order by cost comes from the cost pass.", "",
         "## What each mechanism did", "",
         "How often each method's safety mechanism acted, as a share of control steps (or of "
         "sample-steps for the per-sample projection, of horizon steps for the AL and ECBF "
@@ -275,7 +304,8 @@ def write_report(s: SamplingSafetySummary, out: Path, run_line: str,
                                                 for c in cfg["controllers"]]), "",
         "Data: `episodes.parquet/.csv` (one row per realisation), `timing.parquet/.csv` "
         "(compute time per realisation, not reproducible), `step_times.parquet/.csv` (wall and "
-        "CPU time of every step), `activity.parquet/.csv` (mechanism activity per "
+        "CPU time of every step), `cost_pass.parquet/.csv` and `cost_pass.json` (the cost "
+        "pass: every step of every round), `activity.parquet/.csv` (mechanism activity per "
         "realisation), `tasks/*.npz` (paths and per-step sample statistics), `summary.json` "
         "(`cells`, `paired`, `paired_fraction`, `health`, `claims`).", ""]
     path = out / "report.md"
@@ -287,7 +317,7 @@ def summary(finished) -> Summary:
     """summary.json: the cells (safety, collision-free samples, ESS, time per step and
     mechanism activity, with intervals), paired tests, mechanism health, the verdicts on the
     paper's claim (1); one console line per cell and per mechanism-health problem."""
-    s = summarise(finished.config, finished.store)
+    s = summarise(finished.config, finished.store, finished.cost_pass())
     names = labels()
     lines = tuple(f"{names[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
                   f"[{100 * c.ci_low:.0f}, {100 * c.ci_high:.0f}]  collision-free samples "

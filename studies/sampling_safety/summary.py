@@ -6,9 +6,10 @@ interval); collision-free sample fraction = per control step, the share of the s
 update was weighted over whose rollout never crashed (for the robust controllers: the real
 samples, with feedback), averaged over the episode's steps, then over realisations (95 %
 t-interval over realisations); ESS likewise; final error = distance to the goal at the end,
-over safe episodes; cost = mean process CPU time of a control step (all its threads; what
-other processes do does not change it), beside the wall-clock step time's mean, p50, p95, p99
-and maximum over every step of the cell (:mod:`workbench.study.latency`). Paired comparisons use
+over safe episodes; cost = CPU time per control step in the run's cost pass (each method alone,
+kernels on one thread, rounds interleaved: :mod:`workbench.study.cost_pass`), beside each cell's
+mean process CPU time per step in the episodes and the wall-clock step time's mean, p50, p95,
+p99 and maximum over every step of the cell (:mod:`workbench.study.latency`). Paired comparisons use
 the same realisations (common random numbers): McNemar's exact test on safety, a paired
 t-interval on the collision-free fraction. Mechanism health
 (:func:`~workbench.scenarios.mechanism_health.study_health`): per variance, whether each
@@ -31,6 +32,7 @@ from workbench.scenarios.maps import generate
 from workbench.scenarios.mechanism_health import StudyHealth, study_health
 from workbench.scenarios.model_system import resolve_system
 from workbench.study import Rate, RunStore, Spread
+from workbench.study.cost_pass import CostPass, PassCost
 from workbench.study.latency import Latency
 
 
@@ -120,6 +122,25 @@ class SamplingSafetySummary:
     paired: tuple[Paired, ...]
     paired_fraction: tuple[PairedFraction, ...]
     health: StudyHealth  # mechanism checks per variance, paired by realisation
+    # the cost pass (each method alone, workbench.study.cost_pass): cheapest first; empty for
+    # a run stored without one
+    cost: tuple[PassCost, ...] = ()
+    cost_order: tuple[tuple[str, ...], ...] = ()
+    cost_what: str = ""
+
+    def cost_ms(self, controller: str) -> float:
+        """The controller's cost: CPU ms per step in the cost pass, or, for a run without one,
+        the mean over its cells of the episodes' mean CPU ms per step."""
+        hit = next((c for c in self.cost if c.method == controller), None)
+        if hit is not None:
+            return hit.cpu_ms
+        ms = [c.cpu_ms for c in self.cells if c.controller == controller]
+        return sum(ms) / len(ms) if ms else math.nan
+
+    @property
+    def cost_source(self) -> str:
+        return ("the cost pass (each method alone, kernels on one thread)" if self.cost
+                else "the episodes' mean CPU time (this run has no cost pass)")
 
     def cell(self, controller: str, variance: float) -> Cell | None:
         return next((c for c in self.cells
@@ -134,7 +155,7 @@ class SamplingSafetySummary:
                      if (p.first, p.second, p.variance) == (first, second, variance)), None)
 
 
-def summarise(config, store: RunStore) -> SamplingSafetySummary:
+def summarise(config, store: RunStore, cost: CostPass | None = None) -> SamplingSafetySummary:
     ep, timing, act = store.table("episodes"), store.table("timing"), store.table("activity")
     per_step = store.table("step_times")
     cells = []
@@ -162,7 +183,10 @@ def summarise(config, store: RunStore) -> SamplingSafetySummary:
                                                 *mean_interval(d, -1.0, 1.0)))
     return SamplingSafetySummary(ran_settings(config), ran_dt(config), tuple(cells),
                                  tuple(paired), tuple(fractions),
-                                 study_health(ep, act, cell=("variance",)))
+                                 study_health(ep, act, cell=("variance",)),
+                                 tuple(cost.costs().values()) if cost else (),
+                                 cost.order() if cost else (),
+                                 str(cost.meta.get("what", "")) if cost else "")
 
 
 def ran_settings(config: StudyConfig) -> dict:

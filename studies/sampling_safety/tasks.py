@@ -8,12 +8,15 @@ controller stream (``ctx.rng(0)``) in realisation j at a variance.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from studies.sampling_safety.config import RESULT_VERSION, Resolved, StudyConfig, variance_key
 from workbench.sampling.calibration import calibrate
+from workbench.sampling.kernels import threads
 from workbench.sampling.threshold import Threshold
 from workbench.scenarios.maps import generate, scaled
 from workbench.scenarios.methods import build, feedback_law, method, slowest_first
@@ -22,8 +25,9 @@ from workbench.scenarios.model_system import resolve_system
 from workbench.scenarios.navigation import NavigationSetup, navigation_setup
 from workbench.sim import Disturbance, closed_loop
 from workbench.study import TaskContext, TaskOutput
+from workbench.study.cost_pass import CostPlan
 from workbench.study.latency import step_table
-from workbench.study.spec import Declaration
+from workbench.study.spec import Declaration, Finished
 
 
 @dataclass(frozen=True)
@@ -138,6 +142,43 @@ def run_task(task: Realisation, ctx: TaskContext, config: StudyConfig,
                               "ess": steps["ess"]})
 
 
+_RECORDED: dict = {}
+
+
+def replay(config: StudyConfig, name: str, thresholds: Thresholds, variance: float,
+           steps: int) -> Iterator[None]:
+    """The cost pass's episode of ``name``: its first ``steps`` steps of realisation 0 at
+    ``variance``, one control step per ``next``. The plant's states come from that episode,
+    simulated once per process with the realisation's streams; every replay calls the
+    controller on them with the controller stream anew, so it does the same work each time."""
+    s = config.resolved()
+    ctrl = controller(s, name, thresholds)
+    ctx = TaskContext("cost-pass", config.seed, Realisation(name, variance, 0).stream_key())
+    key = (s, name, variance, steps, config.seed)
+    if key not in _RECORDED:
+        nav = setup(s)
+        _RECORDED[key] = closed_loop(ctrl, nav.plant, nav.x0, steps, ctx.rng(0), ctx.rng(1),
+                                     disturbance(nav, variance), keep_infos=False,
+                                     check_episode=False).X
+    X, rng = _RECORDED[key], ctx.rng(0)
+    state = ctrl.initial_state(X[0])
+    for k in range(len(X) - 1):
+        state, _, _ = ctrl.step(state, X[k], rng)
+        yield
+
+
+def cost_plan(finished: Finished) -> CostPlan:
+    """The run's cost pass: each controller alone on one thread, the same episode every round
+    (:func:`replay`), ``config.cost_rounds`` rounds."""
+    config: StudyConfig = finished.config
+    v, n = max(config.variances), min(config.cost_steps, config.steps)
+    runs = {c: partial(replay, config, c, finished.prepared, v, n) for c in config.controllers}
+    return CostPlan(runs, config.cost_rounds, config.seed,
+                    f"each method alone on the first {n} steps of realisation 0 at variance "
+                    f"{v:g}, kernels on one thread, {config.cost_rounds} rounds in random orders "
+                    "after a warm-up round", setting=partial(threads.using, 1))
+
+
 @dataclass(frozen=True)
 class Plan:
     tasks: tuple[Realisation, ...]
@@ -158,7 +199,8 @@ def fingerprint(config: StudyConfig) -> dict:
     integrator, the numbers of its definition."""
     s = config.resolved()
     d = settings_data(config)
-    for k in ("controllers", "variances", "realisations", "seed", "system"):
+    for k in ("controllers", "variances", "realisations", "seed", "system", "cost_rounds",
+              "cost_steps"):  # the cost pass's sizes change no episode
         d.pop(k)
     d.pop("family")
     d.pop("map_seed")

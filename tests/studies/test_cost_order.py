@@ -1,7 +1,7 @@
 """The sampling-safety study's cost does not depend on the neighbours: on a small profile the
-order of methods by CPU time per step (ties where the 95 % intervals of the means overlap) is
-the same run in-process, on one worker and on two workers at once; the report gives the
-wall-clock p50 / p95 / p99 / max per method beside the CPU cost."""
+order of methods by cost (the run's cost pass: each method alone, in lock step, ties within the
+resolution) is the same run in-process, on one worker and on two workers at once; the report
+gives it, and the wall-clock p50 / p95 / p99 / max per method beside the CPU cost."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 
 from studies.sampling_safety import STUDY
 from workbench.study import RunStore
-from workbench.study.latency import cost_order, orders_agree
+from workbench.study.cost_pass import load_pass
+from workbench.study.latency import orders_agree
 from workbench.study.runner import profile_config
 from workbench.study.runner import run as run_study
 
@@ -27,13 +28,12 @@ def runs(tmp_path_factory):
     return out
 
 
-def order(folder) -> tuple[tuple[str, ...], ...]:
-    steps = RunStore(folder).table("step_times")
-    return cost_order({c: g["cpu_ms"].to_numpy() for c, g in steps.groupby("controller")})
-
-
 def test_cost_order_is_the_same_with_0_1_and_2_workers(runs):
-    orders = {w: order(folder) for w, (folder, _) in runs.items()}
+    orders = {w: outcome.summary.value.cost_order for w, (_, outcome) in runs.items()}
+    for w, (folder, _) in runs.items():  # the summary's order is the stored pass's
+        stored = load_pass(folder)
+        assert stored is not None and stored.order() == orders[w]
+        assert stored.meta["rounds"] == 3
     assert orders_agree(*orders.values()), orders
     # the order separates something: a run with every method tied would agree vacuously
     assert all(len(o) >= 2 for o in orders.values()), orders
@@ -44,6 +44,8 @@ def test_report_gives_cpu_cost_and_wall_tail(runs):
     folder, outcome = runs[2]
     text = outcome.report.read_text()
     assert "CPU ms / step" in text
+    assert "## What a method costs: the cost pass" in text
+    assert "Order by cost, cheapest first" in text and "BaS-MPPI <" in text
     for word in ("wall p50", "wall p95", "wall p99", "wall max"):
         assert word in text
     steps = RunStore(folder).table("step_times")

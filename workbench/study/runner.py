@@ -40,6 +40,7 @@ from typing import Any
 
 from workbench.study import config_io
 from workbench.study.config_io import ConfigError
+from workbench.study.cost_pass import run_pass
 from workbench.study.execute import (
     RunResult,
     check_timeout,
@@ -52,7 +53,7 @@ from workbench.study.folder import MANIFEST, RunFolderError, claim, locked
 from workbench.study.io import atomic_write_json, atomic_write_text
 from workbench.study.report import tasks_phrase
 from workbench.study.spec import Declaration, Finished, RegistrationError, StudySpec, Summary
-from workbench.study.store import RunStore, study_manifest
+from workbench.study.store import RunStore, study_manifest, tasks_sha256
 from workbench.study.summary import to_jsonable
 from workbench.study.tasks import Study
 from workbench.validation import MAX_TASKS
@@ -176,6 +177,16 @@ def _prepared(spec: StudySpec, config: Any, out: Path) -> tuple[Study, Finished]
                            dict(zip(study.tasks, study.task_ids(), strict=True)), prepared)
 
 
+def _cost_pass(spec: StudySpec, study: Study, finished: Finished) -> None:
+    """Measure the study's cost pass once per run, here, after every task has finished (kept
+    when the folder already holds one for these tasks)."""
+    if spec.cost is None or finished.cost_pass() is not None:
+        return
+    plan = spec.fn("cost")(finished)
+    log.info("cost pass: %d methods, %d rounds (%s)", len(plan.runs), plan.rounds, plan.what)
+    run_pass(plan, finished.out, tasks_sha256(study.task_ids()))
+
+
 def _summarise(spec: StudySpec, study: Study, finished: Finished) -> Summary:
     summary = spec.fn("summarise")(finished)
     atomic_write_json(finished.out / "summary.json",
@@ -260,6 +271,7 @@ def run(spec: StudySpec, config: Any, out: Path | str | None = None, *, workers:
         result = run_study(study, out, workers=workers, scheduler=client, progress=progress,
                            task_timeout_s=task_timeout_s, allow_mixed=allow_mixed)
         result.raise_for_errors()
+        _cost_pass(spec, study, finished)
         summary = _summarise(spec, study, finished)
         where = f"scheduler {scheduler}" if scheduler else f"{workers} workers"
         this = {"profile": profile, "tasks": {"total": result.n_tasks,

@@ -25,6 +25,7 @@ from workbench.study.config_io import ConfigError
 from workbench.validation import fail
 
 if TYPE_CHECKING:
+    from workbench.study.cost_pass import CostPass, CostPlan
     from workbench.study.store import RunStore
 
 
@@ -75,6 +76,14 @@ class Finished:
     prepared: Any = None
     run_line: str = ""  # wall time, tasks, back end and load: for the report
 
+    def cost_pass(self) -> CostPass | None:
+        """The run's cost pass (:mod:`workbench.study.cost_pass`), None when it has none (a
+        study without one, or a run stored before it measured one)."""
+        from workbench.study.cost_pass import load_pass
+        from workbench.study.store import tasks_sha256
+
+        return load_pass(self.out, tasks_sha256(self.ids.values()))
+
 
 @dataclass(frozen=True)
 class Summary:
@@ -101,6 +110,9 @@ class StudySpec:
     Optional: prepare(config, out) -> a value computed once per run in the coordinating process
     and handed to every task (a calibration, shared constants; deterministic in the config);
     paper(out) -> [PaperRow] for the report site; aliases: short ``--set`` keys -> dotted keys;
+    cost(finished) -> :class:`~workbench.study.cost_pass.CostPlan`: the methods' cost pass,
+    measured once per run in the coordinating process after every task has finished
+    (:mod:`workbench.study.cost_pass`; the summary reads it with ``finished.cost_pass()``);
     figure: the headline figure's file name; default_profile; store_name: the name that enters
     task ids (default: the folder's name); default_out: ``reports/<folder name>``.
     """
@@ -114,6 +126,7 @@ class StudySpec:
     report: Callable[[Finished, Summary], Path] | str
     prepare: Callable[[Any, Path], Any] | str | None = None
     paper: Callable[[Path], list[PaperRow]] | str | None = None
+    cost: Callable[[Finished], CostPlan] | str | None = None
     aliases: Mapping[str, str] = field(default_factory=dict)
     figure: str | None = None
     default_profile: str = "quick"
@@ -135,9 +148,9 @@ class StudySpec:
         if self.default_profile not in self.profiles:
             raise fail("StudySpec.default_profile", self.default_profile,
                        f"must be one of the profiles {sorted(self.profiles)}")
-        for name in ("tasks", "summarise", "report", "prepare", "paper"):
+        for name in ("tasks", "summarise", "report", "prepare", "paper", "cost"):
             value = getattr(self, name)
-            if value is None and name in ("prepare", "paper"):
+            if value is None and name in ("prepare", "paper", "cost"):
                 continue
             if not (callable(value) or (isinstance(value, str) and value.count(":") == 1)):
                 raise fail(f"StudySpec.{name}", value, "must be callable or 'module:function'")
@@ -146,10 +159,11 @@ class StudySpec:
                            Path(self.default_out or Path("reports") / directory.name))
 
     def fn(self, name: str) -> Callable[..., Any]:
-        """The study's function ``name`` (tasks, summarise, report, prepare, paper), imported
-        if it was given as ``"module:function"``; ValueError for an optional one (prepare,
-        paper) that the study does not declare; :class:`RegistrationError` naming the study
-        and the entry point when its module cannot be imported or has no such function."""
+        """The study's function ``name`` (tasks, summarise, report, prepare, paper, cost),
+        imported if it was given as ``"module:function"``; ValueError for an optional one
+        (prepare, paper, cost) that the study does not declare; :class:`RegistrationError`
+        naming the study and the entry point when its module cannot be imported or has no
+        such function."""
         value = getattr(self, name)
         if value is None:
             raise fail(f"StudySpec.{name}", None, f"is not declared by study {self.name!r}")

@@ -283,7 +283,12 @@ def study_manifest(study: Study) -> dict[str, Any]:
     ids = study.task_ids()
     return {"study": study.name, "version": study.version, "seed": study.seed,
             "config": study.config, "fingerprint": study.fingerprint, "n_tasks": len(ids),
-            "tasks_sha256": hashlib.sha256("\n".join(ids).encode()).hexdigest()}
+            "tasks_sha256": tasks_sha256(ids)}
+
+
+def tasks_sha256(ids: Iterable[str]) -> str:
+    """The hash of a run's task ids in their declared order (what the manifest records)."""
+    return hashlib.sha256("\n".join(ids).encode()).hexdigest()
 
 
 def machine() -> dict[str, Any]:
