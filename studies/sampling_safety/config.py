@@ -69,9 +69,10 @@ class StudyConfig:
     ``level_scale`` on its ``disturbed`` states. The robust controllers calibrate
     ``rule`` once per run on an undisturbed episode seeded with ``calibration_seed``.
     ``cost_rounds`` (>= 2) and ``cost_steps``: the cost pass, measured once per run after the
-    episodes, replays each method alone on the first ``cost_steps`` steps (at most ``steps``)
-    of realisation 0 at the largest variance, kernels on one thread, in ``cost_rounds``
-    interleaved rounds (:mod:`workbench.study.cost_pass`); the order by cost comes from it.
+    episodes with none running, replays every method on the first ``cost_steps`` steps (at
+    most ``steps``) of realisation 0 at the largest variance, kernels on one thread, methods in
+    lock step, ``cost_rounds`` rounds (:mod:`workbench.study.cost_pass`); the order by cost
+    comes from it.
 
     Size limits (checked here): at most 10^7 tasks per run, 10^7 steps per episode."""
 

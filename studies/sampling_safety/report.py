@@ -130,8 +130,10 @@ def cost_lines(s: SamplingSafetySummary) -> list[str]:
             f"Measured once in this run after every episode had finished: {s.cost_what}. Each "
             "round replays the same episode for every method, so the CPU time of a method is "
             "the same work every round; the interval is over rounds. Two methods are ordered "
-            "when the 95 % interval of their per-round log-ratio excludes 0 (a round holds "
-            "both, within a minute of each other); otherwise they are tied. The order does not "
+            "when the 95 % interval of their per-round cost ratio lies wholly beyond 1 +- 3 % "
+            "(the resolution: between passes on one machine a ratio moved by up to 4 %); "
+            "otherwise they are tied. A step starts with the caches the other methods' steps "
+            "left, as on a robot where other work runs between control steps. The order does not "
             "depend on how many workers ran the episodes. Costs in the frontier, the answers "
             "and the claim come from this pass.", ""]
 

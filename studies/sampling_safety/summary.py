@@ -6,8 +6,8 @@ interval); collision-free sample fraction = per control step, the share of the s
 update was weighted over whose rollout never crashed (for the robust controllers: the real
 samples, with feedback), averaged over the episode's steps, then over realisations (95 %
 t-interval over realisations); ESS likewise; final error = distance to the goal at the end,
-over safe episodes; cost = CPU time per control step in the run's cost pass (each method alone,
-kernels on one thread, rounds interleaved: :mod:`workbench.study.cost_pass`), beside each cell's
+over safe episodes; cost = CPU time per control step in the run's cost pass (no episode running,
+kernels on one thread, methods in lock step: :mod:`workbench.study.cost_pass`), beside each cell's
 mean process CPU time per step in the episodes and the wall-clock step time's mean, p50, p95,
 p99 and maximum over every step of the cell (:mod:`workbench.study.latency`). Paired comparisons use
 the same realisations (common random numbers): McNemar's exact test on safety, a paired
@@ -122,7 +122,7 @@ class SamplingSafetySummary:
     paired: tuple[Paired, ...]
     paired_fraction: tuple[PairedFraction, ...]
     health: StudyHealth  # mechanism checks per variance, paired by realisation
-    # the cost pass (each method alone, workbench.study.cost_pass): cheapest first; empty for
+    # the cost pass (no episode running, workbench.study.cost_pass): cheapest first; empty for
     # a run stored without one
     cost: tuple[PassCost, ...] = ()
     cost_order: tuple[tuple[str, ...], ...] = ()
@@ -139,7 +139,7 @@ class SamplingSafetySummary:
 
     @property
     def cost_source(self) -> str:
-        return ("the cost pass (each method alone, kernels on one thread)" if self.cost
+        return ("the cost pass (no episode running, kernels on one thread)" if self.cost
                 else "the episodes' mean CPU time (this run has no cost pass)")
 
     def cell(self, controller: str, variance: float) -> Cell | None:

@@ -174,9 +174,11 @@ def cost_plan(finished: Finished) -> CostPlan:
     v, n = max(config.variances), min(config.cost_steps, config.steps)
     runs = {c: partial(replay, config, c, finished.prepared, v, n) for c in config.controllers}
     return CostPlan(runs, config.cost_rounds, config.seed,
-                    f"each method alone on the first {n} steps of realisation 0 at variance "
-                    f"{v:g}, kernels on one thread, {config.cost_rounds} rounds in random orders "
-                    "after a warm-up round", setting=partial(threads.using, 1))
+                    f"every method on the first {n} steps of realisation 0 at variance {v:g}, "
+                    "in the coordinating process with no episode running, kernels on one "
+                    f"thread, in lock step (one step of each method in a random order, then the "
+                    f"next), {config.cost_rounds} rounds after a warm-up round",
+                    setting=partial(threads.using, 1))
 
 
 @dataclass(frozen=True)
