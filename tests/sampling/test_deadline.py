@@ -125,9 +125,10 @@ class FakeClock:
 
 
 def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkeypatch):
-    """Each sample costs 1 ms: a 100 ms deadline (90 ms after the guard) fits 90 samples:
-    a chunk of 51, then 39 (the rest of 90), then sampling stops; the next step, whose
-    history now holds a 5 ms tail, fits 85."""
+    """Each sample costs 1 ms; a 100 ms deadline keeps 90 ms after the guard, and each part
+    needs at most half the time left. Step 1: 51 (no history yet), then 19 (of 39 ms left),
+    10 (of 20), and 5 would fit, below the least chunk (7): stop at 80. Step 2 keeps a 5 ms
+    tail: 42 (of 85), the 9 left of that chunk, then 17 and 8 of the next: 76."""
     fake = FakeClock()
     monkeypatch.setattr(deadline, "time", fake)
     hist, steps = DeadlineHistory(), []
@@ -145,12 +146,80 @@ def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkey
         fake.now += 5e-3  # the step's tail
         assert not clock.report(N).missed
         steps.append(sizes)
-    assert steps == [[51, 39], [51, 34]]
+    assert steps == [[51, 19, 10], [42, 9, 17, 8]]
+
+
+def test_a_stall_is_kept_free_in_later_steps(monkeypatch):
+    """Samples cost 1 ms and one chunk waited 4 ms for a core: that excess over the rate is
+    kept free from then on, so 4 ms less fits (at the rate, before the slowdown allowance)."""
+    fake = FakeClock()
+    monkeypatch.setattr(deadline, "time", fake)
+    calm, stalled = DeadlineHistory(), DeadlineHistory()
+    for h, wait in ((calm, 0.0), (stalled, 4e-3)):
+        h.add(51, 51e-3)
+        h.add(39, 39e-3 + wait)
+    assert stalled.stall() == pytest.approx(4e-3, rel=1e-9) and calm.stall() == 0.0
+    rate = stalled.rate()
+    assert rate == pytest.approx(94e-3 / 90, rel=1e-12)
+    free = StepClock(0.1, fake.now, calm).room()
+    held = StepClock(0.1, fake.now, stalled).room()
+    assert free == pytest.approx(90, rel=1e-9)  # 90 ms after the guard at 1 ms per sample
+    assert held == pytest.approx((90e-3 - 4e-3) / rate, rel=1e-9)
+
+
+def test_history_rate_and_stall():
+    h = DeadlineHistory()
+    assert h.rate() == 0.0 and h.stall() == 0.0
+    h.add(10, 0.010)  # the first chunk sets the rate; no excess yet
+    h.add(10, 0.015)  # 5 ms over the 1 ms per sample expected
+    h.add(20, 0.010)  # faster than expected: no negative excess
+    assert h.stall() == pytest.approx(0.005, rel=1e-12)
+    assert h.rate() == pytest.approx(0.035 / 40, rel=1e-12)
+    for _ in range(deadline.WINDOW):  # the rate forgets after WINDOW chunks
+        h.add(10, 0.002)
+    assert h.rate() == pytest.approx(0.0002, rel=1e-12)
+    assert h.stall() == pytest.approx(0.005, rel=1e-12)  # the stall is remembered longer
+    for _ in range(deadline.STALL_WINDOW):
+        h.add(10, 0.002)
+    assert h.stall() == 0.0
+
+
+def test_rates_are_kept_per_thread_count():
+    """A chunk is judged by the rate of the thread count it runs on, never faster than on
+    fewer threads; with no chunk on that count yet, by the others' rate, with no gain from
+    more threads and a full loss from fewer."""
+    h = DeadlineHistory()
+    h.add(100, 0.1, threads=2)  # 1 ms per sample on 2 threads
+    assert h.rate(2) == pytest.approx(1e-3, rel=1e-12)
+    assert h.rate(1) == pytest.approx(2e-3, rel=1e-12)  # none on 1 thread yet: twice as slow
+    assert h.rate(4) == pytest.approx(1e-3, rel=1e-12)  # no gain assumed from more
+    h.add(100, 0.15, threads=1)  # 1.5 ms on 1 thread: faster than the 2 ms assumed
+    assert h.stall() == 0.0
+    assert h.rate(1) == pytest.approx(1.5e-3, rel=1e-12)
+    assert h.rate(2) == pytest.approx(1.5e-3, rel=1e-12)  # not faster than on 1 thread
+    h.add(100, 0.05, threads=1)  # 1 thread now 1 ms per sample on average
+    h.add(100, 0.3, threads=2)  # 2 threads slower under load: 2 ms over their 2 chunks
+    assert h.rate(2) == pytest.approx(0.4 / 200, rel=1e-12)
+
+
+def test_a_part_that_runs_on_fewer_threads_is_judged_at_their_rate(monkeypatch):
+    """Chunks of 100 run on 2 threads, smaller ones on 1 (the kernels' small-batch rule): the
+    part of a chunk that fits is sized at the 1-thread rate."""
+    fake = FakeClock()
+    monkeypatch.setattr(deadline, "time", fake)
+    hist = DeadlineHistory()
+    hist.add(100, 0.05, threads=2)  # 0.5 ms per sample on 2 threads
+    clock = StepClock(0.1, fake.now, hist, threads_of=lambda n: 2 if n >= 100 else 1)
+    fake.now += 0.05  # 40 ms left after the 10 ms guard
+    # 80 fit on 2 threads; that part runs on 1 thread, which has no chunk yet: twice as slow
+    assert clock.fits(100) == pytest.approx(40, rel=1e-9)
+    assert StepClock(0.1, fake.now - 0.05, hist, threads_of=lambda n: 2).fits(100) == \
+        pytest.approx(80, rel=1e-9)
 
 
 def test_no_room_for_a_later_iteration_returns_none():
     hist = DeadlineHistory()
-    hist.per_sample.append(1.0)  # one second per sample: nothing fits a 10 ms deadline
+    hist.add(1, 1.0)  # one second per sample: nothing fits a 10 ms deadline
     clock = StepClock(0.01, time.perf_counter(), hist)
     clock.iterations = 1
     assert sample_within(clock, 64, 4, lambda n, s: n, np.random.default_rng(0), sum) is None

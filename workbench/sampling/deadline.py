@@ -2,15 +2,19 @@
 
 With a deadline, a step draws its samples in ``MPPIConfig.deadline_chunks`` chunks (each from
 its own seed) while they fit. Before each chunk it estimates what the rest of the step costs
-from the controller's recent steps (:class:`DeadlineHistory`): the 90th percentile of the
-recent chunks' time per sample, the longest recent tail (weighting the samples and finishing
-the step, after the last chunk) and a guard of :data:`GUARD` of the deadline for the jitter of
-a loaded machine. A chunk that fits is drawn whole; when only part of one fits, that part is
-drawn (at least :func:`least_chunk` samples) and sampling stops; a further MPPI iteration starts
-only when its least chunk fits. The first chunk of a step always runs, shrunk to what fits (at
-least the least chunk), so a step still returns a plan when the deadline is too short. The work
-before the samples (for the robust controllers: the selection and the feedback gains) is never
-cut.
+from the controller's recent steps (:class:`DeadlineHistory`), modelling a chunk's time as its
+samples times a rate plus a stall (the process waiting for a core: on a loaded machine whole
+scheduler slices of several milliseconds, whatever the chunk's size): the rate is the recent
+chunks' time over their samples (stalls included on average), the stall kept free is the
+largest excess of a recent chunk over that rate, and beside them the longest recent tail
+(weighting the samples and finishing the step, after the last chunk) and a guard of
+:data:`GUARD` of the deadline. Each chunk is sized so that it ends in time even at
+1 / :data:`SLOWDOWN` of the recent speed: a chunk that fits so is drawn whole, else in parts,
+each of what fits then, until not even the least chunk (:func:`least_chunk`) fits; a further
+MPPI iteration starts only when its least chunk fits. The first chunk of a step always runs, shrunk
+to what fits (at least the least chunk), so a step still returns a plan when the deadline is
+too short. The work before the samples (for the robust controllers: the selection and the
+feedback gains) is never cut.
 
 A step can therefore exceed its deadline only when the work before the samples plus the least
 chunk does not fit, or when the machine stalls the process for longer than its recent steps
@@ -32,6 +36,8 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
+
+from workbench.sampling.kernels.threads import threads_for
 
 B = TypeVar("B")
 
@@ -55,23 +61,55 @@ class DeadlineReport:
 
 
 GUARD = 0.1  # share of the deadline kept free for the jitter of a loaded machine
-# the recent chunks' time per sample the next chunk is judged by: a high quantile, as a loaded
-# machine runs some chunks at half speed (the median let steps overrun by a chunk's worth; the
-# slowest chunk made one preempted small chunk set the pace for WINDOW steps)
-PER_SAMPLE_QUANTILE = 0.9
-WINDOW = 50  # recent steps (and chunks) the estimates look back over
+# a chunk is sized to end in time even when it runs this many times slower than the recent
+# chunks did (on a loaded 2-core VM, the CPU time per sample doubled from one step to the next
+# when the other core's process competed for the same physical core)
+SLOWDOWN = 2.0
+WINDOW = 50  # recent chunks the rate, and recent steps the tail, look back over
+# recent chunks the stall looks back over: long stalls are rare (on a 2-core VM under a load of
+# 2, waits of 8-12 ms came once in about 5000 slices), so they are remembered longer
+STALL_WINDOW = 400
 # what ``make bench`` checks the largest overshoot against over 1000 steps under a load of 2:
 # this share of the deadline (BaS-MPPI and SA-RMPPI at 20 and 50 Hz, navigation map)
 STATED_MARGIN = 0.25
 
 
 class DeadlineHistory:
-    """A controller's recent chunk costs (seconds per sample) and step tails (seconds from the
-    last chunk to the step's return), over the last :data:`WINDOW` of each."""
+    """A controller's recent chunks (samples and seconds, the last :data:`WINDOW` per thread
+    count), their excess over the rate then expected (the last :data:`STALL_WINDOW`) and its
+    step tails (seconds from the last chunk to the step's return, the last :data:`WINDOW`)."""
 
     def __init__(self) -> None:
-        self.per_sample: deque[float] = deque(maxlen=WINDOW)
+        self.chunks: dict[int, deque[tuple[int, float]]] = {}
+        self.excess: deque[float] = deque(maxlen=STALL_WINDOW)
         self.tail: deque[float] = deque(maxlen=WINDOW)
+
+    def rate(self, threads: int = 1) -> float:
+        """Seconds per sample of a chunk on ``threads`` threads: the recent chunks' time over
+        their samples on that count, but never faster than on fewer threads (under load more
+        threads can be slower, and a chunk's count is chosen by the kernels as it starts);
+        with none on that count, also a full loss from the counts above it (0 before any
+        chunk)."""
+
+        def of(q: int) -> float:
+            d = self.chunks[q]
+            return sum(sec for _, sec in d) / sum(size for size, _ in d)
+
+        counts = [q for q, d in self.chunks.items() if d]
+        fewer = [of(q) for q in counts if q < threads]
+        if threads in counts:
+            return max([of(threads), *fewer])
+        return max(fewer + [of(q) * q / threads for q in counts if q > threads], default=0.0)
+
+    def stall(self) -> float:
+        """The largest recent excess of a chunk over the rate expected before it (0 before
+        any)."""
+        return max(self.excess, default=0.0)
+
+    def add(self, size: int, seconds: float, threads: int = 1) -> None:
+        if any(self.chunks.values()):
+            self.excess.append(max(0.0, seconds - size * self.rate(threads)))
+        self.chunks.setdefault(threads, deque(maxlen=WINDOW)).append((max(size, 1), seconds))
 
 
 def least_chunk(chunk: int) -> int:
@@ -81,27 +119,44 @@ def least_chunk(chunk: int) -> int:
 
 class StepClock:
     """The deadline of one step, started at the step's first line, with the controller's
-    history of recent steps (a new one for a controller's first step)."""
+    history of recent steps (a new one for a controller's first step). ``threads_of(n)``: the
+    thread count a chunk of ``n`` samples runs on (the kernels choose it per call, from the
+    batch's size and the load: :func:`kernel_threads` gives it for a horizon)."""
 
-    def __init__(self, deadline_s: float, t0: float, history: DeadlineHistory | None = None):
+    def __init__(self, deadline_s: float, t0: float, history: DeadlineHistory | None = None,
+                 threads_of: Callable[[int], int] = lambda n: 1):
         self.deadline_s, self.t0 = deadline_s, t0
+        self.threads_of = threads_of
         self.history = history if history is not None else DeadlineHistory()
         self.samples = 0
         self.iterations = 0
         self.truncated = False
         self.sampled_at: float | None = None
 
-    def room(self) -> float:
-        """How many samples fit now (may be < 0): the time left after the expected tail and
-        the guard, over the slowest recent time per sample (inf before any chunk)."""
+    def room(self, threads: int = 1) -> float:
+        """How many samples fit now on ``threads`` threads (may be < 0): the time left after
+        the guard, the longest recent tail and the largest recent stall, over the recent rate
+        on that count (inf before any chunk)."""
         h = self.history
         left = (self.deadline_s * (1.0 - GUARD) - (time.perf_counter() - self.t0)
-                - (max(h.tail) if h.tail else 0.0))
-        per = float(np.quantile(h.per_sample, PER_SAMPLE_QUANTILE)) if h.per_sample else 0.0
+                - max(h.tail, default=0.0) - h.stall())
+        per = h.rate(threads)
         return left / per if per > 0 else (math.inf if left > 0 else -math.inf)
 
-    def drew(self, size: int, seconds: float) -> None:
-        self.history.per_sample.append(seconds / max(size, 1))
+    def fits(self, size: int) -> float:
+        """:meth:`room` for a chunk of ``size`` samples on the count it would run on; when
+        only part of it fits and that part would run on another count, the room on that
+        count (the smaller of the two)."""
+        k = self.threads_of(size)
+        room = self.room(k)
+        if room < size * SLOWDOWN and room >= SLOWDOWN:
+            k2 = self.threads_of(int(room / SLOWDOWN))
+            if k2 != k:
+                room = min(room, self.room(k2))
+        return room
+
+    def drew(self, size: int, seconds: float, threads: int = 1) -> None:
+        self.history.add(size, seconds, threads)
         self.samples += size
         self.sampled_at = time.perf_counter()
 
@@ -113,6 +168,12 @@ class StepClock:
                               self.truncated, now - self.t0)
 
 
+def kernel_threads(horizon: int) -> Callable[[int], int]:
+    """``threads_of`` for a sampler of ``horizon`` steps: the count its kernels choose for
+    ``n`` samples now (:func:`workbench.sampling.kernels.threads.threads_for`)."""
+    return lambda n: threads_for(n * horizon)
+
+
 def chunk_sizes(n: int, chunks: int) -> list[int]:
     """``n`` samples in at most ``chunks`` near-equal chunks, larger ones first."""
     k = min(n, chunks)
@@ -122,24 +183,29 @@ def chunk_sizes(n: int, chunks: int) -> list[int]:
 def sample_within(clock: StepClock, n: int, chunks: int, draw: Callable[[int, int], B],
                   rng: np.random.Generator, join: Callable[[list[B]], B]) -> B | None:
     """Draw ``n`` samples in chunks (``draw(size, seed)``, seeds from ``rng``) while they
-    fit, the last one shortened to what fits; None when not even the least chunk of a later
-    iteration fits. The first chunk of the step's first iteration always runs."""
+    fit, each sized to need at most 1 / :data:`SLOWDOWN` of the time left at the recent rate
+    (a chunk that runs that much slower than the recent ones still ends in time): a chunk
+    that does not fit whole is drawn in parts, each of what fits then, until not even the
+    least chunk fits. None when nothing of a later iteration fits. The first chunk of the
+    step's first iteration always runs."""
     parts: list[B] = []
     for size in chunk_sizes(n, chunks):
         least = least_chunk(size)
-        room = clock.room()
-        room = room + 1e-6  # a whole sample lost to rounding is not a sample that does not fit
-        take = size if room >= size else (int(room) if room >= least else 0)
-        if take < size:
-            clock.truncated = True
-            if take == 0 and not parts and not clock.iterations:
-                take = least  # the step's first chunk always runs
-        if take == 0:
-            break
-        t = time.perf_counter()
-        parts.append(draw(take, int(rng.integers(0, 2**63))))
-        clock.drew(take, time.perf_counter() - t)
-        if take < size:
+        while size > 0:
+            room = clock.fits(size) / SLOWDOWN + 1e-6  # a sample lost to rounding still fits
+            take = size if room >= size else (int(room) if room >= least else 0)
+            if take < size:
+                clock.truncated = True
+                if take == 0 and not parts and not clock.iterations:
+                    take = least  # the step's first chunk always runs
+            if take == 0:
+                break
+            k = clock.threads_of(take)
+            t = time.perf_counter()
+            parts.append(draw(take, int(rng.integers(0, 2**63))))
+            clock.drew(take, time.perf_counter() - t, k)
+            size -= take
+        if size > 0:
             break
     if not parts:
         return None

@@ -26,6 +26,7 @@ from workbench.sampling.deadline import (
     DeadlineHistory,
     DeadlineReport,
     StepClock,
+    kernel_threads,
     sample_within,
 )
 from workbench.sampling.kernels.constants import FLOAT32_MAX, check_scales32
@@ -223,7 +224,8 @@ class MPPI(RecordsSamples, PlansToGoal):
         check_plan(U, self.cfg.horizon, self.sp.nu)
         cfg = self.cfg
         clock = (None if cfg.deadline_s is None
-                 else StepClock(cfg.deadline_s, t0, self._deadline_history))
+                 else StepClock(cfg.deadline_s, t0, self._deadline_history,
+                                 kernel_threads(cfg.horizon)))
         for _ in range(cfg.iterations):
             if clock is None:
                 batch = self.sampler.mppi(xb, U, cfg.n_samples, self.consts,

@@ -30,6 +30,7 @@ from workbench.sampling.deadline import (
     DeadlineHistory,
     DeadlineReport,
     StepClock,
+    kernel_threads,
     sample_within,
 )
 from workbench.sampling.feedback.base import FeedbackLaw, Gains
@@ -355,7 +356,8 @@ class RobustMPPI(RecordsSamples):
         first = None
         lam, M = cfg.lam, self._smooth
         clock = (None if cfg.deadline_s is None
-                 else StepClock(cfg.deadline_s, t0, self._deadline_history))
+                 else StepClock(cfg.deadline_s, t0, self._deadline_history,
+                                 kernel_threads(cfg.horizon)))
         for it in range(cfg.iterations):
             diag = self.rcfg.diagnostics and it == 0
             if clock is None:
