@@ -125,14 +125,16 @@ class FakeClock:
 
 
 def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkeypatch):
-    """Each sample costs 1 ms; a 100 ms deadline keeps 90 ms after the guard, and each part
-    needs at most half the time left. Step 1: 51 (no history yet), then 19 (of 39 ms left),
-    10 (of 20), and 5 would fit, below the least chunk (7): stop at 80. Step 2 keeps a 5 ms
-    tail: 42 (of 85), the 9 left of that chunk, then 17 and 8 of the next: 76."""
+    """Each sample costs 1 ms and each step's tail 5 ms; a 100 ms deadline keeps 90 ms after
+    the guard, and each part needs at most half the time left. Step 1: 51 (no history yet),
+    then 19 (of 39 ms left), 10 (of 20), and 5 would fit, below the least chunk (7): stop at
+    80. Step 2 (the first step's tail is not counted: first calls): 45, the 6 left of that
+    chunk, 19, 10. Step 3 charges each sample the tail per sample of step 2 (5 ms / 80):
+    int(90 / 1.0625 / 2) = 42, then 9, 16 and 8: 75."""
     fake = FakeClock()
     monkeypatch.setattr(deadline, "time", fake)
     hist, steps = DeadlineHistory(), []
-    for _ in range(2):
+    for _ in range(3):
         clock = StepClock(0.1, fake.now, hist)
         sizes: list[int] = []
 
@@ -146,7 +148,8 @@ def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkey
         fake.now += 5e-3  # the step's tail
         assert not clock.report(N).missed
         steps.append(sizes)
-    assert steps == [[51, 19, 10], [42, 9, 17, 8]]
+    assert steps == [[51, 19, 10], [45, 6, 19, 10], [42, 9, 16, 8]]
+    assert hist.tail_rate() == pytest.approx((5e-3 / 80 + 5e-3 / 75) / 2, rel=1e-9)  # median
 
 
 def test_a_stall_is_kept_free_in_later_steps(monkeypatch):
@@ -175,13 +178,18 @@ def test_history_rate_and_stall():
     h.add(20, 0.010)  # faster than expected: no negative excess
     assert h.stall() == pytest.approx(0.005, rel=1e-12)
     assert h.rate() == pytest.approx(0.035 / 40, rel=1e-12)
-    for _ in range(deadline.WINDOW):  # the rate forgets after WINDOW chunks
-        h.add(10, 0.002)
-    assert h.rate() == pytest.approx(0.0002, rel=1e-12)
-    assert h.stall() == pytest.approx(0.005, rel=1e-12)  # the stall is remembered longer
+    for _ in range(deadline.WINDOW):  # WINDOW fast chunks: the long rate still holds the
+        h.add(10, 0.002)                 # slow ones (the slower of the two rates counts)
+    assert h.rate() == pytest.approx((0.035 + deadline.WINDOW * 0.002)
+                                     / (40 + deadline.WINDOW * 10), rel=1e-12)
+    assert h.stall() == pytest.approx(0.005, rel=1e-12)  # the stall is remembered as long
     for _ in range(deadline.STALL_WINDOW):
         h.add(10, 0.002)
     assert h.stall() == 0.0
+    assert h.rate() == pytest.approx(0.0002, rel=1e-12)
+    h.add(10, 0.02)  # a slow chunk: the short rate reacts first
+    assert h.rate() == pytest.approx((0.02 + (deadline.WINDOW - 1) * 0.002)
+                                     / (deadline.WINDOW * 10), rel=1e-12)
 
 
 def test_rates_are_kept_per_thread_count():

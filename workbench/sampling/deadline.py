@@ -6,9 +6,11 @@ from the controller's recent steps (:class:`DeadlineHistory`), modelling a chunk
 samples times a rate plus a stall (the process waiting for a core: on a loaded machine whole
 scheduler slices of several milliseconds, whatever the chunk's size): the rate is the recent
 chunks' time over their samples (stalls included on average), the stall kept free is the
-largest excess of a recent chunk over that rate, and beside them the longest recent tail
-(weighting the samples and finishing the step, after the last chunk) and a guard of
-:data:`GUARD` of the deadline. Each chunk is sized so that it ends in time even at
+largest excess of a recent chunk (or tail) over what was expected of it. The tail (joining the
+chunks, weighting the samples and finishing the step, after the last chunk) grows with the
+samples: each sample is charged the recent steps' median tail per sample (the controller's
+first step, with its first calls, is left out), and a guard of :data:`GUARD` of the deadline
+is kept free. Each chunk is sized so that it ends in time even at
 1 / :data:`SLOWDOWN` of the recent speed: a chunk that fits so is drawn whole, else in parts,
 each of what fits then, until not even the least chunk (:func:`least_chunk`) fits; a further
 MPPI iteration starts only when its least chunk fits. The first chunk of a step always runs, shrunk
@@ -65,9 +67,10 @@ GUARD = 0.1  # share of the deadline kept free for the jitter of a loaded machin
 # chunks did (on a loaded 2-core VM, the CPU time per sample doubled from one step to the next
 # when the other core's process competed for the same physical core)
 SLOWDOWN = 2.0
-WINDOW = 50  # recent chunks the rate, and recent steps the tail, look back over
-# recent chunks the stall looks back over: long stalls are rare (on a 2-core VM under a load of
-# 2, waits of 8-12 ms came once in about 5000 slices), so they are remembered longer
+WINDOW = 50  # recent chunks the short rate, and recent steps the tail, look back over
+# recent chunks the stall and the long rate look back over: long stalls are rare (on a 2-core
+# VM under a load of 2, waits of 8-12 ms came once in about 5000 slices), and a quiet spell of
+# a few steps must not make the rate forget the load that comes back
 STALL_WINDOW = 400
 # what ``make bench`` checks the largest overshoot against over 1000 steps under a load of 2:
 # this share of the deadline (BaS-MPPI and SA-RMPPI at 20 and 50 Hz, navigation map)
@@ -75,31 +78,47 @@ STATED_MARGIN = 0.25
 
 
 class DeadlineHistory:
-    """A controller's recent chunks (samples and seconds, the last :data:`WINDOW` per thread
-    count), their excess over the rate then expected (the last :data:`STALL_WINDOW`) and its
-    step tails (seconds from the last chunk to the step's return, the last :data:`WINDOW`)."""
+    """A controller's recent chunks (samples and seconds, the last :data:`STALL_WINDOW` per
+    thread count), their excess over the rate then expected (the last :data:`STALL_WINDOW`)
+    and its step tails (seconds per sample from the last chunk to the step's return, the last
+    :data:`WINDOW` steps after the first)."""
 
     def __init__(self) -> None:
         self.chunks: dict[int, deque[tuple[int, float]]] = {}
         self.excess: deque[float] = deque(maxlen=STALL_WINDOW)
-        self.tail: deque[float] = deque(maxlen=WINDOW)
+        self.tail: deque[float] = deque(maxlen=WINDOW)  # seconds per sample of each tail
+        self.steps = 0
 
     def rate(self, threads: int = 1) -> float:
-        """Seconds per sample of a chunk on ``threads`` threads: the recent chunks' time over
-        their samples on that count, but never faster than on fewer threads (under load more
-        threads can be slower, and a chunk's count is chosen by the kernels as it starts);
-        with none on that count, also a full loss from the counts above it (0 before any
-        chunk)."""
+        """Seconds per sample of a chunk on ``threads`` threads: the chunks' time over their
+        samples on that count, the slower of the last :data:`WINDOW` and the last
+        :data:`STALL_WINDOW`, and never faster than on fewer threads (under load more threads
+        can be slower, and a chunk's count is chosen by the kernels as it starts); with none
+        on that count, also a full loss from the counts above it (0 before any chunk)."""
 
         def of(q: int) -> float:
-            d = self.chunks[q]
-            return sum(sec for _, sec in d) / sum(size for size, _ in d)
+            d = list(self.chunks[q])
+            return max(sum(sec for _, sec in part) / sum(size for size, _ in part)
+                       for part in (d, d[-WINDOW:]))
 
         counts = [q for q, d in self.chunks.items() if d]
         fewer = [of(q) for q in counts if q < threads]
         if threads in counts:
             return max([of(threads), *fewer])
         return max(fewer + [of(q) * q / threads for q in counts if q > threads], default=0.0)
+
+    def tail_rate(self) -> float:
+        """The median of the recent steps' tail per sample (0 before any)."""
+        return float(np.median(self.tail)) if self.tail else 0.0
+
+    def end_step(self, samples: int, tail_s: float) -> None:
+        """Record a step's tail (its first step only counts the step: first calls)."""
+        self.steps += 1
+        if self.steps == 1 or samples < 1:
+            return
+        if self.tail:
+            self.excess.append(max(0.0, tail_s - samples * self.tail_rate()))
+        self.tail.append(tail_s / samples)
 
     def stall(self) -> float:
         """The largest recent excess of a chunk over the rate expected before it (0 before
@@ -109,7 +128,8 @@ class DeadlineHistory:
     def add(self, size: int, seconds: float, threads: int = 1) -> None:
         if any(self.chunks.values()):
             self.excess.append(max(0.0, seconds - size * self.rate(threads)))
-        self.chunks.setdefault(threads, deque(maxlen=WINDOW)).append((max(size, 1), seconds))
+        self.chunks.setdefault(threads, deque(maxlen=STALL_WINDOW)).append((max(size, 1),
+                                                                            seconds))
 
 
 def least_chunk(chunk: int) -> int:
@@ -135,12 +155,13 @@ class StepClock:
 
     def room(self, threads: int = 1) -> float:
         """How many samples fit now on ``threads`` threads (may be < 0): the time left after
-        the guard, the longest recent tail and the largest recent stall, over the recent rate
-        on that count (inf before any chunk)."""
+        the guard, the largest recent stall and the tail of the samples drawn so far, over the
+        recent rate on that count plus the tail per sample (inf before any chunk)."""
         h = self.history
+        tail = h.tail_rate()
         left = (self.deadline_s * (1.0 - GUARD) - (time.perf_counter() - self.t0)
-                - max(h.tail, default=0.0) - h.stall())
-        per = h.rate(threads)
+                - h.stall() - tail * self.samples)
+        per = h.rate(threads) + tail
         return left / per if per > 0 else (math.inf if left > 0 else -math.inf)
 
     def fits(self, size: int) -> float:
@@ -163,7 +184,7 @@ class StepClock:
     def report(self, planned: int) -> DeadlineReport:
         now = time.perf_counter()
         if self.sampled_at is not None:
-            self.history.tail.append(now - self.sampled_at)
+            self.history.end_step(self.samples, now - self.sampled_at)
         return DeadlineReport(self.deadline_s, self.samples, planned, self.iterations,
                               self.truncated, now - self.t0)
 
