@@ -89,8 +89,15 @@ def method_latency(steps: int = 300, seed: int = 0) -> list[dict]:
     return out
 
 
+LOAD_UP_S = 1.0  # the load's processes start (the interpreter loads) before the first step
+
+
 def _busy(n: int) -> list[subprocess.Popen]:
-    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    """``n`` busy processes, running when this returns (a deadline's first steps seed its
+    estimates: a warm-up step that ran before the load was up made them too optimistic)."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    time.sleep(LOAD_UP_S)
+    return procs
 
 
 def _stop(procs: list[subprocess.Popen]) -> None:

@@ -226,10 +226,11 @@ def pass_order(table: pd.DataFrame) -> tuple[tuple[str, ...], ...]:
 def order_text(order: tuple[tuple[str, ...], ...],
                label: Callable[[str], str] | Mapping[str, str] = str) -> str:
     """``a < {b, c} < d``: an order with its ties, in words."""
-    name = label.get if isinstance(label, Mapping) else label
+    def name(m: str) -> str:
+        return str(label.get(m, m)) if isinstance(label, Mapping) else str(label(m))
 
     def one(g: tuple[str, ...]) -> str:
-        names = [str(name(m) or m) for m in g]  # type: ignore[operator]
+        names = [name(m) for m in g]
         return names[0] if len(names) == 1 else "{" + ", ".join(names) + "}"
 
     return " < ".join(one(g) for g in order)
