@@ -168,8 +168,8 @@ def replay(config: StudyConfig, name: str, thresholds: Thresholds, variance: flo
 
 
 def cost_plan(finished: Finished) -> CostPlan:
-    """The run's cost pass: each controller alone on one thread, the same episode every round
-    (:func:`replay`), ``config.cost_rounds`` rounds."""
+    """The run's cost pass: every controller on its own episode (:func:`replay`), kernels on
+    one thread, in lock step, ``config.cost_rounds`` rounds."""
     config: StudyConfig = finished.config
     v, n = max(config.variances), min(config.cost_steps, config.steps)
     runs = {c: partial(replay, config, c, finished.prepared, v, n) for c in config.controllers}
