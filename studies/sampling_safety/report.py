@@ -18,7 +18,7 @@ from workbench import plot
 from workbench.scenarios.mechanism_health import console_lines, headline, report_lines
 from workbench.scenarios.methods import labels, markers, method
 from workbench.study import md_table, png_bytes, to_jsonable
-from workbench.study.cost_pass import order_text
+from workbench.study.cost_pass import order_text, stored_pass
 from workbench.study.io import atomic_write_bytes, atomic_write_text
 from workbench.study.latency import LATENCY_HEADER, LATENCY_NOTE
 from workbench.study.spec import Summary
@@ -319,7 +319,7 @@ def summary(finished) -> Summary:
     """summary.json: the cells (safety, collision-free samples, ESS, time per step and
     mechanism activity, with intervals), paired tests, mechanism health, the verdicts on the
     paper's claim (1); one console line per cell and per mechanism-health problem."""
-    s = summarise(finished.config, finished.store, finished.cost_pass())
+    s = summarise(finished.config, finished.store, stored_pass(finished))
     names = labels()
     lines = tuple(f"{names[c.controller]:30s} var {c.variance:6g}  safety {100 * c.safety:5.1f} % "
                   f"[{100 * c.ci_low:.0f}, {100 * c.ci_high:.0f}]  collision-free samples "

@@ -22,6 +22,7 @@ from workbench.study.cost_pass import (
     order_text,
     pass_costs,
     pass_order,
+    stored_pass,
     run_pass,
     separated,
 )
@@ -171,7 +172,7 @@ def _cost(finished):
 
 
 def _summary(finished):
-    got = finished.cost_pass()
+    got = stored_pass(finished)
     return Summary({"measured": got is not None}, got)
 
 

@@ -37,7 +37,7 @@ from scipy import stats
 
 from workbench.study.io import atomic_write_json
 from workbench.study.latency import Latency
-from workbench.study.store import RunStore
+from workbench.study.store import RunStore, tasks_sha256
 from workbench.validation import fail, integer
 
 FILE = "cost_pass"
@@ -152,6 +152,12 @@ def load_pass(out: Path, tasks_sha256: str | None = None) -> CostPass | None:
     if tasks_sha256 is not None and meta.get("tasks_sha256") != tasks_sha256:
         return None
     return CostPass(table, meta)
+
+
+def stored_pass(finished) -> CostPass | None:
+    """The cost pass of a finished run (a :class:`~workbench.study.spec.Finished`), None when it
+    has none (a study without one, or a run stored before it measured one)."""
+    return load_pass(finished.out, tasks_sha256(finished.ids.values()))
 
 
 def _round_means(table: pd.DataFrame) -> pd.DataFrame:

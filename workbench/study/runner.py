@@ -40,7 +40,7 @@ from typing import Any
 
 from workbench.study import config_io
 from workbench.study.config_io import ConfigError
-from workbench.study.cost_pass import run_pass
+from workbench.study.cost_pass import stored_pass, run_pass
 from workbench.study.execute import (
     RunResult,
     check_timeout,
@@ -180,7 +180,7 @@ def _prepared(spec: StudySpec, config: Any, out: Path) -> tuple[Study, Finished]
 def _cost_pass(spec: StudySpec, study: Study, finished: Finished) -> None:
     """Measure the study's cost pass once per run, here, after every task has finished (kept
     when the folder already holds one for these tasks)."""
-    if spec.cost is None or finished.cost_pass() is not None:
+    if spec.cost is None or stored_pass(finished) is not None:
         return
     plan = spec.fn("cost")(finished)
     log.info("cost pass: %d methods, %d rounds (%s)", len(plan.runs), plan.rounds, plan.what)

@@ -25,7 +25,7 @@ from workbench.study.config_io import ConfigError
 from workbench.validation import fail
 
 if TYPE_CHECKING:
-    from workbench.study.cost_pass import CostPass, CostPlan
+    from workbench.study.cost_pass import CostPlan
     from workbench.study.store import RunStore
 
 
@@ -76,14 +76,6 @@ class Finished:
     prepared: Any = None
     run_line: str = ""  # wall time, tasks, back end and load: for the report
 
-    def cost_pass(self) -> CostPass | None:
-        """The run's cost pass (:mod:`workbench.study.cost_pass`), None when it has none (a
-        study without one, or a run stored before it measured one)."""
-        from workbench.study.cost_pass import load_pass
-        from workbench.study.store import tasks_sha256
-
-        return load_pass(self.out, tasks_sha256(self.ids.values()))
-
 
 @dataclass(frozen=True)
 class Summary:
@@ -112,7 +104,8 @@ class StudySpec:
     paper(out) -> [PaperRow] for the report site; aliases: short ``--set`` keys -> dotted keys;
     cost(finished) -> :class:`~workbench.study.cost_pass.CostPlan`: the methods' cost pass,
     measured once per run in the coordinating process after every task has finished
-    (:mod:`workbench.study.cost_pass`; the summary reads it with ``finished.cost_pass()``);
+    (:mod:`workbench.study.cost_pass`; the summary reads it with
+    :func:`~workbench.study.cost_pass.stored_pass`);
     figure: the headline figure's file name; default_profile; store_name: the name that enters
     task ids (default: the folder's name); default_out: ``reports/<folder name>``.
     """
