@@ -22,9 +22,9 @@ from workbench.study.cost_pass import (
     order_text,
     pass_costs,
     pass_order,
-    stored_pass,
     run_pass,
     separated,
+    stored_pass,
 )
 from workbench.study.runner import rebuild_report, run
 from workbench.study.spec import Declaration, StudySpec, Summary

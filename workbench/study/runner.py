@@ -40,7 +40,7 @@ from typing import Any
 
 from workbench.study import config_io
 from workbench.study.config_io import ConfigError
-from workbench.study.cost_pass import stored_pass, run_pass
+from workbench.study.cost_pass import run_pass, stored_pass
 from workbench.study.execute import (
     RunResult,
     check_timeout,
