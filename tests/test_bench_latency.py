@@ -4,6 +4,12 @@ percentiles."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+
+import pytest
+
+import benchmarks.latency as latency
 from benchmarks.__main__ import _tail
 from benchmarks.latency import markdown
 from benchmarks.report import report_markdown
@@ -51,3 +57,27 @@ def test_console_line_prints_percentiles():
     assert _tail(lat) == "  p50/p95/p99/max 2.00/3.00/3.75/9.00 ms"
     assert _tail(dl) == "  p50/p95/p99/max 19.00/19.50/20.50/21.50 ms"
     assert _tail(record("other", 1.0, "ms", None, None, {})) == ""
+
+
+def test_deadline_records_run_in_a_process_with_one_blas_thread(monkeypatch):
+    """The deadline records run in a child whose environment gives BLAS one thread (read
+    once, when numpy loads), and each record says so; a failing child raises with its
+    stderr."""
+    seen = {}
+
+    def fake_run(cmd, env, capture_output, text, check):
+        seen["env"] = env
+        out = [{"name": "deadline_x", "params": {"budget_ms": 20.0}}]
+        return subprocess.CompletedProcess(cmd, 0, json.dumps(out), "")
+
+    monkeypatch.setattr(latency.subprocess, "run", fake_run)
+    got = latency.deadline_records_child()
+    assert seen["env"]["OPENBLAS_NUM_THREADS"] == "1"
+    assert got[0]["params"]["env"] == {"OPENBLAS_NUM_THREADS": "1"}
+
+    def failing(cmd, env, capture_output, text, check):
+        return subprocess.CompletedProcess(cmd, 1, "", "Traceback: boom")
+
+    monkeypatch.setattr(latency.subprocess, "run", failing)
+    with pytest.raises(RuntimeError, match="boom"):
+        latency.deadline_records_child()
