@@ -160,8 +160,8 @@ def deadline_records(steps: int = 1000, episodes: int = 4, episode_steps: int = 
 
 # the deadline records' process: numpy's BLAS on one thread. Under a load of 2 its worker
 # threads compete with the sampling kernel and the load; with them, 2-3 of the 4 records held
-# the stated margin per run (steps stalled 20-65 ms), with one BLAS thread all 4 held and the
-# controllers drew 1.5-1.7x the samples (README, "Deadlines")
+# the stated margin per run (steps stalled 20-65 ms); with one BLAS thread 4, 4 and 3 of 4
+# held over three runs and the controllers drew 1.5-1.7x the samples (README, "Deadlines")
 DEADLINE_ENV = {"OPENBLAS_NUM_THREADS": "1"}
 
 
