@@ -77,6 +77,25 @@ STALL_WINDOW = 400
 STATED_MARGIN = 0.25
 
 
+class _Window:
+    """The last ``n`` chunks (samples, seconds) of one thread count with their running totals,
+    so that a rate costs no pass over the chunks (it is read several times per chunk)."""
+
+    def __init__(self, n: int) -> None:
+        self.items: deque[tuple[int, float]] = deque()
+        self.n, self.size, self.sec = n, 0, 0.0
+
+    def push(self, size: int, sec: float) -> None:
+        self.items.append((size, sec))
+        self.size, self.sec = self.size + size, self.sec + sec
+        if len(self.items) > self.n:
+            old_size, old_sec = self.items.popleft()
+            self.size, self.sec = self.size - old_size, self.sec - old_sec
+
+    def rate(self) -> float:
+        return self.sec / self.size
+
+
 class DeadlineHistory:
     """A controller's recent chunks (samples and seconds, the last :data:`STALL_WINDOW` per
     thread count), their excess over the rate then expected (the last :data:`STALL_WINDOW`)
@@ -84,7 +103,8 @@ class DeadlineHistory:
     :data:`WINDOW` steps after the first)."""
 
     def __init__(self) -> None:
-        self.chunks: dict[int, deque[tuple[int, float]]] = {}
+        # per thread count: (the last WINDOW chunks, the last STALL_WINDOW chunks)
+        self.chunks: dict[int, tuple[_Window, _Window]] = {}
         self.excess: deque[float] = deque(maxlen=STALL_WINDOW)
         self.tail: deque[float] = deque(maxlen=WINDOW)  # seconds per sample of each tail
         self.steps = 0
@@ -95,17 +115,12 @@ class DeadlineHistory:
         :data:`STALL_WINDOW`, and never faster than on fewer threads (under load more threads
         can be slower, and a chunk's count is chosen by the kernels as it starts); with none
         on that count, also a full loss from the counts above it (0 before any chunk)."""
-
-        def of(q: int) -> float:
-            d = list(self.chunks[q])
-            return max(sum(sec for _, sec in part) / sum(size for size, _ in part)
-                       for part in (d, d[-WINDOW:]))
-
-        counts = [q for q, d in self.chunks.items() if d]
-        fewer = [of(q) for q in counts if q < threads]
-        if threads in counts:
-            return max([of(threads), *fewer])
-        return max(fewer + [of(q) * q / threads for q in counts if q > threads], default=0.0)
+        of = {q: max(short.rate(), long.rate()) for q, (short, long) in self.chunks.items()}
+        fewer = [r for q, r in of.items() if q < threads]
+        if threads in of:
+            return max([of[threads], *fewer])
+        return max(fewer + [r * q / threads for q, r in of.items() if q > threads],
+                   default=0.0)
 
     def tail_rate(self) -> float:
         """The median of the recent steps' tail per sample (0 before any)."""
@@ -126,10 +141,11 @@ class DeadlineHistory:
         return max(self.excess, default=0.0)
 
     def add(self, size: int, seconds: float, threads: int = 1) -> None:
-        if any(self.chunks.values()):
+        if self.chunks:
             self.excess.append(max(0.0, seconds - size * self.rate(threads)))
-        self.chunks.setdefault(threads, deque(maxlen=STALL_WINDOW)).append((max(size, 1),
-                                                                            seconds))
+        windows = self.chunks.setdefault(threads, (_Window(WINDOW), _Window(STALL_WINDOW)))
+        for w in windows:
+            w.push(max(size, 1), seconds)
 
 
 def least_chunk(chunk: int) -> int:

@@ -220,9 +220,11 @@ def pass_order(table: pd.DataFrame) -> tuple[tuple[str, ...], ...]:
     """Methods by CPU time per step in the pass, cheapest first, in tie groups: a method joins
     the group before it when the paired comparison by rounds (:func:`separated`, at
     :data:`RESOLUTION`) does not separate it from some member of that group."""
+    logs = np.log(_round_means(table))  # once: each pair below is a difference of two rows
     groups: list[list[str]] = []
     for name in pass_costs(table):
-        if groups and any(not separated(table, name, g) for g in groups[-1]):
+        if groups and any(not apart((logs.loc[name] - logs.loc[g]).to_numpy(float))
+                          for g in groups[-1]):
             groups[-1].append(name)
         else:
             groups.append([name])
