@@ -27,16 +27,15 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
-from functools import cache
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-from scipy import stats
 
 from workbench.study.io import atomic_write_json
 from workbench.study.latency import Latency
+from workbench.study.stats import t_interval
 from workbench.study.store import RunStore, tasks_sha256
 from workbench.validation import fail, integer
 
@@ -165,26 +164,13 @@ def _round_means(table: pd.DataFrame) -> pd.DataFrame:
     return table.groupby(["method", "round"])["cpu_ms"].mean().unstack("round")
 
 
-@cache
-def _t975(df: int) -> float:
-    return float(stats.t.ppf(0.975, df))
-
-
-def _interval(values: np.ndarray) -> tuple[float, float, float]:
-    m = float(values.mean())
-    if values.size < 2:
-        return m, math.nan, math.nan
-    half = _t975(values.size - 1) * float(values.std(ddof=1)) / math.sqrt(values.size)
-    return m, m - half, m + half
-
-
 def pass_costs(table: pd.DataFrame) -> dict[str, PassCost]:
     """Per method, cheapest first: CPU ms per step and its 95 % interval over rounds, and the
     wall-clock p50 / p95 / p99 / max over every recorded step."""
     means = _round_means(table)
     out = {}
     for name in means.mean(axis=1).sort_values().index:
-        m, lo, hi = _interval(means.loc[name].dropna().to_numpy(float))
+        m, lo, hi = t_interval(means.loc[name].dropna().to_numpy(float))
         wall = table.loc[table["method"] == name, "wall_ms"]
         out[str(name)] = PassCost(str(name), m, lo, hi, Latency.of(wall, f"{name} wall_ms"),
                                   int(means.loc[name].notna().sum()))
@@ -211,7 +197,7 @@ def apart(log_ratios: np.ndarray, resolution: float = RESOLUTION) -> bool:
     d = d[np.isfinite(d)]
     if d.size < 2:
         return False
-    _, lo, hi = _interval(d)
+    _, lo, hi = t_interval(d)
     edge = math.log1p(resolution)
     return bool(lo > edge or hi < -edge)
 

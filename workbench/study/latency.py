@@ -21,9 +21,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 from workbench.study.report import md_table
+from workbench.study.stats import t_interval
 from workbench.validation import fail
 
 PERCENTILES = (50.0, 95.0, 99.0)
@@ -72,12 +72,7 @@ def step_table(wall_s, cpu_s) -> dict[str, np.ndarray]:
 
 def mean_interval(values) -> tuple[float, float, float]:
     """Mean and 95 % t-interval of the mean (a single value: the value, nan interval)."""
-    v = _times("values", values)
-    m = float(v.mean())
-    if v.size < 2:
-        return m, math.nan, math.nan
-    half = float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / math.sqrt(v.size))
-    return m, m - half, m + half
+    return t_interval(_times("values", values))
 
 
 def cost_order(cpu_ms: Mapping[str, Sequence[float] | np.ndarray]) -> tuple[tuple[str, ...], ...]:

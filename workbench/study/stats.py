@@ -5,12 +5,30 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
+from scipy import stats
 
 from workbench.validation import fail, integer, real
 
 Z_95 = 1.959963984540054  # standard normal quantile 0.975
+
+
+@cache
+def _t975(df: int) -> float:
+    return float(stats.t.ppf(0.975, df))
+
+
+def t_interval(values: np.ndarray) -> tuple[float, float, float]:
+    """Mean of ``values`` and the 95 % t-interval of the mean (a single value: the value and
+    a nan interval)."""
+    v = np.asarray(values, dtype=float)
+    m = float(v.mean())
+    if v.size < 2:
+        return m, math.nan, math.nan
+    half = _t975(v.size - 1) * float(v.std(ddof=1)) / math.sqrt(v.size)
+    return m, m - half, m + half
 
 
 def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
