@@ -18,6 +18,7 @@ from workbench.problem.obstacles import Circle
 from workbench.sampling import deadline
 from workbench.sampling.deadline import (
     DeadlineHistory,
+    JoinBuffers,
     StepClock,
     chunk_sizes,
     least_chunk,
@@ -128,9 +129,9 @@ def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkey
     """Each sample costs 1 ms and each step's tail 5 ms; a 100 ms deadline keeps 90 ms after
     the guard, and each part needs at most half the time left. Step 1: 51 (no history yet),
     then 19 (of 39 ms left), 10 (of 20), and 5 would fit, below the least chunk (7): stop at
-    80. Step 2 (the first step's tail is not counted: first calls): 45, the 6 left of that
-    chunk, 19, 10. Step 3 charges each sample the tail per sample of step 2 (5 ms / 80):
-    int(90 / 1.0625 / 2) = 42, then 9, 16 and 8: 75."""
+    80. Step 2 charges each sample the first step's tail per sample (5 ms / 80, the only one
+    known): int(90 / 1.0625 / 2) = 42, then 9, 16 and 8: 75. Step 3 charges step 2's tail
+    per sample instead (5 ms / 75; the first step's is never in the median): the same 75."""
     fake = FakeClock()
     monkeypatch.setattr(deadline, "time", fake)
     hist, steps = DeadlineHistory(), []
@@ -148,8 +149,8 @@ def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkey
         fake.now += 5e-3  # the step's tail
         assert not clock.report(N).missed
         steps.append(sizes)
-    assert steps == [[51, 19, 10], [45, 6, 19, 10], [42, 9, 16, 8]]
-    assert hist.tail_rate() == pytest.approx((5e-3 / 80 + 5e-3 / 75) / 2, rel=1e-9)  # median
+    assert steps == [[51, 19, 10], [42, 9, 16, 8], [42, 9, 16, 8]]
+    assert hist.tail_rate() == pytest.approx(5e-3 / 75, rel=1e-9)  # median of steps 2, 3
 
 
 def test_a_stall_is_kept_free_in_later_steps(monkeypatch):
@@ -268,3 +269,33 @@ def test_controllers_without_a_deadline_refuse_it(problems):
                                      threshold=ConstantThreshold(-1e9))):
         with pytest.raises(ValueError, match=r"^MPPIConfig\.deadline_s = 0\.05"):
             build()
+
+
+def test_join_buffers_join_into_one_buffer_per_field_and_reuse_it():
+    """A join equals np.concatenate and is contiguous (BLAS reads it without a copy); a
+    later join that fits reuses the field's buffer (the same memory), one that does not, or
+    of another dtype, gets a new one."""
+    rng = np.random.default_rng(3)
+    jb = JoinBuffers(10)
+    parts = [rng.normal(size=(4, 2, n)) for n in (3, 5)]
+    a = jb.cat("v", parts, -1)
+    np.testing.assert_array_equal(a, np.concatenate(parts, axis=-1))
+    assert a.flags.c_contiguous and jb.arrays["v"].size == 4 * 2 * 10
+    buf = jb.arrays["v"]
+    b = jb.cat("v", [parts[1], parts[0], parts[0]], -1)  # 11 samples: more than 10
+    np.testing.assert_array_equal(b, np.concatenate([parts[1], parts[0], parts[0]], axis=-1))
+    assert jb.arrays["v"].size == 4 * 2 * 11 and not np.shares_memory(b, buf)
+    c = jb.cat("v", [parts[0], parts[0]], -1)  # 6 fit: the same buffer
+    np.testing.assert_array_equal(c, np.concatenate([parts[0], parts[0]], axis=-1))
+    assert np.shares_memory(b, c) and c.flags.c_contiguous
+    flags = [rng.random(n) < 0.5 for n in (3, 4)]
+    f = jb.cat("crashed", flags)
+    assert f.dtype == bool
+    np.testing.assert_array_equal(f, np.concatenate(flags))
+    wide = [rng.normal(size=(4, 3, 9))]  # 108 entries: more than the 88 there is room for
+    np.testing.assert_array_equal(jb.cat("v", wide, -1), wide[0])
+    assert jb.arrays["v"].size == 4 * 3 * 10
+    rows = [rng.normal(size=(n, 3)) for n in (2, 3)]  # along the first axis
+    np.testing.assert_array_equal(jb.cat("rows", rows), np.concatenate(rows))
+    as32 = [p.astype(np.float32) for p in parts]  # another dtype: a new buffer
+    assert jb.cat("v", as32, -1).dtype == np.float32

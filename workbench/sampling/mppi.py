@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, partial
 from typing import Literal
 
 import numpy as np
@@ -25,6 +25,7 @@ from scipy.signal import savgol_filter
 from workbench.sampling.deadline import (
     DeadlineHistory,
     DeadlineReport,
+    JoinBuffers,
     StepClock,
     kernel_threads,
     sample_within,
@@ -169,11 +170,13 @@ class MPPIConfig:
         return cls(sigma=tuple(np.sqrt(np.diag(S))), **kw)
 
 
-def join_mppi(parts: list[MPPIBatch]) -> MPPIBatch:
-    """One batch of the samples of several (the chunks of a step with a deadline)."""
-    return MPPIBatch(S=np.concatenate([b.S for b in parts]),
-                     crashed=np.concatenate([b.crashed for b in parts]),
-                     v=np.concatenate([b.v for b in parts], axis=-1))
+def join_mppi(parts: list[MPPIBatch], into: JoinBuffers | None = None) -> MPPIBatch:
+    """One batch of the samples of several (the chunks of a step with a deadline): new
+    arrays, or views of the controller's buffers ``into``."""
+    cat = (lambda name, xs, axis=0: np.concatenate(xs, axis=axis)) if into is None else into.cat
+    return MPPIBatch(S=cat("S", [b.S for b in parts]),
+                     crashed=cat("crashed", [b.crashed for b in parts]),
+                     v=cat("v", [b.v for b in parts], -1))
 
 
 @dataclass(frozen=True)
@@ -212,6 +215,7 @@ class MPPI(RecordsSamples, PlansToGoal):
         self.sp, self.cfg = sp, config
         self.sampler = Sampler(sp, config.backend, config.precision)
         self._deadline_history = DeadlineHistory()  # recent chunk and tail times
+        self._joined = JoinBuffers(config.n_samples)  # where a deadline step joins its chunks
         self._plan_to(goal, config)
 
     def initial_state(self, x0=None) -> MPPIState:
@@ -235,7 +239,7 @@ class MPPI(RecordsSamples, PlansToGoal):
                     return self.sampler.mppi(xb, U, n, self.consts, seed)
 
                 got = sample_within(clock, cfg.n_samples, cfg.chunks, draw, rng,
-                                    join_mppi)
+                                    partial(join_mppi, into=self._joined))
                 if got is None:
                     break
                 batch = got

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -29,6 +30,7 @@ from workbench.codegen.fastcall import FastFunction
 from workbench.sampling.deadline import (
     DeadlineHistory,
     DeadlineReport,
+    JoinBuffers,
     StepClock,
     kernel_threads,
     sample_within,
@@ -167,13 +169,15 @@ class RMPPIInfo:
                          ess=self.ess_nom, activity=act)
 
 
-def join_sais(parts: list[SAISBatch]) -> SAISBatch:
-    """One SAIS batch of the samples of several (the chunks of a step with a deadline)."""
-    cat = {f: np.concatenate([getattr(b, f) for b in parts])
-           for f in ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "crashed_real",
-                     "crashed_nom")}
-    return SAISBatch(**cat, v_nom=np.concatenate([b.v_nom for b in parts], axis=-1),
-                     v_real=np.concatenate([b.v_real for b in parts], axis=-1))
+def join_sais(parts: list[SAISBatch], into: JoinBuffers | None = None) -> SAISBatch:
+    """One SAIS batch of the samples of several (the chunks of a step with a deadline): new
+    arrays, or views of the controller's buffers ``into``."""
+    cat = (lambda name, xs, axis=0: np.concatenate(xs, axis=axis)) if into is None else into.cat
+    per_sample = {f: cat(f, [getattr(b, f) for b in parts])
+                  for f in ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "crashed_real",
+                            "crashed_nom")}
+    return SAISBatch(**per_sample, v_nom=cat("v_nom", [b.v_nom for b in parts], -1),
+                     v_real=cat("v_real", [b.v_real for b in parts], -1))
 
 
 def strides(n_candidates: int, s: int = 1) -> np.ndarray:
@@ -224,6 +228,7 @@ class RobustMPPI(RecordsSamples):
         self.sp, self.cfg, self.rcfg = sp, config, robust
         self.sampler = self.mppi.sampler
         self._deadline_history = DeadlineHistory()  # recent chunk and tail times
+        self._joined = JoinBuffers(config.n_samples)  # where a deadline step joins its chunks
         self.consts = replace(self.mppi.consts, alpha=robust.alpha,
                               clip_in_cost=bool(robust.clip_in_cost))
         self.feedback = feedback or ILQGFeedback(sp.model, config.horizon, sp.nx)
@@ -368,7 +373,7 @@ class RobustMPPI(RecordsSamples):
                     return self.sampler.sais(xb, x_nom, U, K, n, consts, seed)
 
                 got = sample_within(clock, cfg.n_samples, cfg.chunks, draw, rng,
-                                    join_sais)
+                                    partial(join_sais, into=self._joined))
                 if got is None:
                     break
                 b = got
