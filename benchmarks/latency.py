@@ -17,7 +17,6 @@ how often the deadline cut the samples, and the crash rate over a few disturbed 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import time
@@ -158,27 +157,16 @@ def deadline_records(steps: int = 1000, episodes: int = 4, episode_steps: int = 
     return out
 
 
-# the deadline records' process: numpy's BLAS on one thread. Under a load of 2 its worker
-# threads compete with the sampling kernel and the load; with them, 2-3 of the 4 records held
-# the stated margin per run (steps stalled 20-65 ms); with one BLAS thread 4, 4 and 3 of 4
-# held over three runs and the controllers drew 1.5-1.7x the samples (README, "Deadlines")
-DEADLINE_ENV = {"OPENBLAS_NUM_THREADS": "1"}
-
-
 def deadline_records_child() -> list[dict]:
-    """:func:`deadline_records` in a child process whose environment adds
-    :data:`DEADLINE_ENV` (set before numpy loads: BLAS reads it once)."""
+    """:func:`deadline_records` in a fresh child process (no memory or threads left by the
+    benchmarks before it)."""
     code = ("import json, sys; from benchmarks.latency import deadline_records; "
             "json.dump(deadline_records(), sys.stdout)")
-    env = {**os.environ, **DEADLINE_ENV}
-    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                          text=True, check=False)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=False)
     if done.returncode:
         raise RuntimeError(f"deadline records failed in their process:\n{done.stderr[-2000:]}")
-    out = json.loads(done.stdout)
-    for r in out:
-        r["params"]["env"] = dict(DEADLINE_ENV)
-    return out
+    return json.loads(done.stdout)
 
 
 def records(repeats: int) -> list[dict]:
@@ -240,8 +228,8 @@ def markdown(records_: list[dict]) -> list[str]:
         lines += ["", "## Deadlines under a load of 2", "",
                   "`MPPIConfig.deadline_s` at a 20 Hz and a 50 Hz budget, 8192 samples per step "
                   "(more than fit), two busy processes beside the benchmark, 1000 steps after "
-                  "one warm-up step, in a process with numpy's BLAS on one thread "
-                  "(`OPENBLAS_NUM_THREADS=1`: see the README). Overshoot: the largest step "
+                  "one warm-up step, in a fresh process (a step with a deadline runs numpy's BLAS "
+                  "on one thread: see the README). Overshoot: the largest step "
                   "time over the budget. Stated "
                   f"margin: {100 * STATED_MARGIN:.0f} % of the budget; CPU: the process's CPU "
                   "time of the steps beyond it (well below their wall time: the process "

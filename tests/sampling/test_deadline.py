@@ -299,3 +299,34 @@ def test_join_buffers_join_into_one_buffer_per_field_and_reuse_it():
     np.testing.assert_array_equal(jb.cat("rows", rows), np.concatenate(rows))
     as32 = [p.astype(np.float32) for p in parts]  # another dtype: a new buffer
     assert jb.cat("v", as32, -1).dtype == np.float32
+
+
+def test_a_deadline_step_runs_blas_on_one_thread_and_restores_it(problems):
+    """MPPI and the robust controllers: inside a step with a deadline numpy's BLAS has one
+    thread; without a deadline, and after the step, it has the count set before (2)."""
+    from threadpoolctl import ThreadpoolController, threadpool_limits
+
+    blas = ThreadpoolController().select(user_api="blas")
+    if not blas.lib_controllers:
+        pytest.skip("numpy's BLAS is not one threadpoolctl can limit")
+    bas, _ = problems
+    seen: dict[tuple[str, float | None], set[int]] = {}
+    for deadline_s in (None, 1.0):
+        ctrls = {"mppi": MPPI(bas, GOAL, cfg(deadline_s=deadline_s)),
+                 "robust": RobustMPPI(bas, GOAL, cfg(deadline_s=deadline_s),
+                                      threshold=ConstantThreshold(1e4))}
+        for name, ctrl in ctrls.items():
+            counts = seen.setdefault((name, deadline_s), set())
+            for kernel in ("mppi", "sais"):
+                orig = getattr(ctrl.sampler, kernel)
+
+                def spy(*a, orig=orig, counts=counts, **k):
+                    counts.add(blas.info()[0]["num_threads"])
+                    return orig(*a, **k)
+
+                setattr(ctrl.sampler, kernel, spy)
+            with threadpool_limits(2, user_api="blas"):
+                ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(0))
+                assert blas.info()[0]["num_threads"] == 2
+    assert seen == {("mppi", None): {2}, ("robust", None): {2}, ("mppi", 1.0): {1},
+                    ("robust", 1.0): {1}}

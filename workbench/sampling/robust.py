@@ -33,6 +33,7 @@ from workbench.sampling.deadline import (
     JoinBuffers,
     StepClock,
     kernel_threads,
+    one_blas_thread,
     sample_within,
 )
 from workbench.sampling.feedback.base import FeedbackLaw, Gains
@@ -337,6 +338,7 @@ class RobustMPPI(RecordsSamples):
         F = np.array([free_energy(S_i, cfg.lam) for S_i in S.reshape(nc, M)])
         return self._choose(state, starts, F, self.threshold(starts[:, :n]))
 
+    @one_blas_thread
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         """One control step: selection, gains, SAIS batch(es), update (``fast``: the
         vectorised step, else :meth:`step_twin`)."""
