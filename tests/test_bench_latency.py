@@ -26,13 +26,17 @@ def records() -> list[dict]:
                   "max_ms": 9.0, "mean_ms": 2.2, "cpu_mean_ms": 2.1, "variance": 100.0,
                   "tail": TAIL})
     dl = record("deadline_sa_rmppi_50hz", 1.5, "ms (max over budget)", None, None,
-                {"budget_ms": 20.0, "steps": 1000, "load": 2, "n_samples": 8192, "misses": 3,
+                {"budget_ms": 20.0, "steps": 1000, "load": 2, "loop": "at the rate",
+                 "n_samples": 8192, "misses": 3,
                  "p50_ms": 19.0, "p95_ms": 19.5, "p99_ms": 20.5, "max_ms": 21.5,
                  "truncated": 1.0, "samples_mean": 2048.0, "crash_rate": 0.25, "episodes": 4,
                  "episode_steps": 200, "variance": 100.0, "stated_margin_ms": 5.0,
                  "holds": True, "beyond_margin_steps": 0, "beyond_margin_cpu_max_ms": None,
                  "cpu_p50_ms": 9.0})
-    return [lat, dl]
+    busy = record("deadline_sa_rmppi_50hz_back_to_back", 2.5, "ms (max over budget)", None,
+                  None, {**dl["params"], "loop": "back to back", "crash_rate": None,
+                         "episodes": 0, "misses": 7})
+    return [lat, dl, busy]
 
 
 def test_report_has_percentiles_tail_sources_and_deadlines():
@@ -40,8 +44,10 @@ def test_report_has_percentiles_tail_sources_and_deadlines():
     assert "| method | p50 | p95 | p99 | max |" in text
     assert "| sa_rmppi | 2.00 | 3.00 | 3.75 | 9.00 | 2.10 | 9.00 | 3.50 | 2 (4.25) | 2.75 | " \
            "1.50 | 0.25 |" in text
-    assert "| sa_rmppi_50hz | 20 | 1000 | 3 | 1.50 | 5.0 | yes | 0 | 19.00 | 20.50 | 100 % | " \
-           "2048 | 0.25 (4 × 200 steps) |" in text
+    assert "| sa_rmppi_50hz | at the rate | 20 | 1000 | 3 | 1.50 | 5.0 | yes | 0 | 19.00 | " \
+           "20.50 | 100 % | 2048 | 0.25 (4 × 200 steps) |" in text
+    assert "| sa_rmppi_50hz | back to back | 20 | 1000 | 7 | 2.50 | 5.0 | yes | 0 | 19.00 | " \
+           "20.50 | 100 % | 2048 | — |" in text
     broken = records()[1]
     broken["params"].update(holds=False, beyond_margin_steps=2, beyond_margin_cpu_max_ms=4.5,
                             beyond_margin_phases_ms=[{"step": 7, "wall_ms": 27.5, "cpu_ms": 4.5,
@@ -53,7 +59,7 @@ def test_report_has_percentiles_tail_sources_and_deadlines():
 
 
 def test_console_line_prints_percentiles():
-    lat, dl = records()
+    lat, dl, _ = records()
     assert _tail(lat) == "  p50/p95/p99/max 2.00/3.00/3.75/9.00 ms"
     assert _tail(dl) == "  p50/p95/p99/max 19.00/19.50/20.50/21.50 ms"
     assert _tail(record("other", 1.0, "ms", None, None, {})) == ""

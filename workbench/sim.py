@@ -396,7 +396,8 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
                 scene: SceneInput = None,
                 stop_at_goal: float | None = None, goal=None,
                 check_episode: bool = True,
-                goal_distance: Callable[[np.ndarray], float] | None = None) -> Episode:
+                goal_distance: Callable[[np.ndarray], float] | None = None,
+                period_s: float | None = None) -> Episode:
     """Run ``controller`` on the plant x+ = F(x, u) + w for ``steps`` steps; stop at a crash
     (min_i h_i <= 0 on the true plant, in the scene of that time). w acts on
     ``disturbance.indices(plant)`` (none when that is empty: a plant of one's own without a
@@ -423,8 +424,15 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     ``check_episode``: when the controller has a ``check_episode`` (see :class:`Controller`)
     and the infos are kept, hand it the episode before returning it (False: skip, e.g. in a
     study that checks all its episodes together).
+
+    ``period_s``: run the loop at a fixed rate, as a controller on a robot does: each step
+    starts one period after the last one started (the loop sleeps until then), or at once when
+    the last one took longer, and the period then counts from there (no burst of steps makes
+    up for a late one). None (the default): steps run back to back.
     """
     integer("steps", steps, 1)
+    if period_s is not None:
+        real("period_s", period_s, 0.0, strict=True)
     x = np.asarray(x0, dtype=float)
     if x.shape != (plant.nx,) or not np.all(np.isfinite(x)):
         raise fail("x0", x0, f"must be {plant.nx} finite numbers")
@@ -475,7 +483,13 @@ def closed_loop(controller: Controller, plant: Model, x0, steps: int,
     X, U, times, infos, stimes, cpu = [x.copy()], [], [], [], [], []
     scenes = [s] if moving else None
     crashed, crash_step = False, None
+    tick = time.perf_counter()  # when the next step is due (with period_s)
     for k in range(steps):
+        if period_s is not None:
+            now = time.perf_counter()
+            if now < tick:
+                time.sleep(tick - now)
+            tick = max(now, tick) + period_s
         t0 = time.perf_counter()
         if moving and set_scene is not None:
             set_scene(s)
