@@ -166,7 +166,7 @@ class JoinBuffers:
     ``capacity`` samples (more if a join needs it), allocated with every page written at its
     first join and reused by the later ones. A joined array is a contiguous view of it, valid
     until the controller's next join of that field. (A fresh array per step page-faulted tens
-    of MB in a controller's first steps: a join of 8192 samples took 13-40 ms under a load of
+    of MB in a controller's first steps: a join of 8192 samples took 13-78 ms under a load of
     2, against 0.1-1 ms once the memory was mapped.)"""
 
     def __init__(self, capacity: int) -> None:
