@@ -189,18 +189,29 @@ def records(repeats: int) -> list[dict]:
 def _phases(ep, wall: np.ndarray, beyond: np.ndarray, most: int = 3) -> list[dict]:
     """Where the time of the (at most ``most``) longest steps beyond the margin went: the
     controller's own phase timings (ms; the robust controllers time selection, K_safe, SAIS
-    and update), its samples, and the step's wall and CPU ms."""
+    and update), its samples, the step's wall and CPU ms, the tail after its last chunk and
+    each chunk's samples, wall ms, process CPU ms and threads."""
     out = []
     for k in np.argsort(wall)[::-1][:most]:
         if not beyond[k]:
             break
         info = ep.infos[k]
         phases = getattr(info, "timing", None) or {}
+        d = info.deadline
         out.append({"step": int(k), "wall_ms": float(wall[k]),
                     "cpu_ms": float(1e3 * ep.step_cpu_s[k]),
-                    "samples": int(info.deadline.samples) if info.deadline else None,
-                    **{f"{n}_ms": float(1e3 * v) for n, v in phases.items()}})
+                    "samples": int(d.samples) if d else None,
+                    **{f"{n}_ms": float(1e3 * v) for n, v in phases.items()},
+                    "tail_ms": float(1e3 * d.tail_s) if d else None,
+                    "chunks": [[n, 1e3 * w, 1e3 * c, t] for n, w, c, t in d.chunks] if d
+                    else []})
     return out
+
+
+def _chunks(q: dict) -> str:
+    """A step's chunks as ``samples: wall / CPU ms`` (threads when more than one)."""
+    return ", ".join(f"{n}: {w:.1f} / {c:.1f}" + (f" ({t} threads)" if t > 1 else "")
+                     for n, w, c, t in q.get("chunks") or [])
 
 
 def _beyond(p: dict) -> str:
@@ -273,5 +284,7 @@ def markdown(records_: list[dict]) -> list[str]:
             lines += [f"- {n}: " + ", ".join(f"{k.removesuffix('_ms')} {v:.1f}"
                                              for k, v in q.items()
                                              if k.endswith("_ms") and v is not None)
+                      + (f"; chunks (samples: wall / CPU ms) {_chunks(q)}" if q.get("chunks")
+                         else "")
                       for n, q in worst]
     return lines

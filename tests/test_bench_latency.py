@@ -51,10 +51,14 @@ def test_report_has_percentiles_tail_sources_and_deadlines():
     broken = records()[1]
     broken["params"].update(holds=False, beyond_margin_steps=2, beyond_margin_cpu_max_ms=4.5,
                             beyond_margin_phases_ms=[{"step": 7, "wall_ms": 27.5, "cpu_ms": 4.5,
-                                                      "samples": 64, "selection_ms": 20.25}])
+                                                      "samples": 64, "selection_ms": 20.25,
+                                                      "tail_ms": 1.5,
+                                                      "chunks": [[48, 2.5, 2.25, 1],
+                                                                 [16, 3.0, 1.0, 2]]}])
     text = "\n".join(markdown([broken]))
     assert "| 5.0 | **no** | 2 (4.5) |" in text
-    assert "- sa_rmppi_50hz: wall 27.5, cpu 4.5, selection 20.2" in text
+    assert ("- sa_rmppi_50hz: wall 27.5, cpu 4.5, selection 20.2, tail 1.5; chunks (samples: "
+            "wall / CPU ms) 48: 2.5 / 2.2, 16: 3.0 / 1.0 (2 threads)") in text
     assert "## Deadlines under a load of 2" in report_markdown(records(), {})
 
 

@@ -124,6 +124,9 @@ class FakeClock:
     def perf_counter(self) -> float:
         return self.now
 
+    def process_time(self) -> float:  # the process computes all the time it waits
+        return self.now
+
 
 def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkeypatch):
     """Each sample costs 1 ms and each step's tail 5 ms; a 100 ms deadline keeps 90 ms after
@@ -147,7 +150,11 @@ def test_a_deadline_that_fits_part_of_the_samples_shortens_the_last_chunk(monkey
         got = sample_within(clock, N, CHUNKS, draw, np.random.default_rng(0), sum)
         assert got == sum(sizes) and clock.truncated
         fake.now += 5e-3  # the step's tail
-        assert not clock.report(N).missed
+        rep = clock.report(N)
+        assert not rep.missed
+        assert rep.chunks == tuple((n, pytest.approx(n * 1e-3, rel=1e-9),
+                                    pytest.approx(n * 1e-3, rel=1e-9), 1) for n in sizes)
+        assert rep.tail_s == pytest.approx(5e-3, rel=1e-9)
         steps.append(sizes)
     assert steps == [[51, 19, 10], [42, 9, 16, 8], [42, 9, 16, 8]]
     assert hist.tail_rate() == pytest.approx(5e-3 / 75, rel=1e-9)  # median of steps 2, 3

@@ -55,7 +55,9 @@ B = TypeVar("B")
 class DeadlineReport:
     """What the deadline did in one step: ``samples`` drawn of ``planned`` (per iteration
     planned: n_samples), ``iterations`` run, ``truncated`` (work was cut), ``elapsed_s`` of the
-    controller's own clock at its return, ``missed`` (elapsed over the deadline)."""
+    controller's own clock at its return, ``missed`` (elapsed over the deadline); ``chunks``:
+    each chunk's (samples, wall seconds, process CPU seconds, threads), and ``tail_s`` from
+    the last chunk to the return (where an overrun's time went)."""
 
     deadline_s: float
     samples: int
@@ -63,6 +65,8 @@ class DeadlineReport:
     iterations: int
     truncated: bool
     elapsed_s: float
+    chunks: tuple[tuple[int, float, float, int], ...] = ()
+    tail_s: float = 0.0
 
     @property
     def missed(self) -> bool:
@@ -206,6 +210,7 @@ class StepClock:
         self.iterations = 0
         self.truncated = False
         self.sampled_at: float | None = None
+        self.chunks: list[tuple[int, float, float, int]] = []
 
     def room(self, threads: int = 1) -> float:
         """How many samples fit now on ``threads`` threads (may be < 0): the time left after
@@ -230,17 +235,19 @@ class StepClock:
                 room = min(room, self.room(k2))
         return room
 
-    def drew(self, size: int, seconds: float, threads: int = 1) -> None:
+    def drew(self, size: int, seconds: float, threads: int = 1, cpu_s: float = 0.0) -> None:
         self.history.add(size, seconds, threads)
+        self.chunks.append((size, seconds, cpu_s, threads))
         self.samples += size
         self.sampled_at = time.perf_counter()
 
     def report(self, planned: int) -> DeadlineReport:
         now = time.perf_counter()
+        tail = 0.0 if self.sampled_at is None else now - self.sampled_at
         if self.sampled_at is not None:
-            self.history.end_step(self.samples, now - self.sampled_at)
+            self.history.end_step(self.samples, tail)
         return DeadlineReport(self.deadline_s, self.samples, planned, self.iterations,
-                              self.truncated, now - self.t0)
+                              self.truncated, now - self.t0, tuple(self.chunks), tail)
 
 
 def kernel_threads(horizon: int) -> Callable[[int], int]:
@@ -276,9 +283,9 @@ def sample_within(clock: StepClock, n: int, chunks: int, draw: Callable[[int, in
             if take == 0:
                 break
             k = clock.threads_of(take)
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             parts.append(draw(take, int(rng.integers(0, 2**63))))
-            clock.drew(take, time.perf_counter() - t, k)
+            clock.drew(take, time.perf_counter() - t, k, time.process_time() - c)
             size -= take
         if size > 0:
             break
