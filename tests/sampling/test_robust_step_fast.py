@@ -7,6 +7,7 @@ fail the same comparison by orders of magnitude."""
 
 from __future__ import annotations
 
+import inspect
 import types
 from dataclasses import fields, replace
 
@@ -152,7 +153,7 @@ def _with_globals(ctrl: RobustMPPI, **names) -> None:
     module's functions (the reference controller keeps the module's)."""
     g = {**vars(robust_module), **names}
     for meth in ("step", "select_nominal"):
-        f = getattr(RobustMPPI, meth)
+        f = inspect.unwrap(getattr(RobustMPPI, meth))  # the step itself, not its decorator
         setattr(ctrl, meth, types.MethodType(types.FunctionType(f.__code__, g, f.__name__,
                                                                 f.__defaults__), ctrl))
 
