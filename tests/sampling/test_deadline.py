@@ -308,32 +308,43 @@ def test_join_buffers_join_into_one_buffer_per_field_and_reuse_it():
     assert jb.cat("v", as32, -1).dtype == np.float32
 
 
-def test_a_deadline_step_runs_blas_on_one_thread_and_restores_it(problems):
+def test_a_deadline_step_runs_blas_on_one_thread_and_pauses_the_collector(problems):
     """MPPI and the robust controllers: inside a step with a deadline numpy's BLAS has one
-    thread; without a deadline, and after the step, it has the count set before (2)."""
+    thread and Python's cyclic garbage collector is off; without a deadline, and after the
+    step, both are as set before (2 threads; the collector on, or off when it was off)."""
+    import gc
+
     from threadpoolctl import ThreadpoolController, threadpool_limits
 
     blas = ThreadpoolController().select(user_api="blas")
     if not blas.lib_controllers:
         pytest.skip("numpy's BLAS is not one threadpoolctl can limit")
     bas, _ = problems
-    seen: dict[tuple[str, float | None], set[int]] = {}
+    seen: dict[tuple[str, float | None, bool], set[tuple[int, bool]]] = {}
     for deadline_s in (None, 1.0):
         ctrls = {"mppi": MPPI(bas, GOAL, cfg(deadline_s=deadline_s)),
                  "robust": RobustMPPI(bas, GOAL, cfg(deadline_s=deadline_s),
                                       threshold=ConstantThreshold(1e4))}
         for name, ctrl in ctrls.items():
-            counts = seen.setdefault((name, deadline_s), set())
+            into: list[set[tuple[int, bool]]] = []  # where the spies record, per run
             for kernel in ("mppi", "sais"):
                 orig = getattr(ctrl.sampler, kernel)
 
-                def spy(*a, orig=orig, counts=counts, **k):
-                    counts.add(blas.info()[0]["num_threads"])
+                def spy(*a, orig=orig, into=into, **k):
+                    into[-1].add((blas.info()[0]["num_threads"], gc.isenabled()))
                     return orig(*a, **k)
 
                 setattr(ctrl.sampler, kernel, spy)
-            with threadpool_limits(2, user_api="blas"):
-                ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(0))
-                assert blas.info()[0]["num_threads"] == 2
-    assert seen == {("mppi", None): {2}, ("robust", None): {2}, ("mppi", 1.0): {1},
-                    ("robust", 1.0): {1}}
+            for collecting in (True, False):
+                into.append(seen.setdefault((name, deadline_s, collecting), set()))
+                was = gc.isenabled()
+                (gc.enable if collecting else gc.disable)()
+                try:
+                    with threadpool_limits(2, user_api="blas"):
+                        ctrl.step(ctrl.initial_state(X0), X0, np.random.default_rng(0))
+                        assert blas.info()[0]["num_threads"] == 2
+                    assert gc.isenabled() == collecting
+                finally:
+                    (gc.enable if was else gc.disable)()
+    for (_, deadline_s, collecting), state in seen.items():
+        assert state == ({(2, collecting)} if deadline_s is None else {(1, False)})

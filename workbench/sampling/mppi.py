@@ -27,8 +27,8 @@ from workbench.sampling.deadline import (
     DeadlineReport,
     JoinBuffers,
     StepClock,
+    deadline_step,
     kernel_threads,
-    one_blas_thread,
     sample_within,
 )
 from workbench.sampling.kernels.constants import FLOAT32_MAX, check_scales32
@@ -222,7 +222,7 @@ class MPPI(RecordsSamples, PlansToGoal):
     def initial_state(self, x0=None) -> MPPIState:
         return MPPIState(U=np.zeros((self.cfg.horizon, self.sp.nu)))
 
-    @one_blas_thread
+    @deadline_step
     def step(self, state: MPPIState, x, rng: np.random.Generator):
         t0 = time.perf_counter()
         xb = full_state(self.sp, x, self.consts.scene)

@@ -32,8 +32,8 @@ from workbench.sampling.deadline import (
     DeadlineReport,
     JoinBuffers,
     StepClock,
+    deadline_step,
     kernel_threads,
-    one_blas_thread,
     sample_within,
 )
 from workbench.sampling.feedback.base import FeedbackLaw, Gains
@@ -338,7 +338,7 @@ class RobustMPPI(RecordsSamples):
         F = np.array([free_energy(S_i, cfg.lam) for S_i in S.reshape(nc, M)])
         return self._choose(state, starts, F, self.threshold(starts[:, :n]))
 
-    @one_blas_thread
+    @deadline_step
     def step(self, state: RMPPIState, x, rng: np.random.Generator):
         """One control step: selection, gains, SAIS batch(es), update (``fast``: the
         vectorised step, else :meth:`step_twin`)."""
