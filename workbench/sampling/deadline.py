@@ -194,6 +194,12 @@ class JoinBuffers:
         return np.concatenate(parts, axis=ax, out=buf[:per_sample * n].reshape(shape))
 
 
+def new_arrays(name: str, parts: list[np.ndarray], axis: int = 0) -> np.ndarray:
+    """``np.concatenate(parts, axis)`` into a new array: :meth:`JoinBuffers.cat` without
+    buffers (``name`` is not used)."""
+    return np.concatenate(parts, axis=axis)
+
+
 def least_chunk(chunk: int) -> int:
     """The fewest samples a shortened chunk draws: an eighth of a chunk (at least 1)."""
     return max(1, math.ceil(chunk / 8))
@@ -247,8 +253,9 @@ class StepClock:
 
     def report(self, planned: int) -> DeadlineReport:
         now = time.perf_counter()
-        tail = 0.0 if self.sampled_at is None else now - self.sampled_at
+        tail = 0.0
         if self.sampled_at is not None:
+            tail = now - self.sampled_at
             self.history.end_step(self.samples, tail)
         return DeadlineReport(self.deadline_s, self.samples, planned, self.iterations,
                               self.truncated, now - self.t0, tuple(self.chunks), tail)

@@ -15,6 +15,7 @@ Seeing the samples: ``ctrl.record_samples(k)`` makes every later step's info car
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache, partial
 from typing import Literal
@@ -29,6 +30,7 @@ from workbench.sampling.deadline import (
     StepClock,
     deadline_step,
     kernel_threads,
+    new_arrays,
     sample_within,
 )
 from workbench.sampling.kernels.constants import FLOAT32_MAX, check_scales32
@@ -171,10 +173,9 @@ class MPPIConfig:
         return cls(sigma=tuple(np.sqrt(np.diag(S))), **kw)
 
 
-def join_mppi(parts: list[MPPIBatch], into: JoinBuffers | None = None) -> MPPIBatch:
+def join_mppi(parts: list[MPPIBatch], cat: Callable[..., np.ndarray] = new_arrays) -> MPPIBatch:
     """One batch of the samples of several (the chunks of a step with a deadline): new
-    arrays, or views of the controller's buffers ``into``."""
-    cat = (lambda name, xs, axis=0: np.concatenate(xs, axis=axis)) if into is None else into.cat
+    arrays, or views of a controller's buffers (``cat=JoinBuffers.cat``)."""
     return MPPIBatch(S=cat("S", [b.S for b in parts]),
                      crashed=cat("crashed", [b.crashed for b in parts]),
                      v=cat("v", [b.v for b in parts], -1))
@@ -241,7 +242,7 @@ class MPPI(RecordsSamples, PlansToGoal):
                     return self.sampler.mppi(xb, U, n, self.consts, seed)
 
                 got = sample_within(clock, cfg.n_samples, cfg.chunks, draw, rng,
-                                    partial(join_mppi, into=self._joined))
+                                    partial(join_mppi, cat=self._joined.cat))
                 if got is None:
                     break
                 batch = got

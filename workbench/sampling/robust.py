@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Literal
@@ -34,6 +35,7 @@ from workbench.sampling.deadline import (
     StepClock,
     deadline_step,
     kernel_threads,
+    new_arrays,
     sample_within,
 )
 from workbench.sampling.feedback.base import FeedbackLaw, Gains
@@ -170,10 +172,9 @@ class RMPPIInfo:
                          ess=self.ess_nom, activity=act)
 
 
-def join_sais(parts: list[SAISBatch], into: JoinBuffers | None = None) -> SAISBatch:
+def join_sais(parts: list[SAISBatch], cat: Callable[..., np.ndarray] = new_arrays) -> SAISBatch:
     """One SAIS batch of the samples of several (the chunks of a step with a deadline): new
-    arrays, or views of the controller's buffers ``into``."""
-    cat = (lambda name, xs, axis=0: np.concatenate(xs, axis=axis)) if into is None else into.cat
+    arrays, or views of a controller's buffers (``cat=JoinBuffers.cat``)."""
     per_sample = {f: cat(f, [getattr(b, f) for b in parts])
                   for f in ("S_nom", "S_real", "S_state_nom", "S_hat", "LR", "crashed_real",
                             "crashed_nom")}
@@ -375,7 +376,7 @@ class RobustMPPI(RecordsSamples):
                     return self.sampler.sais(xb, x_nom, U, K, n, consts, seed)
 
                 got = sample_within(clock, cfg.n_samples, cfg.chunks, draw, rng,
-                                    partial(join_sais, into=self._joined))
+                                    partial(join_sais, cat=self._joined.cat))
                 if got is None:
                     break
                 b = got

@@ -210,10 +210,11 @@ class Sampler:
         out = k32(k32.carry.pack(N if rows else 1, **carry32), n=N, consts=consts32,
                   time_in=time_in, seed=seed)
         res = out.result  # (N, fields), float64: the rechecked rows are written into it
+        fields = k32.result.unpack(res)  # views: they show the rows written below
         # a finite sum means every entry is finite (an inf or a NaN makes it inf or NaN); a sum
         # that overflows only sends the batch to the entry by entry check
         bad = None if np.isfinite(res.sum()) else ~np.isfinite(res).all(axis=1)
-        near = k32.result.unpack(res)["guard"] > 0
+        near = fields["guard"] > 0
         idx = np.flatnonzero(near if bad is None else near | bad)
         g = self.guard
         g.batches, g.samples = g.batches + 1, g.samples + N
@@ -228,7 +229,7 @@ class Sampler:
             res[idx, :o.result.shape[1]] = o.result  # the float32 layout adds "guard" last
             for mine, theirs in zip(out.lane_out, o.lane_out, strict=True):
                 mine[..., idx] = theirs
-        return {f: np.array(v) for f, v in k32.result.unpack(res).items()}, out.lane_out
+        return {f: np.array(v) for f, v in fields.items()}, out.lane_out
 
     def _rerun(self) -> None:
         self.guard.reruns += 1
